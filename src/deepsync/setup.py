@@ -1,0 +1,30 @@
+from setuptools import find_packages, setup
+
+package_name = "deepsync"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "PyYAML>=6.0",
+        "rosbags>=0.11,<0.12",
+        "mcap>=1.1",
+        "pyproj>=3.6",
+        "tqdm>=4.60",
+        "matplotlib>=3.7",
+    ],
+    zip_safe=True,
+    maintainer="DeepSync",
+    maintainer_email="dev@deepsync.invalid",
+    description="ROS-agnostic core of DeepSync: LTE envelope-detector localization.",
+    license="Apache-2.0",
+    entry_points={"console_scripts": ["deepsync = deepsync.cli:main"]},
+)
