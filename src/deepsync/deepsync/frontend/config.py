@@ -8,12 +8,14 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class FrontendConfig:
-    """The receiver chain: RF noise -> square-law diode -> video filter/amp -> ADC.
+    """The receiver chain: LNA (+ RF noise) -> square-law diode -> video filter/amp -> ADC.
 
-    Defaults describe a zero-bias Schottky detector (responsivity ~3 kV/W, noise-equivalent
+    Defaults describe a low-power LNA (30 dB, NF 6 dB: without gain ahead of it, a diode's
+    own noise buries cells received at -60 dBm), a zero-bias Schottky detector (responsivity ~3 kV/W, noise-equivalent
     power ~5 pW/sqrt(Hz) into a high-impedance video amplifier), a 4th-order 0.9 MHz
     Butterworth anti-alias/video filter, AC coupling, and a 12-bit 1.92 MS/s ADC with a
-    crystal clock. ``video_gain_db: null`` means the gain is set once, from the first 10 ms,
+    crystal clock. ``noise_temperature_k: 0`` and ``detector_nep_w_per_sqrt_hz: 0`` switch
+    the RF and detector noise off (for checks of the noiseless chain). ``video_gain_db: null`` means the gain is set once, from the first 10 ms,
     so the signal sits at ``agc_target_dbfs`` (power-up AGC; held fixed afterwards).
     """
 
@@ -31,6 +33,7 @@ class FrontendConfig:
     detector_responsivity_v_per_w: float = 3000.0
     detector_nep_w_per_sqrt_hz: float = 5e-12
     noise_figure_db: float = 6.0
+    rf_gain_db: float = 30.0
     rf_bandwidth_hz: float = 200e6
     noise_temperature_k: float = 290.0
 
@@ -40,13 +43,13 @@ class FrontendConfig:
                 raise ValueError(f"{name} must be a finite number, got {value!r}")
         positive = (
             "adc_rate_hz", "adc_full_scale_v", "video_cutoff_hz",
-            "detector_responsivity_v_per_w", "rf_bandwidth_hz", "noise_temperature_k",
+            "detector_responsivity_v_per_w", "rf_bandwidth_hz",
         )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("adc_noise_lsb", "video_highpass_hz", "detector_nep_w_per_sqrt_hz",
-                     "noise_figure_db"):
+                     "noise_figure_db", "noise_temperature_k"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 2 <= self.adc_bits <= 16:
@@ -67,8 +70,15 @@ class FrontendConfig:
             raise ValueError(
                 "clock_offset_ppm must be within +-1000 and clock_drift_ppm_per_s within +-10"
             )
+        if not 0 <= self.rf_gain_db <= 60:
+            raise ValueError(f"rf_gain_db must be within 0..60 dB, got {self.rf_gain_db!r}")
         if self.agc_target_dbfs >= 0:
             raise ValueError(f"agc_target_dbfs must be < 0 dBFS, got {self.agc_target_dbfs!r}")
+
+    @property
+    def rf_power_gain(self) -> float:
+        """Linear power gain from the antenna to the diode."""
+        return 10 ** (self.rf_gain_db / 10)
 
     @property
     def volts_per_code(self) -> float:

@@ -1,0 +1,120 @@
+"""Sync templates: what the SSS+PSS pair of each PCI looks like after the receiver chain.
+
+A cell's envelope is |s + d|^2 with s its sync code and d everything else; on average this is
+|s|^2 + E|d|^2 (the cross term has zero mean). The part that identifies the cell and carries
+its timing is |s|^2, so the template of a PCI is |s|^2 of its SSS+PSS symbols alone, through
+the same analog video filter (exact H(f)) and AC coupling as the simulated stream, sampled at
+the ADC rate with the code's first sample (SSS cyclic prefix) at t = 0. The load-dependent
+pedestal E|d|^2 is the same for every PCI and is left to the detectors to remove.
+
+Units: volts at the diode output per watt of received (antenna) power per resource element,
+through the LNA and detector, i.e. at unit
+video gain. Length: ``TEMPLATE_LENGTH`` = the 274-sample code + 2 samples of filter tail (the
+video filter delays the envelope by about one sample at 1.92 MHz).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import scipy.fft
+import scipy.signal
+
+from deepsync.frontend.config import FrontendConfig
+from deepsync.frontend.video import VideoFilter, highpass_sos
+from deepsync.lte import grid as G
+from deepsync.lte.cell import N_CELL_IDS, split_pci
+from deepsync.lte.numerology import (
+    BASE_FFT,
+    BASE_RATE_HZ,
+    SYNC_CODE_BASE_SAMPLES,
+    Numerology,
+    sync_code_start_base,
+)
+from deepsync.lte.ofdm import subcarrier_bins
+from deepsync.lte.sequences import pss, sss
+
+TEMPLATE_LENGTH = SYNC_CODE_BASE_SAMPLES + 2
+_OVERSAMPLING = 16  # template waveform rate: 16 x 1.92 MHz, far above any ADC rate used
+_SPAN_BASE = 2048  # analysis window in base samples (1.07 ms) around the code
+_WAVEFORM_RATE = _OVERSAMPLING * BASE_RATE_HZ
+
+
+def sync_code_waveform(pci: int, subframe: int, oversampling: int = _OVERSAMPLING) -> np.ndarray:
+    """Complex baseband of the SSS and PSS symbols of ``pci`` (unit power per RE), CPs included."""
+    n_id_1, n_id_2 = split_pci(pci)
+    num = Numerology.for_bandwidth(1.4, fft_size=BASE_FFT * oversampling)
+    bins = subcarrier_bins(num)[G.sync_subcarriers(num)]
+    symbols = np.zeros((2, num.fft_size), dtype=np.complex128)
+    symbols[0, bins] = sss(n_id_1, n_id_2, subframe)
+    symbols[1, bins] = pss(n_id_2)
+    waveform = scipy.fft.ifft(symbols, axis=1, norm="forward")
+    cp = num.cp_lengths[G.SSS_SYMBOL_IN_SLOT]  # both sync symbols use the short CP
+    return np.concatenate([np.concatenate([w[-cp:], w]) for w in waveform])
+
+
+class SyncTemplates:
+    """Templates of all 504 PCIs for subframes 0 and 5, for one front-end configuration."""
+
+    def __init__(self, config: FrontendConfig) -> None:
+        self.config = config
+        self.sample_rate = config.adc_rate_hz
+        self.length = int(round(TEMPLATE_LENGTH * config.adc_rate_hz / BASE_RATE_HZ))
+        self._video = VideoFilter(config)
+        self._highpass = highpass_sos(config, config.adc_rate_hz)
+
+    def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0) -> np.ndarray:
+        """ADC-rate samples of video-filtered envelopes that start at t = delay.
+
+        ``envelopes`` is (B, L) |s|^2 at ``rate_hz`` starting at t = 0; the result is
+        (B, D, length) for D delays, sampled at t = n / adc_rate. Fractional delays are
+        applied exactly, as a phase ramp on the filtered spectrum.
+        """
+        envelopes = np.atleast_2d(envelopes)
+        delays = np.atleast_1d(np.asarray(delays_s, dtype=np.float64))
+        ratio = rate_hz / self.sample_rate
+        if abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(f"ADC rate {self.sample_rate:g} Hz does not divide {rate_hz:g} Hz")
+        ratio = round(ratio)
+        n_fft = int(round(_SPAN_BASE * rate_hz / BASE_RATE_HZ))
+        lead = n_fft // 4  # room before t = 0 for negative delays and the filter's pre-ringing
+        padded = np.zeros((len(envelopes), n_fft))
+        padded[:, lead : lead + envelopes.shape[1]] = envelopes
+        frequencies = scipy.fft.rfftfreq(n_fft, 1 / rate_hz)
+        spectrum = scipy.fft.rfft(padded, axis=1) * self._video.response(frequencies)
+        shift = np.exp(-2j * np.pi * frequencies[None, :] * delays[:, None])
+        filtered = scipy.fft.irfft(spectrum[:, None, :] * shift[None], n=n_fft, axis=2)
+        sampled = filtered[:, :, lead : lead + self.length * ratio : ratio]
+        if self._highpass is not None:
+            sampled = scipy.signal.sosfilt(self._highpass, sampled, axis=2)
+        return sampled * (self.config.detector_responsivity_v_per_w * self.config.rf_power_gain)
+
+    def template(self, pci: int, subframe: int = 0, delay_samples: np.ndarray | float = 0.0) -> np.ndarray:
+        """Template(s) of one PCI; fractional ``delay_samples`` (ADC samples) shift the code."""
+        envelope = np.abs(sync_code_waveform(pci, subframe)) ** 2
+        out = self.response(envelope, _WAVEFORM_RATE, np.asarray(delay_samples) / self.sample_rate)[0]
+        return out[0] if np.ndim(delay_samples) == 0 else out
+
+    def all(self) -> np.ndarray:
+        """(504, 2, length) templates for subframes 0 and 5, cached per configuration."""
+        return _all_templates(self.config)
+
+
+@lru_cache(maxsize=4)
+def _all_templates(config: FrontendConfig) -> np.ndarray:
+    templates = SyncTemplates(config)
+    envelopes = np.array(
+        [np.abs(sync_code_waveform(pci, sf)) ** 2 for pci in range(N_CELL_IDS) for sf in (0, 5)]
+    )
+    out = np.concatenate(
+        [templates.response(batch, _WAVEFORM_RATE)[:, 0] for batch in np.array_split(envelopes, 18)]
+    )
+    out = out.reshape(N_CELL_IDS, 2, templates.length)
+    out.flags.writeable = False
+    return out
+
+
+def sync_code_offset_seconds() -> float:
+    """Time from a frame's start to its (subframe 0) sync code: the SSS symbol's CP start."""
+    return sync_code_start_base() / BASE_RATE_HZ
