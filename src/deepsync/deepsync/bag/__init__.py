@@ -1,0 +1,68 @@
+"""Bag IO for the core: rosbag2 MCAP bags (``rosbags``, ROS 2 Jazzy types), no rclpy needed.
+
+Simulated runs are recorded, and recordings replayed, through the same messages a live robot
+uses (``deepsync_msgs`` parsed from its ``.msg`` files), so a bag written here plays with
+``ros2 bag play`` and a bag recorded on a robot replays through the core stages.
+"""
+
+from .convert import (
+    ENVELOPE_FRAME_ID,
+    MAP_FRAME_ID,
+    CellTimingRecord,
+    cell_timing_array_from_msg,
+    cell_timing_array_to_msg,
+    envelope_from_msg,
+    envelope_to_msg,
+    make_header,
+    ns_to_stamp,
+    pose_to_msg,
+    position_from_pose_msg,
+    stamp_to_ns,
+)
+from .errors import BagError, BagExistsError, MsgDefsNotFoundError
+from .msgdefs import MSG_NAMES, find_msg_dir, load_typestore, msgtype, typestore
+from .reader import BagMessage, BagReader, read_envelope, read_messages
+from .topics import (
+    ENVELOPE_TOPIC,
+    RELIABLE_QOS,
+    SENSOR_DATA_QOS,
+    TOPIC_QOS,
+    TRUTH_CELL_TIMING_TOPIC,
+    TRUTH_POSE_TOPIC,
+)
+from .writer import PROVENANCE_KEY, BagWriter
+
+__all__ = [
+    "ENVELOPE_FRAME_ID",
+    "ENVELOPE_TOPIC",
+    "MAP_FRAME_ID",
+    "MSG_NAMES",
+    "PROVENANCE_KEY",
+    "RELIABLE_QOS",
+    "SENSOR_DATA_QOS",
+    "TOPIC_QOS",
+    "TRUTH_CELL_TIMING_TOPIC",
+    "TRUTH_POSE_TOPIC",
+    "BagError",
+    "BagExistsError",
+    "BagMessage",
+    "BagReader",
+    "BagWriter",
+    "CellTimingRecord",
+    "MsgDefsNotFoundError",
+    "cell_timing_array_from_msg",
+    "cell_timing_array_to_msg",
+    "envelope_from_msg",
+    "envelope_to_msg",
+    "find_msg_dir",
+    "load_typestore",
+    "make_header",
+    "msgtype",
+    "ns_to_stamp",
+    "pose_to_msg",
+    "position_from_pose_msg",
+    "read_envelope",
+    "read_messages",
+    "stamp_to_ns",
+    "typestore",
+]

@@ -1,0 +1,176 @@
+"""Core types <-> rosbags message objects: every bag conversion lives in this one module.
+
+rosbags serialises numpy arrays only in the exact dtype of the field, contiguous and
+little-endian (``int16[]`` wants ``'<i2'``), and scalar float fields as plain Python floats, so
+every builder here normalises its inputs instead of trusting the caller.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from rosbags.typesys.store import Typestore
+
+from ..frontend.chunk import EnvelopeChunk
+from .msgdefs import msgtype, typestore
+
+ENVELOPE_FRAME_ID = "envelope_adc"
+"""Frame of the ADC stream; timing results in stream sample indices carry it too."""
+MAP_FRAME_ID = "map"
+"""REP-105 local ENU frame of the ground-truth pose."""
+
+_NS_PER_S = 1_000_000_000
+_MAX_STAMP_NS = (2**31) * _NS_PER_S  # builtin_interfaces/Time.sec is int32
+
+ENVELOPE_SAMPLES = msgtype("EnvelopeSamples")
+CELL_TIMING = msgtype("CellTiming")
+CELL_TIMING_ARRAY = msgtype("CellTimingArray")
+SYNC_WINDOW = msgtype("SyncWindow")
+SYNC_WINDOW_ARRAY = msgtype("SyncWindowArray")
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+
+
+def _store(store: Typestore | None) -> Typestore:
+    return typestore() if store is None else store
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """``builtin_interfaces/Time`` -> integer nanoseconds."""
+    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
+
+
+def ns_to_stamp(stamp_ns: int, store: Typestore | None = None) -> Any:
+    """Integer nanoseconds -> ``builtin_interfaces/Time``; refuses what int32 sec can't hold."""
+    stamp_ns = int(stamp_ns)
+    if not 0 <= stamp_ns < _MAX_STAMP_NS:
+        raise ValueError(f"stamp {stamp_ns} ns is outside builtin_interfaces/Time [0, 2^31 s)")
+    time_cls = _store(store).types["builtin_interfaces/msg/Time"]
+    sec, nanosec = divmod(stamp_ns, _NS_PER_S)
+    return time_cls(sec=sec, nanosec=nanosec)
+
+
+def make_header(stamp_ns: int, frame_id: str, store: Typestore | None = None) -> Any:
+    """``std_msgs/Header`` with the given stamp (ns) and frame."""
+    header_cls = _store(store).types["std_msgs/msg/Header"]
+    return header_cls(stamp=ns_to_stamp(stamp_ns, store), frame_id=str(frame_id))
+
+
+def envelope_to_msg(
+    chunk: EnvelopeChunk, *, frame_id: str = ENVELOPE_FRAME_ID, store: Typestore | None = None
+) -> Any:
+    """:class:`EnvelopeChunk` -> ``deepsync_msgs/msg/EnvelopeSamples`` (stamp = first sample)."""
+    cls = _store(store).types[ENVELOPE_SAMPLES]
+    return cls(
+        header=make_header(chunk.stamp_ns, frame_id, store),
+        sample_rate=float(chunk.sample_rate),
+        first_sample_index=int(chunk.first_sample_index),
+        adc_bits=int(chunk.adc_bits),
+        volts_per_code=float(chunk.volts_per_code),
+        samples=np.ascontiguousarray(chunk.samples, dtype="<i2"),
+    )
+
+
+def envelope_from_msg(msg: Any) -> EnvelopeChunk:
+    """``deepsync_msgs/msg/EnvelopeSamples`` -> :class:`EnvelopeChunk` (samples copied, owned)."""
+    return EnvelopeChunk(
+        stamp_ns=stamp_to_ns(msg.header.stamp),
+        sample_rate=float(msg.sample_rate),
+        first_sample_index=int(msg.first_sample_index),
+        adc_bits=int(msg.adc_bits),
+        volts_per_code=float(msg.volts_per_code),
+        samples=np.array(msg.samples, dtype="<i2"),
+    )
+
+
+@dataclass(frozen=True)
+class CellTimingRecord:
+    """One cell's time of arrival in stream samples (ground truth or an estimate).
+
+    ``toa`` is the fractional stream sample index of the sync-code start, ``toa_std`` its 1-sigma
+    uncertainty in samples (0 for ground truth), ``estimator`` names who produced it.
+    """
+
+    pci: int
+    toa: float
+    toa_std: float
+    snr_db: float
+    estimator: str
+
+    def __post_init__(self) -> None:
+        if not 0 <= int(self.pci) <= 503:
+            raise ValueError(f"CellTimingRecord.pci {self.pci!r} must be 0..503")
+        if not math.isfinite(self.toa):
+            raise ValueError(f"CellTimingRecord.toa {self.toa!r} must be finite")
+        if not (math.isfinite(self.toa_std) and self.toa_std >= 0):
+            raise ValueError(f"CellTimingRecord.toa_std {self.toa_std!r} must be finite and >= 0")
+
+
+def cell_timing_array_to_msg(
+    stamp_ns: int,
+    records: Iterable[CellTimingRecord],
+    *,
+    frame_id: str = ENVELOPE_FRAME_ID,
+    store: Typestore | None = None,
+) -> Any:
+    """Per-cell records -> ``deepsync_msgs/msg/CellTimingArray``, every header at ``stamp_ns``."""
+    types = _store(store).types
+    cells = [
+        types[CELL_TIMING](
+            header=make_header(stamp_ns, frame_id, store),
+            pci=int(r.pci),
+            toa=float(r.toa),
+            toa_std=float(r.toa_std),
+            snr_db=float(r.snr_db),
+            estimator=str(r.estimator),
+        )
+        for r in records
+    ]
+    return types[CELL_TIMING_ARRAY](header=make_header(stamp_ns, frame_id, store), cells=cells)
+
+
+def cell_timing_array_from_msg(msg: Any) -> list[CellTimingRecord]:
+    """``deepsync_msgs/msg/CellTimingArray`` -> per-cell records (stamp: ``msg.header.stamp``)."""
+    return [
+        CellTimingRecord(
+            pci=int(c.pci),
+            toa=float(c.toa),
+            toa_std=float(c.toa_std),
+            snr_db=float(c.snr_db),
+            estimator=str(c.estimator),
+        )
+        for c in msg.cells
+    ]
+
+
+def pose_to_msg(
+    stamp_ns: int,
+    x: float,
+    y: float,
+    z: float,
+    *,
+    frame_id: str = MAP_FRAME_ID,
+    store: Typestore | None = None,
+) -> Any:
+    """Receiver position (ENU metres in ``map``) -> ``geometry_msgs/msg/PoseStamped``.
+
+    Orientation is the identity quaternion: the truth we simulate is a position only.
+    """
+    types = _store(store).types
+    for name, value in (("x", x), ("y", y), ("z", z)):
+        if not math.isfinite(value):
+            raise ValueError(f"pose {name}={value!r} must be finite")
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=float(z)),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    return types[POSE_STAMPED](header=make_header(stamp_ns, frame_id, store), pose=pose)
+
+
+def position_from_pose_msg(msg: Any) -> tuple[float, float, float]:
+    """``geometry_msgs/msg/PoseStamped`` -> (x, y, z) in metres of ``msg.header.frame_id``."""
+    p = msg.pose.position
+    return float(p.x), float(p.y), float(p.z)

@@ -1,0 +1,52 @@
+"""Topic names of DeepSync bags and the QoS each is offered with.
+
+``ros2 bag play`` republishes a topic with the QoS recorded in the bag, so the bag must say what
+a live publisher would offer: the ADC stream is sensor data (best effort, keep last), ground
+truth is reliable. Durations use RMW's "infinite" (what a Jazzy publisher reports for defaults).
+"""
+
+from __future__ import annotations
+
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+
+ENVELOPE_TOPIC = "/deepsync/envelope"
+TRUTH_POSE_TOPIC = "/deepsync/truth/pose"
+TRUTH_CELL_TIMING_TOPIC = "/deepsync/truth/cell_timing"
+
+# RMW_DURATION_INFINITE = INT64_MAX ns, as rosbag2 (Jazzy) records it.
+_INFINITE = QosTime(sec=9_223_372_036, nsec=854_775_807)
+
+
+def make_qos(*, reliable: bool, depth: int = 10) -> Qos:
+    """Keep-last, volatile, automatic-liveliness profile; reliable or best effort."""
+    return Qos(
+        history=QosHistory.KEEP_LAST,
+        depth=depth,
+        reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+        durability=QosDurability.VOLATILE,
+        deadline=_INFINITE,
+        lifespan=_INFINITE,
+        liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=_INFINITE,
+        avoid_ros_namespace_conventions=False,
+    )
+
+
+SENSOR_DATA_QOS = make_qos(reliable=False)
+"""Best effort, keep last 10, volatile: the ADC stream (late samples are useless, not retried)."""
+RELIABLE_QOS = make_qos(reliable=True)
+"""Reliable, keep last 10, volatile: ground truth and results (every message counts)."""
+
+TOPIC_QOS: dict[str, Qos] = {
+    ENVELOPE_TOPIC: SENSOR_DATA_QOS,
+    TRUTH_POSE_TOPIC: RELIABLE_QOS,
+    TRUTH_CELL_TIMING_TOPIC: RELIABLE_QOS,
+}
+"""Offered QoS of the topics we know; any other topic is written as reliable."""

@@ -1,0 +1,221 @@
+"""The colcon workspace is what a ROS 2 user's ``colcon build`` will see.
+
+Checked with Debian's colcon + colcon-ros (package discovery and build types) and catkin_pkg
+(package.xml validation), the same libraries a Jazzy install uses; ROS itself is not needed.
+"""
+
+from __future__ import annotations
+
+import configparser
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SYSTEM_PYTHON = "/usr/bin/python3"
+EXPECTED = {
+    "deepsync": ("src/deepsync", "ros.ament_python"),
+    "deepsync_msgs": ("src/deepsync_msgs", "ros.ament_cmake"),
+    "deepsync_ros": ("src/deepsync_ros", "ros.ament_python"),
+}
+PYTHON_PACKAGES = ("deepsync", "deepsync_ros")
+
+
+def _colcon_skip_reason() -> str | None:
+    if shutil.which("colcon") is None:
+        return "colcon not on PATH (apt install colcon python3-colcon-ros)"
+    probe = subprocess.run(
+        [SYSTEM_PYTHON, "-c", "import colcon_ros"],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
+    if probe.returncode != 0:
+        return "colcon-ros missing (apt install python3-colcon-ros)"
+    return None
+
+
+def _catkin_skip_reason() -> str | None:
+    if not Path(SYSTEM_PYTHON).exists():
+        return f"{SYSTEM_PYTHON} not found (Debian python3-catkin-pkg needed)"
+    probe = subprocess.run(
+        [SYSTEM_PYTHON, "-c", "import catkin_pkg.package"],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
+    if probe.returncode != 0:
+        return f"{SYSTEM_PYTHON} cannot import catkin_pkg (apt install python3-catkin-pkg)"
+    return None
+
+
+needs_colcon = pytest.mark.skipif(
+    _colcon_skip_reason() is not None, reason=_colcon_skip_reason() or ""
+)
+needs_catkin = pytest.mark.skipif(
+    _catkin_skip_reason() is not None, reason=_catkin_skip_reason() or ""
+)
+
+
+def colcon_list(tmp_path: Path, *args: str) -> dict[str, tuple[str, str]]:
+    """``colcon list`` from the repo root, isolated from user config, writing no log files."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("COLCON_")}
+    env["COLCON_HOME"] = str(tmp_path / "colcon_home")  # no user defaults / mixins
+    had_log = (REPO / "log").exists()
+    proc = subprocess.run(
+        ["colcon", "--log-base", os.devnull, "list", *args],
+        cwd=REPO,
+        env=env,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert had_log or not (REPO / "log").exists(), "colcon list wrote a log/ directory"
+    packages = {}
+    for line in proc.stdout.splitlines():
+        name, path, kind = line.split("\t")
+        packages[name] = (path, kind.strip("()"))
+    return packages
+
+
+@needs_colcon
+def test_colcon_finds_exactly_our_packages_under_src(tmp_path: Path) -> None:
+    assert colcon_list(tmp_path, "--base-paths", "src") == EXPECTED
+
+
+@needs_colcon
+def test_colcon_from_root_finds_nothing_else(tmp_path: Path) -> None:
+    """From the root (colcon's default base path) too: the root, test/, bags/, config/ and the
+    hidden .venv are not packages."""
+    found = colcon_list(tmp_path)
+    assert found == EXPECTED
+    assert all(path.startswith("src/") for path, _ in found.values())
+
+
+@needs_colcon
+def test_colcon_build_order(tmp_path: Path) -> None:
+    """``deepsync_ros`` comes after the packages it depends on."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("COLCON_")}
+    env["COLCON_HOME"] = str(tmp_path / "colcon_home")
+    proc = subprocess.run(
+        [
+            "colcon",
+            "--log-base",
+            os.devnull,
+            "list",
+            "--base-paths",
+            "src",
+            "--topological-order",
+            "--names-only",
+        ],
+        cwd=REPO,
+        env=env,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    order = proc.stdout.split()
+    assert order.index("deepsync_ros") > order.index("deepsync_msgs")
+    assert order.index("deepsync_ros") > order.index("deepsync")
+
+
+CATKIN_SCRIPT = r"""
+import json, sys
+from catkin_pkg.package import parse_package
+warnings = []
+pkg = parse_package(sys.argv[1], warnings=warnings)
+pkg.validate(warnings=warnings)
+print(json.dumps({
+    "name": pkg.name,
+    "format": pkg.package_format,
+    "build_type": pkg.get_build_type(),
+    "groups": [g.name for g in pkg.member_of_groups],
+    "exec_depends": [d.name for d in pkg.exec_depends],
+    "warnings": warnings,
+}))
+"""
+
+
+def catkin_parse(pkg_dir: Path) -> dict:
+    proc = subprocess.run(
+        [SYSTEM_PYTHON, "-c", CATKIN_SCRIPT, str(pkg_dir)],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0, f"{pkg_dir}/package.xml is invalid:\n{proc.stderr}"
+    return json.loads(proc.stdout)
+
+
+@needs_catkin
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_package_xml_validates(name: str) -> None:
+    info = catkin_parse(REPO / EXPECTED[name][0])
+    assert info["name"] == name
+    assert info["format"] == 3
+    assert info["warnings"] == [], f"catkin_pkg warnings for {name}: {info['warnings']}"
+    assert "ros." + info["build_type"] == EXPECTED[name][1]
+
+
+@needs_catkin
+def test_msgs_package_is_an_interface_package() -> None:
+    info = catkin_parse(REPO / "src" / "deepsync_msgs")
+    assert "rosidl_interface_packages" in info["groups"]
+    assert "rosidl_default_runtime" in info["exec_depends"]
+
+
+@needs_catkin
+def test_ros_package_depends_on_core_and_msgs() -> None:
+    info = catkin_parse(REPO / "src" / "deepsync_ros")
+    assert {"rclpy", "deepsync", "deepsync_msgs"} <= set(info["exec_depends"])
+
+
+@pytest.mark.parametrize("name", PYTHON_PACKAGES)
+def test_setup_cfg_installs_scripts_into_lib_pkg(name: str) -> None:
+    """``ros2 run <pkg> <node>`` looks in lib/<pkg>, not bin/."""
+    cfg = configparser.ConfigParser(interpolation=None)
+    cfg.read(REPO / "src" / name / "setup.cfg")
+    assert cfg["develop"]["script_dir"] == f"$base/lib/{name}"
+    assert cfg["install"]["install_scripts"] == f"$base/lib/{name}"
+
+
+@pytest.mark.parametrize("name", PYTHON_PACKAGES)
+def test_ament_resource_marker(name: str) -> None:
+    """ament_index registration: the marker file exists and setup.py installs it."""
+    pkg = REPO / "src" / name
+    assert (pkg / "resource" / name).is_file()
+    setup_py = (pkg / "setup.py").read_text()
+    assert "share/ament_index/resource_index/packages" in setup_py
+
+
+def test_colcon_meta_is_valid_json() -> None:
+    meta = json.loads((REPO / "colcon.meta").read_text())
+    assert isinstance(meta.get("names"), dict)
+    assert set(meta["names"]) <= set(EXPECTED)
+    assert all(isinstance(v, dict) for v in meta["names"].values())
+
+
+def test_deepsync_ros_imports_without_rclpy() -> None:
+    """The package itself must import on a machine without ROS (no module-level rclpy)."""
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]); import deepsync_ros; "
+        "assert 'rclpy' not in sys.modules, 'rclpy imported'"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(REPO / "src" / "deepsync_ros")],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0, proc.stderr
