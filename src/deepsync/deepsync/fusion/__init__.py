@@ -1,0 +1,1 @@
+"""Position fusion: geodesy, TDOA solving, covariance and tracking."""
