@@ -19,6 +19,7 @@ setup(
         "mcap>=1.1",
         "pyproj>=3.6",
         "tqdm>=4.60",
+        "threadpoolctl>=3.1",
         "matplotlib>=3.7",
     ],
     zip_safe=True,

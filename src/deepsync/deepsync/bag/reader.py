@@ -173,6 +173,17 @@ class BagReader:
         return counts
 
     @property
+    def message_count(self) -> int:
+        """Total number of messages in the bag."""
+        return self._opened().message_count
+
+    @property
+    def duration_ns(self) -> int:
+        """Log time from the first message to the last (0 for an empty bag)."""
+        reader = self._opened()
+        return reader.duration if reader.message_count else 0
+
+    @property
     def custom_data(self) -> dict[str, str]:
         """``custom_data`` of ``metadata.yaml`` (e.g. the provenance string)."""
         metadata = self._opened().storage.metadata

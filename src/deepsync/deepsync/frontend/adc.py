@@ -109,7 +109,8 @@ class AdcStage:
             offset = (first_sample + position) - block * self.noise_block
             take = min(self.noise_block - offset, count - position)
             rng = indexed_rng(self.seed, ADC_NOISE, block)
-            noise[position : position + take] = rng.standard_normal(self.noise_block)[offset : offset + take]
+            draws = rng.standard_normal(self.noise_block, dtype=np.float32)
+            noise[position : position + take] = draws[offset : offset + take]
             position += take
             block += 1
         return noise * self.config.adc_noise_lsb

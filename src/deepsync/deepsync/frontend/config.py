@@ -29,7 +29,7 @@ class FrontendConfig:
     video_filter_order: int = 4
     video_highpass_hz: float = 50.0
     video_gain_db: float | None = None
-    agc_target_dbfs: float = -15.0
+    agc_target_dbfs: float = -20.0
     detector_responsivity_v_per_w: float = 3000.0
     detector_nep_w_per_sqrt_hz: float = 5e-12
     noise_figure_db: float = 6.0

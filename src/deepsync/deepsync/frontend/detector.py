@@ -17,7 +17,8 @@ Noise:
   any input inside the square-law region, which is why envelope detectors are insensitive.
   Simulating 10-20 MHz of explicit RF noise would cost a fifth of the run time for that.
 * Noise is drawn independently per block, so its correlation across the ~10 us filter
-  memory at block edges (0.1 % of samples) is not reproduced.
+  memory at block edges (0.1 % of samples) is not reproduced; and only up to where the video
+  filter is 40 dB down, beyond which it holds ~1e-4 of the filtered noise power.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from deepsync.rng import DETECTOR_NOISE, indexed_rng
 BOLTZMANN = 1.380649e-23
 BLOCK_TICKS = 16384  # FFT span of one block (8.5 ms): a power of two times any cluster's multiplier
 GUARD_TICKS = 32  # 17 us after each block for the tapered filter's pre-ringing
+NOISE_DB = 40.0  # noise is drawn up to where the video filter is this far down
 
 
 def video_multiplier(config: FrontendConfig, video: VideoFilter) -> int:
@@ -135,6 +137,7 @@ class Detector:
         self.last_diode_power_w = 0.0
         bin_frequencies = np.arange(self.block_length // 2 + 1) * (BASE_RATE_HZ / BLOCK_TICKS)
         self.kept_bins = int(np.searchsorted(bin_frequencies, self.video.stopband_hz)) + 1
+        self.noise_bins = int(np.searchsorted(bin_frequencies, self.video.attenuation_hz(NOISE_DB))) + 1
         # antenna |x|^2 (W) -> diode output (V): LNA power gain, responsivity, video filter
         self._response = (
             config.rf_power_gain
@@ -164,7 +167,7 @@ class Detector:
         self.last_diode_power_w = antenna_power * self.config.rf_power_gain
         density = output_noise_density(self.config, self.last_diode_power_w)
         if density > 0:
-            spectrum[: self.kept_bins] += self._noise_bins(block, density)
+            spectrum[: self.noise_bins] += self._noise_bins(block, density)
         video = scipy.fft.irfft(spectrum, n=self.block_length)
         first = self.overlap_ticks * self.video_multiplier
         return video[first : first + self.block_samples]
@@ -175,7 +178,8 @@ class Detector:
         variance = responsivity**2 * density * self.video_rate  # V^2 per video sample
         scale = math.sqrt(self.block_length * variance / 2)
         rng = indexed_rng(self.seed, DETECTOR_NOISE, block)
-        draws = rng.standard_normal((2, self.kept_bins), dtype=np.float32)
+        draws = rng.standard_normal((2, self.noise_bins), dtype=np.float32)
         noise = (draws[0] + 1j * draws[1]) * scale
         noise[0] = draws[0, 0] * scale * math.sqrt(2)
-        return noise.astype(np.complex64) * (self._response / (responsivity * self.config.rf_power_gain))
+        filtered = self._response[: self.noise_bins] / (responsivity * self.config.rf_power_gain)
+        return noise.astype(np.complex64) * filtered

@@ -13,8 +13,9 @@ What is exact and what is approximated:
 * Later paths are applied per subcarrier within each symbol (a cyclic channel). This is exact
   except in the first (path excess delay) of each symbol's CP, where the true signal still
   holds the previous symbol's tail; TR 38.901 delay spreads keep that inside the 4.7 us CP.
-* Delays are held for a frame (10 ms) and path gains rotate by their Doppler symbol by symbol
-  (piecewise constant over 71 us: <= 0.05 rad at 100 Hz). A moving receiver's bulk delay
+* Delays are held for a frame (10 ms) and path gains rotate by their Doppler: per slot
+  (0.5 ms) up to 20 Hz (<= 0.03 rad from the slot's mid-time), per symbol above (71 us:
+  <= 0.05 rad at 100 Hz). A moving receiver's bulk delay
   changes by ~1 ns per frame, so frame boundaries may move by one sample when it crosses a
   sample boundary; the frame then ends one sample early or late, continuing its last symbol.
 * Carrier offsets that are not whole 15 kHz bins (100 kHz raster, oscillator error) rotate
@@ -31,11 +32,19 @@ import scipy.fft
 from deepsync.frontend.channel import ChannelProvider, Emitter, Paths
 from deepsync.frontend.plan import Cluster
 from deepsync.lte.frame import FrameGenerator
-from deepsync.lte.numerology import FRAME_SECONDS, SUBCARRIER_SPACING_HZ, Numerology
+from deepsync.lte.numerology import FRAME_SECONDS, SLOTS_PER_FRAME, SUBCARRIER_SPACING_HZ, Numerology
 from deepsync.lte.ofdm import symbol_index_map
 
 STATIC_DOPPLER_CYCLES = 1e-4  # below this many cycles per frame, gains are held constant
+SLOT_DOPPLER_CYCLES = 0.01  # below this many cycles per slot (20 Hz), gains change per slot
 ON_SAMPLE = 1e-9  # arrivals this close to a sample instant are on it (float noise, not physics)
+
+
+def _contiguous_runs(bins: np.ndarray) -> list[tuple[slice, slice]]:
+    """(FFT-bin slice, subcarrier slice) pairs covering ``bins``, which wrap and skip DC."""
+    breaks = np.flatnonzero(np.diff(bins) != 1) + 1
+    edges = np.concatenate(([0], breaks, [len(bins)]))
+    return [(slice(int(bins[a]), int(bins[b - 1]) + 1), slice(int(a), int(b))) for a, b in zip(edges[:-1], edges[1:])]
 
 
 def _first_sample(arrival: float) -> int:
@@ -85,10 +94,11 @@ class GroupRenderer:
         self.amplitudes = [np.sqrt(emitters[i].re_power_w) for i in members]
 
         offsets = self.num.subcarrier_offsets()
-        self.bins = (offsets + self.carrier_bin) % self.num.fft_size
         self.frequencies = offsets * SUBCARRIER_SPACING_HZ
+        self._bin_runs = _contiguous_runs((offsets + self.carrier_bin) % self.num.fft_size)
         self.useful_start = self.num.symbol_starts + self.num.cp_lengths
         self.symbol_times = (self.useful_start + self.num.fft_size / 2) / self.rate
+        self.slot_times = self.symbol_times.reshape(SLOTS_PER_FRAME, -1).mean(axis=1)
         self._symbols = np.zeros((len(self.useful_start), self.num.fft_size), dtype=np.complex64)
         self._index_maps: dict[int, np.ndarray] = {}
         self._steering: dict[bytes, np.ndarray] = {}
@@ -140,23 +150,26 @@ class GroupRenderer:
         return self._index_maps[shift]
 
     def _channel_response(self, paths: Paths, reference_delay: float, fraction: float) -> np.ndarray:
-        """Per-subcarrier response, shape (K,) if static over the frame, else (140, K)."""
+        """(U, K) per-subcarrier response, U = 1 (static frame), 20 (per slot) or 140 (per symbol)."""
         # femtosecond rounding: equal delays computed along different float paths stay equal
         relative, tap = np.unique(np.round(paths.delays_s - reference_delay, 15), return_inverse=True)
         key = relative.tobytes()
         if key not in self._steering:
-            self._steering[key] = np.exp(-2j * np.pi * np.outer(relative, self.frequencies))
-        steering = self._steering[key]  # (Q, K)
-        ramp = np.exp(-2j * np.pi * self.frequencies * fraction / self.rate)
-        if np.max(np.abs(paths.doppler_hz)) * FRAME_SECONDS < STATIC_DOPPLER_CYCLES:
-            taps = np.zeros(len(relative), dtype=np.complex128)
-            np.add.at(taps, tap, paths.gains)
-            return (taps @ steering) * ramp
-        rotation = np.exp(2j * np.pi * np.outer(self.symbol_times, paths.doppler_hz))  # (140, P)
-        per_path = rotation * paths.gains
-        taps = np.zeros((len(self.symbol_times), len(relative)), dtype=np.complex128)
-        np.add.at(taps.T, tap, per_path.T)
-        return (taps @ steering) * ramp
+            self._steering[key] = np.exp(-2j * np.pi * np.outer(relative, self.frequencies)).astype(np.complex64)
+        order = np.argsort(tap, kind="stable")
+        first_of_tap = np.searchsorted(tap[order], np.arange(len(relative)))
+        doppler = paths.doppler_hz[order]
+        fastest = float(np.max(np.abs(doppler)))
+        if fastest * FRAME_SECONDS < STATIC_DOPPLER_CYCLES:
+            times = np.zeros(1)
+        elif fastest * FRAME_SECONDS / SLOTS_PER_FRAME < SLOT_DOPPLER_CYCLES:
+            times = self.slot_times
+        else:
+            times = self.symbol_times
+        rotation = np.exp(2j * np.pi * np.outer(times, doppler)) * paths.gains[order]  # (U, P)
+        taps = np.add.reduceat(rotation, first_of_tap, axis=1).astype(np.complex64)  # (U, Q)
+        ramp = np.exp(-2j * np.pi * self.frequencies * fraction / self.rate).astype(np.complex64)
+        return (taps @ self._steering[key]) * ramp
 
     def render(self, k: int) -> Frame:
         """Received samples of frame k of every cell of the group, summed."""
@@ -172,12 +185,15 @@ class GroupRenderer:
         at_symbol = (whole % n + self.useful_start) % n
         symbol_phase = np.exp(2j * np.pi * ((self.carrier_bin * at_symbol) % n) / n)
 
-        content = None
+        content = np.zeros(self._symbols.shape[:1] + self.frequencies.shape, dtype=np.complex64)
         for generator, amplitude, paths in zip(self.generators, self.amplitudes, self.paths(k)):
-            response = self._channel_response(paths, reference_delay, fraction) * amplitude
-            weighted = generator.grid(k) * response.astype(np.complex64)
-            content = weighted if content is None else content + weighted
-        self._symbols[:, self.bins] = content * symbol_phase[:, None].astype(np.complex64)
+            response = self._channel_response(paths, reference_delay, fraction) * np.float32(amplitude)
+            grid = generator.grid(k)
+            per_update = grid.reshape(len(response), -1, grid.shape[1])  # rows sharing a response
+            content += (per_update * response[:, None, :]).reshape(grid.shape)
+        content *= symbol_phase[:, None].astype(np.complex64)
+        for bins, subcarriers in self._bin_runs:
+            self._symbols[:, bins] = content[:, subcarriers]
         symbols = scipy.fft.ifft(self._symbols, axis=1, norm="forward")
         samples = symbols.reshape(-1)[self._index_map(start - whole)[: stop - start]]
         if self._rotation is not None:

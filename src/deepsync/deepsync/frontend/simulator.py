@@ -28,6 +28,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from deepsync.frontend.adc import AdcStage, ReceiverClock, cubic_sample
 from deepsync.frontend.channel import ChannelProvider, Emitter
@@ -95,7 +96,10 @@ class EnvelopeSimulator:
     def analog(self, n0: int, n1: int) -> np.ndarray:
         """Diode-output volts at ADC samples n0..n1-1 (before AC coupling and gain)."""
         step = max(1, int(self.detector.block_samples * self.config.adc_rate_hz / self.detector.video_rate))
-        return np.concatenate([self._analog_piece(n, min(n + step, n1)) for n in range(n0, n1, step)])
+        # The matrix products here are small; BLAS threads would spin against the worker
+        # processes (which are the parallelism) and cost more than they save.
+        with threadpool_limits(limits=1, user_api="blas"):
+            return np.concatenate([self._analog_piece(n, min(n + step, n1)) for n in range(n0, n1, step)])
 
     def _analog_piece(self, n0: int, n1: int) -> np.ndarray:
         detector = self.detector

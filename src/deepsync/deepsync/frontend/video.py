@@ -45,11 +45,14 @@ class VideoFilter:
         taper = np.where(f <= start, 1.0, 0.5 * (1 + np.cos(np.pi * np.clip((f - start) / (edge - start), 0, 1))))
         return self.analog_response(f) * taper
 
+    def attenuation_hz(self, decibels: float) -> float:
+        """Frequency where the Butterworth is ``decibels`` down: |H|^2 = 1 / (1 + (f/fc)^(2n))."""
+        return self.cutoff_hz * (10 ** (decibels / 10) - 1) ** (1 / (2 * self.order))
+
     @property
     def stopband_hz(self) -> float:
         """Frequency above which |H| < -60 dB: what the detector keeps of |x|^2."""
-        # Butterworth: |H|^2 = 1 / (1 + (f / fc)^(2n))
-        return self.cutoff_hz * (10 ** (STOPBAND_DB / 10) - 1) ** (1 / (2 * self.order))
+        return self.attenuation_hz(STOPBAND_DB)
 
     @property
     def settle_seconds(self) -> float:

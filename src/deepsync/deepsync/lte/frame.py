@@ -34,9 +34,10 @@ _CONSTELLATIONS = np.concatenate(
         ((2 * (_RAIL >> 3 & 1) - 1) + 1j * (2 * (_RAIL & 1) - 1)) / np.sqrt(2),
         ((2 * (_RAIL >> 3 & 3) - 3) + 1j * (2 * (_RAIL & 3) - 3)) / np.sqrt(10),
         ((2 * (_RAIL >> 3) - 7) + 1j * (2 * (_RAIL & 7) - 7)) / np.sqrt(42),
+        [0],  # entry 192: an unused resource element
     ]
 ).astype(np.complex64)
-_QPSK = 0
+_UNUSED = 192
 
 
 class FrameGenerator:
@@ -55,6 +56,7 @@ class FrameGenerator:
         self._pbch = self._pbch_mask(reserved)
         self._control = self._control_mask(reserved)
         self._pdsch = ~(reserved | self._pbch | self._control) & self._data_symbols()[:, None]
+        self._modulation_cdf = np.cumsum(cell.modulation_weights)[:-1]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -113,19 +115,19 @@ class FrameGenerator:
         order = rng.random((SUBFRAMES_PER_FRAME, n_rb)).argsort(axis=1)
         scheduled = np.zeros((SUBFRAMES_PER_FRAME, n_rb), dtype=bool)
         np.put_along_axis(scheduled, order[:, :n_scheduled], True, axis=1)
-        modulation = rng.choice(3, size=(SUBFRAMES_PER_FRAME, n_rb), p=self.cell.modulation_weights)
+        modulation = np.searchsorted(self._modulation_cdf, rng.random((SUBFRAMES_PER_FRAME, n_rb)))
         control_in_use = rng.random((SYMBOLS_PER_FRAME, n_rb)) < self.cell.load
 
-        def per_re(per_subframe_rb: np.ndarray) -> np.ndarray:
-            return per_subframe_rb.repeat(SYMBOLS_PER_SUBFRAME, 0).repeat(SUBCARRIERS_PER_RB, 1)
-
-        pdsch = self._pdsch & per_re(scheduled)
-        control = self._control & control_in_use.repeat(SUBCARRIERS_PER_RB, 1)
-        constellation = np.where(pdsch, per_re(modulation.astype(np.uint8)), np.uint8(_QPSK))
-        draw = np.frombuffer(rng.bytes(pdsch.size), dtype=np.uint8).reshape(self.shape) & 63
-        symbols = _CONSTELLATIONS[constellation.astype(np.intp) * 64 + draw]
-        occupied = pdsch | control | self._pbch
-        return np.where(occupied, symbols, self._fixed)
+        # Work on the (subframe, symbol, RB, subcarrier) view so per-RB choices broadcast.
+        blocks = (SUBFRAMES_PER_FRAME, SYMBOLS_PER_SUBFRAME, n_rb, SUBCARRIERS_PER_RB)
+        pdsch = self._pdsch.reshape(blocks) & scheduled[:, None, :, None]
+        control = self._control.reshape(blocks) & control_in_use.reshape(blocks[:3])[..., None]
+        offset = (modulation.astype(np.uint8) * np.uint8(64))[:, None, :, None] * pdsch
+        index = np.frombuffer(rng.bytes(pdsch.size), dtype=np.uint8).reshape(blocks) & np.uint8(63)
+        index += offset  # QPSK (offset 0) outside the PDSCH
+        occupied = pdsch | control | self._pbch.reshape(blocks)
+        index[~occupied] = _UNUSED
+        return (_CONSTELLATIONS[index] + self._fixed.reshape(blocks)).reshape(self.shape)
 
     def fixed_grid(self) -> np.ndarray:
         """The deterministic part of every frame: PSS, SSS and CRS (read-only view)."""
