@@ -103,7 +103,7 @@ def test_failure_mid_run_leaves_no_bag(tmp_path, monkeypatch):
         (("bandwidth_mhz: 10, eirp_dbm: 60.0", "bandwidth_mhz: 12, eirp_dbm: 60.0"), "bandwidth"),
         (("timing_offset_us: 512.3", "timing_offset_us: .nan"), "timing_offset_us"),
         (("seed: 7", "seed: [7"), "invalid YAML"),
-        (("frontend: {}", "frontend: {adc_bits: 40}"), "adc_bits"),
+        (("rf_gain_db: 10.0", "rf_gain_db: 10.0, adc_bits: 40"), "adc_bits"),
     ],
 )
 def test_bad_scenarios_fail_cleanly_naming_the_field(tmp_path, capsys, mutation, message):

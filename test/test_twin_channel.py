@@ -105,11 +105,15 @@ def test_tap_structure_and_powers_los():
     assert power[0] == pytest.approx(scale * specular, rel=1e-9)
     np.testing.assert_allclose(power[1:].reshape(-1, 16).sum(axis=1), scale * scattered,
                                rtol=1e-9)
-    # the specular path carries the carrier phase of the true distance
-    d = twin.geometric_delay_s(0, 0.0) * SPEED_OF_LIGHT
+    # the specular path carries the carrier phase of the true distance (on top of the sector's
+    # fixed transmit-chain phase, the same at any time)
     carrier = twin.emitters[0].carrier_hz
-    assert np.angle(paths.gains[0] * np.exp(2j * np.pi * carrier * d / SPEED_OF_LIGHT)) == \
-        pytest.approx(0.0, abs=1e-6)
+
+    def chain_phase(t):
+        d = twin.geometric_delay_s(0, t) * SPEED_OF_LIGHT
+        return np.angle(twin.channel.paths(0, t).gains[0] * np.exp(2j * np.pi * carrier * d / SPEED_OF_LIGHT))
+
+    assert chain_phase(0.0) == pytest.approx(chain_phase(0.5), abs=1e-6)
     link = twin.channel.link_parameters(0)
     assert (link.los, link.profile) == (True, "TDL-D")
     assert link.delay_spread_s == pytest.approx(100e-9)
@@ -139,17 +143,21 @@ def test_los_state_is_drawn_with_the_los_probability():
 
 def test_sectors_share_delays_and_fading_but_not_antenna_gain():
     twin = build_twin(_scenario(bearing=30.0))  # boresight of sector 0, 120 deg off sector 1
+    phases = []
     for t in (0.0, 0.77):
         a, b = twin.channel.paths(0, t), twin.channel.paths(1, t)
         np.testing.assert_array_equal(a.delays_s, b.delays_s)
         np.testing.assert_array_equal(a.doppler_hz, b.doppler_hz)
         ratio = a.gains / b.gains
-        np.testing.assert_allclose(np.angle(ratio), 0.0, atol=1e-9)
+        # one fixed phase between the sectors' transmit chains, the same on every path and time
+        np.testing.assert_allclose(np.angle(ratio), np.angle(ratio[0]), atol=1e-9)
+        phases.append(np.angle(ratio[0]))
         # sector 1 is 120 deg off: horizontal attenuation capped at the 30 dB front-back ratio
         # and the total at 30 dB; sector 0 only loses its vertical attenuation.
         expected_db = _expected_scale_db(twin, 0, t) - _expected_scale_db(twin, 1, t)
         assert expected_db > 25.0
         np.testing.assert_allclose(20 * np.log10(np.abs(ratio)), expected_db, atol=1e-9)
+    assert phases[0] == pytest.approx(phases[1], abs=1e-9) and abs(phases[0]) > 1e-3
 
 
 def test_determinism_and_seed_dependence():

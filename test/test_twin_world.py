@@ -33,7 +33,7 @@ def test_emitters_follow_the_scenario(campus):
     assert first.re_power_w == pytest.approx(10 ** (61 / 10) / 1000 / 600)
     assert first.timing_offset_s == pytest.approx(3120.4e-6)
     assert first.frequency_offset_hz == pytest.approx(12e-9 * 2115e6)
-    assert first.cell.load == 0.8 and first.cell.bandwidth_mhz == 10.0
+    assert first.cell.load == 0.4 and first.cell.bandwidth_mhz == 10.0
     a, b = campus.emitters[:2]
     assert (a.timing_offset_s, a.frequency_offset_hz) == (b.timing_offset_s, b.frequency_offset_hz)
     assert isinstance(campus.frontend, FrontendConfig)

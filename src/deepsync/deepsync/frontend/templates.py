@@ -15,6 +15,7 @@ video filter delays the envelope by about one sample at 1.92 MHz).
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -36,22 +37,35 @@ from deepsync.lte.ofdm import subcarrier_bins
 from deepsync.lte.sequences import pss, sss
 
 TEMPLATE_LENGTH = SYNC_CODE_BASE_SAMPLES + 2
+PSS_OFFSET_BASE = SYNC_CODE_BASE_SAMPLES // 2  # the PSS symbol follows the SSS symbol (137 samples)
+PSS_TEMPLATE_LENGTH = PSS_OFFSET_BASE + 2
 _OVERSAMPLING = 16  # template waveform rate: 16 x 1.92 MHz, far above any ADC rate used
 _SPAN_BASE = 2048  # analysis window in base samples (1.07 ms) around the code
 _WAVEFORM_RATE = _OVERSAMPLING * BASE_RATE_HZ
+FRACTION_GRID = 32
+
+
+def _sync_symbols(values: list[np.ndarray], oversampling: int) -> np.ndarray:
+    """Complex baseband of consecutive sync symbols (62 values each, unit power per RE), CPs included."""
+    num = Numerology.for_bandwidth(1.4, fft_size=BASE_FFT * oversampling)
+    bins = subcarrier_bins(num)[G.sync_subcarriers(num)]
+    symbols = np.zeros((len(values), num.fft_size), dtype=np.complex128)
+    for row, value in zip(symbols, values):
+        row[bins] = value
+    waveform = scipy.fft.ifft(symbols, axis=1, norm="forward")
+    cp = num.cp_lengths[G.SSS_SYMBOL_IN_SLOT]  # both sync symbols use the short CP
+    return np.concatenate([np.concatenate([w[-cp:], w]) for w in waveform])
 
 
 def sync_code_waveform(pci: int, subframe: int, oversampling: int = _OVERSAMPLING) -> np.ndarray:
     """Complex baseband of the SSS and PSS symbols of ``pci`` (unit power per RE), CPs included."""
     n_id_1, n_id_2 = split_pci(pci)
-    num = Numerology.for_bandwidth(1.4, fft_size=BASE_FFT * oversampling)
-    bins = subcarrier_bins(num)[G.sync_subcarriers(num)]
-    symbols = np.zeros((2, num.fft_size), dtype=np.complex128)
-    symbols[0, bins] = sss(n_id_1, n_id_2, subframe)
-    symbols[1, bins] = pss(n_id_2)
-    waveform = scipy.fft.ifft(symbols, axis=1, norm="forward")
-    cp = num.cp_lengths[G.SSS_SYMBOL_IN_SLOT]  # both sync symbols use the short CP
-    return np.concatenate([np.concatenate([w[-cp:], w]) for w in waveform])
+    return _sync_symbols([sss(n_id_1, n_id_2, subframe), pss(n_id_2)], oversampling)
+
+
+def pss_waveform(n_id_2: int, oversampling: int = _OVERSAMPLING) -> np.ndarray:
+    """Complex baseband of the PSS symbol alone, CP included: the same every 5 ms."""
+    return _sync_symbols([pss(n_id_2)], oversampling)
 
 
 class SyncTemplates:
@@ -63,6 +77,7 @@ class SyncTemplates:
         self.length = int(round(TEMPLATE_LENGTH * config.adc_rate_hz / BASE_RATE_HZ))
         self._video = VideoFilter(config)
         self._highpass = highpass_sos(config, config.adc_rate_hz)
+        self._grid: dict[tuple[int, int], np.ndarray] = {}
 
     def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0) -> np.ndarray:
         """ADC-rate samples of video-filtered envelopes that start at t = delay.
@@ -99,6 +114,38 @@ class SyncTemplates:
     def all(self) -> np.ndarray:
         """(504, 2, length) templates for subframes 0 and 5, cached per configuration."""
         return _all_templates(self.config)
+
+    def shifted(self, pci: int, subframe: int, delay_samples: float) -> np.ndarray:
+        """The template with its code starting at ``delay_samples`` (any real), fast: from a
+        cached grid of 1/``FRACTION_GRID`` sample steps, so within 1/(2 x grid) sample of exact."""
+        key = (pci, subframe)
+        if key not in self._grid:
+            fractions = np.arange(FRACTION_GRID) / FRACTION_GRID
+            self._grid[key] = self.template(pci, subframe, fractions)
+        whole = math.floor(delay_samples)
+        step = int(round((delay_samples - whole) * FRACTION_GRID))
+        whole, step = whole + step // FRACTION_GRID, step % FRACTION_GRID
+        base = self._grid[key][step]
+        out = np.zeros_like(base)
+        if 0 <= whole < len(base):
+            out[whole:] = base[: len(base) - whole]
+        elif -len(base) < whole < 0:
+            out[:whole] = base[-whole:]
+        return out
+
+    def pss(self, n_id_2: int) -> np.ndarray:
+        """Template of the PSS symbol alone (its CP start at t = 0), ``PSS_TEMPLATE_LENGTH`` long."""
+        envelope = np.abs(pss_waveform(n_id_2)) ** 2
+        return self.response(envelope, _WAVEFORM_RATE)[0, 0, : self.pss_length]
+
+    @property
+    def pss_length(self) -> int:
+        return int(round(PSS_TEMPLATE_LENGTH * self.sample_rate / BASE_RATE_HZ))
+
+    @property
+    def pss_offset(self) -> int:
+        """Samples from the code start (SSS CP) to the PSS symbol's CP start."""
+        return int(round(PSS_OFFSET_BASE * self.sample_rate / BASE_RATE_HZ))
 
 
 @lru_cache(maxsize=4)

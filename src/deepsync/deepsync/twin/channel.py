@@ -29,7 +29,9 @@ Approximations (beyond those of :mod:`deepsync.twin.propagation`):
 * the first tap sits at the geometric delay even in NLOS (no excess delay of the first path,
   only weak first taps as in TDL-A's -13.4 dB);
 * scattered taps carry random phases instead of the carrier phase of their (unknown) path
-  length; only the LOS tap's phase follows exp(-j 2 pi f_c d/c);
+  length; only the LOS tap's phase follows exp(-j 2 pi f_c d/c); every path of a cell also
+  carries that sector's fixed transmit-chain phase, so co-sited sectors share their fading
+  but not their phase;
 * large-scale parameters (LOS state, shadowing, delay spread) and the fading realisation are
   drawn once per site and kept along a route: not spatially consistent (38.901 §7.6.3);
   only path loss, delays, antenna gain and LOS Doppler follow the geometry;
@@ -74,6 +76,7 @@ class Transmitter:
     height_m: float
     carrier_hz: float
     antenna: SectorAntenna
+    pci: int = -1  # names the cell's own transmit-chain phase draw
 
 
 @dataclass(frozen=True)
@@ -111,6 +114,7 @@ class _Link:
     amplitude: np.ndarray       # (P,) sqrt(tap power / N) (sqrt(P_LOS) for the specular path)
     phase: np.ndarray           # (P,) phase at t = 0 (unused for the specular path)
     doppler_hz: np.ndarray      # (P,) Doppler (overwritten per call for the specular path)
+    chain_phase: float          # the sector's own transmit-chain phase (rad)
 
 
 class StatisticalChannel:
@@ -139,7 +143,7 @@ class StatisticalChannel:
             if not (np.allclose(first.position_enu, tx.position_enu)
                     and first.height_m == tx.height_m):
                 raise ValueError(f"cells of site {tx.site!r} must share position and height")
-            links.append(self._make_link(tx, sites[tx.site]))
+            links.append(self._make_link(tx, sites[tx.site], len(links)))
         self._links: tuple[_Link, ...] = tuple(links)
 
     def _draw_site(self, tx: Transmitter) -> _SiteDraw:
@@ -158,7 +162,7 @@ class StatisticalChannel:
                                      (len(profile.delays),), N_SINUSOIDS)
         return _SiteDraw(tx, los, float(sf_db), float(ds_draw), profile, fading)
 
-    def _make_link(self, tx: Transmitter, site: _SiteDraw) -> _Link:
+    def _make_link(self, tx: Transmitter, site: _SiteDraw, index: int) -> _Link:
         profile, fading = site.profile, site.fading
         if self.settings.delay_spread_ns is not None:
             delay_spread = self.settings.delay_spread_ns * 1e-9
@@ -179,9 +183,12 @@ class StatisticalChannel:
             amplitude = np.concatenate(([np.sqrt(specular)], amplitude))
             phase = np.concatenate(([0.0], phase))
             doppler = np.concatenate(([0.0], doppler))
+        # Each sector has its own transmit chain (PA, feeder, antenna): a fixed phase of its own
+        # on every path, which sets the (stable) cross term of co-sited sectors at the receiver.
+        chain = site_rng(self._seed, tx.site, f"chain phase {tx.pci if tx.pci >= 0 else index}").uniform(0, 2 * np.pi)
         parameters = LinkParameters(tx.site, site.los, profile.name, site.shadow_fading_db,
                                     float(delay_spread), float(max_doppler))
-        return _Link(tx, parameters, has_specular, excess, amplitude, phase, doppler)
+        return _Link(tx, parameters, has_specular, excess, amplitude, phase, doppler, float(chain))
 
     def link_parameters(self, emitter_index: int) -> LinkParameters:
         """Large-scale state drawn for ``emitter_index`` (LOS, shadowing, delay spread, ...)."""
@@ -212,6 +219,6 @@ class StatisticalChannel:
             phase[0] = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT
         return Paths(
             delays_s=d3d / SPEED_OF_LIGHT + link.excess_delay_s,
-            gains=scale * link.amplitude * np.exp(1j * phase),
+            gains=scale * link.amplitude * np.exp(1j * (phase + link.chain_phase)),
             doppler_hz=doppler,
         )

@@ -112,7 +112,7 @@ def build_twin(scenario: Scenario) -> Twin:
                                   cell.eirp_dbm))
             transmitters.append(Transmitter(
                 site.name, site.position_enu, site.height_m, cell.carrier_hz,
-                SectorAntenna(cell.azimuth_deg, cell.downtilt_deg, cell.antenna),
+                SectorAntenna(cell.azimuth_deg, cell.downtilt_deg, cell.antenna), cell.pci,
             ))
     receiver = _trajectory(scenario.receiver, frame)
     channel = StatisticalChannel(transmitters, receiver, scenario.environment, scenario.channel,

@@ -1,0 +1,1 @@
+"""Cell search and classical timing: frame stacking, PCI detection, windows, fine estimators, CRLB."""

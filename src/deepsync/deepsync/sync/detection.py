@@ -1,0 +1,263 @@
+"""Cell search in the envelope domain: PSS timing, then SSS identity, with a CFAR threshold.
+
+Step 1 (timing). Blind, the PSS repeats every 5 ms, so the stacked frame is folded into
+half-frames and correlated (circularly, by FFT) with the envelope of each of the three PSS
+symbols. With a tower database (known PCIs), each candidate's whole frame template (both
+SSS+PSS codes, twice the energy of the PSS alone) is correlated instead. The correlation of a
+noise-like input is close to Gaussian; its spread is measured robustly (median absolute
+deviation) and peaks are kept above the threshold for which the chance of *any* false peak in
+the stack (all lags and templates) is ``false_alarm_rate``.
+
+Step 2 (identity). At each peak the code sits at two places in the frame, one with subframe
+0's SSS and one with subframe 5's; every PCI hypothesis is scored for both orders, by the
+normalised correlation of both code windows with that PCI's two templates, over a few lags.
+The best one is fitted (sub-sample delay, amplitude) and cancelled, and the search repeats on
+the residual, with the noise spread of the first pass: cells next to a stronger one, or at
+the same timing (sectors of a site), show up once the stronger code is gone.
+
+What the envelope can tell (see ``benchmarks/pci_confusion.py``): the PSS envelopes of
+N_ID2 = 1 and 2 (roots 29 and 34, complex conjugates) are identical, and the SSS envelopes of
+different N_ID1 correlate up to ~0.97, so identity is carried as ranked candidates with
+scores. A tower database (the PCIs plausible where the receiver is) turns them into a PCI.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.fft
+import scipy.stats
+
+from deepsync.frontend.templates import SyncTemplates
+from deepsync.lte.cell import N_CELL_IDS
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    false_alarm_rate: float = 1e-3  # chance of a false timing peak anywhere in one stack
+    max_cells: int = 12
+    refine_lags: int = 3  # +- lags scored in the identity step around the PSS peak
+    keep_candidates: int = 8  # ranked PCI candidates carried per detection
+
+    def __post_init__(self) -> None:
+        if not 0 < self.false_alarm_rate < 0.5:
+            raise ValueError(f"false_alarm_rate must be in (0, 0.5), got {self.false_alarm_rate!r}")
+        if self.max_cells < 1 or self.refine_lags < 1:
+            raise ValueError("max_cells and refine_lags must be >= 1")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    pci: int
+    score: float  # normalised correlation of both code windows with the PCI's templates
+    lag: int  # refinement of the code start relative to the PSS peak, samples
+
+
+@dataclass(frozen=True)
+class CellDetection:
+    """One cell's sync code in a stack."""
+
+    frame_offset: int  # where the subframe-0 code starts within the stack's frames (0..frame-1)
+    fraction: float  # sub-sample refinement of frame_offset from the identity step (samples)
+    pci: int | None  # the best-supported PCI among those allowed; None if nothing fits
+    candidates: tuple[Candidate, ...]  # ranked, best first
+    peak_metric: float  # PSS correlation peak in units of its noise spread (CFAR statistic)
+    snr_db: float  # code energy / residual energy in the stacked code windows
+    amplitude: float  # least-squares scale of the template (volts per unit template)
+
+    @property
+    def score_margin(self) -> float:
+        """Score of the best candidate minus the runner-up's: how sure the identity is."""
+        if len(self.candidates) < 2:
+            return math.inf
+        return self.candidates[0].score - self.candidates[1].score
+
+
+def cfar_threshold(false_alarm_rate: float, tests: int) -> float:
+    """Gaussian threshold (in sigmas) so that ``tests`` one-sided tests give one false alarm
+    with probability ``false_alarm_rate`` (independent tests: conservative for correlated lags)."""
+    return float(scipy.stats.norm.isf(false_alarm_rate / tests))
+
+
+class CellSearch:
+    """Searches stacks for cells; ``allowed_pcis`` restricts identities (tower database)."""
+
+    def __init__(self, templates: SyncTemplates, config: SearchConfig | None = None,
+                 allowed_pcis: list[int] | None = None) -> None:
+        self.templates = templates
+        self.config = config or SearchConfig()
+        self.allowed = np.arange(N_CELL_IDS) if allowed_pcis is None else np.unique(allowed_pcis)
+        if self.allowed.size == 0 or self.allowed.min() < 0 or self.allowed.max() >= N_CELL_IDS:
+            raise ValueError("allowed_pcis must be PCIs in 0..503")
+        self._pss_spectra: dict[tuple[int, int], np.ndarray] = {}
+        self._frame_cache: dict[int, np.ndarray] = {}
+
+    @cached_property
+    def _code_templates(self) -> tuple[np.ndarray, np.ndarray]:
+        """(P, L) zero-mean templates of the allowed PCIs for subframes 0 and 5."""
+        full = self.templates.all()[self.allowed]
+        centred = full - full.mean(axis=2, keepdims=True)
+        return centred[:, 0], centred[:, 1]
+
+    def _pss_spectrum(self, n_id_2: int, half: int) -> np.ndarray:
+        key = (n_id_2, half)
+        if key not in self._pss_spectra:
+            template = self.templates.pss(n_id_2)
+            template = (template - template.mean()) / np.linalg.norm(template - template.mean())
+            padded = np.zeros(half)
+            padded[: len(template)] = template
+            self._pss_spectra[key] = np.conj(scipy.fft.rfft(padded))
+        return self._pss_spectra[key]
+
+    def pss_correlation(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(3, half) circular correlation of the half-frame fold of a zero-mean stacked frame
+        with each PSS template, in units of its noise spread (lag = PSS symbol start), and the
+        spreads used (measured robustly here unless given)."""
+        half = len(centred) // 2
+        folded = centred[:half] + centred[half : 2 * half]
+        spectrum = scipy.fft.rfft(folded)
+        c = np.stack([scipy.fft.irfft(spectrum * self._pss_spectrum(u, half), n=half) for u in range(3)])
+        if spreads is None:
+            spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0)
+        return z, spreads
+
+    @property
+    def known_pcis(self) -> bool:
+        """True when identities are restricted (tower database): timing uses their full codes."""
+        return len(self.allowed) < N_CELL_IDS
+
+    def _frame_spectra(self, frame: int) -> np.ndarray:
+        """(P, frame/2+1) conjugate spectra of each allowed PCI's frame template: its zero-mean
+        subframe-0 code at 0 and subframe-5 code half a frame later, unit norm."""
+        if frame not in self._frame_cache:
+            t0, t5 = self._code_templates
+            length = t0.shape[1]
+            templates = np.zeros((len(self.allowed), frame))
+            templates[:, :length] = t0
+            templates[:, frame // 2 : frame // 2 + length] = t5
+            templates /= np.linalg.norm(templates, axis=1, keepdims=True)
+            self._frame_cache[frame] = np.conj(scipy.fft.rfft(templates, axis=1))
+        return self._frame_cache[frame]
+
+    def timing_statistic(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+        """Correlation z-scores over candidate code positions, their spreads, and the period of
+        the lag axis: blind, the three PSS correlations of the half-frame fold (lag = PSS start,
+        mod a half-frame); with known PCIs, each PCI's full frame template (lag = subframe-0
+        code start, mod a frame), which holds twice the code energy."""
+        if not self.known_pcis:
+            z, spreads = self.pss_correlation(centred, spreads)
+            return z, spreads, len(centred) // 2
+        c = scipy.fft.irfft(scipy.fft.rfft(centred)[None, :] * self._frame_spectra(len(centred)), n=len(centred), axis=1)
+        if spreads is None:
+            spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0)
+        return z, spreads, len(centred)
+
+    def search(self, stacked: np.ndarray) -> list[CellDetection]:
+        """Cells in one stacked frame (the mean of a stack's rows), strongest first.
+
+        Each found cell's code is fitted (sub-sample delay, amplitude) and cancelled before
+        the next search, so a weaker cell next to a strong one, or at the same timing, is
+        seen in the residual rather than hidden under the strong one's correlation peak.
+        """
+        if not np.all(np.isfinite(stacked)):
+            raise ValueError("stacked frame contains NaN or inf")
+        residual = stacked - stacked.mean()
+        if not np.any(residual):
+            return []  # constant input: nothing to correlate
+        z, spreads, period = self.timing_statistic(residual)
+        threshold = cfar_threshold(self.config.false_alarm_rate, z.size)
+        half = len(stacked) // 2
+        given_up = np.zeros(period, dtype=bool)  # lags whose peak could not be explained
+        detections: list[CellDetection] = []
+        while len(detections) < self.config.max_cells:
+            best = np.where(given_up, -np.inf, z.max(axis=0))
+            peak = int(np.argmax(best))
+            if best[peak] < threshold:
+                break
+            code_start = (peak - (0 if self.known_pcis else self.templates.pss_offset)) % half
+            found = self._identify(residual, code_start, float(best[peak]))
+            duplicate = any(
+                d.pci == found.pci and _circular_distance(d.frame_offset, found.frame_offset, len(stacked)) <= 2
+                for d in detections
+            )
+            if duplicate or found.amplitude <= 0:
+                given_up[(peak + np.arange(-2, 3)) % period] = True
+                continue
+            detections.append(found)
+            residual = residual - self._code(found, len(stacked))
+            z, _, _ = self.timing_statistic(residual, spreads)
+        return detections
+
+    def _code(self, detection: CellDetection, frame: int) -> np.ndarray:
+        """The fitted envelope of a detected cell's two codes over one frame (for cancellation)."""
+        out = np.zeros(frame)
+        length = self.templates.length
+        for subframe, start in ((0, detection.frame_offset), (5, detection.frame_offset + frame // 2)):
+            shape = self.templates.shifted(detection.pci, subframe, detection.fraction)
+            shape = shape - shape.mean()
+            np.add.at(out, (start + np.arange(length)) % frame, detection.amplitude * shape)
+        return out
+
+    def _windows(self, centred: np.ndarray, start: int, lags: np.ndarray, length: int) -> np.ndarray:
+        """(len(lags), length) zero-mean windows of the circular signal starting at start + lag."""
+        index = (start + lags[:, None] + np.arange(length)[None, :]) % len(centred)
+        windows = centred[index]
+        return windows - windows.mean(axis=1, keepdims=True)
+
+    def _identify(self, centred: np.ndarray, code_start: int, peak_metric: float) -> CellDetection:
+        """The PCI, subframe order and sub-sample position of the code starting near
+        ``code_start`` (mod a half-frame), scored over every allowed PCI."""
+        cfg = self.config
+        frame, half = len(centred), len(centred) // 2
+        t0, t5 = self._code_templates
+        length = t0.shape[1]
+        lags = np.arange(-cfg.refine_lags, cfg.refine_lags + 1)
+        first = self._windows(centred, code_start, lags, length)  # the code at code_start
+        second = self._windows(centred, code_start + half, lags, length)  # and half a frame on
+        energy = np.sum(first**2, axis=1) + np.sum(second**2, axis=1)  # (lags,)
+        template_energy = np.sum(t0**2, axis=1) + np.sum(t5**2, axis=1)  # (P,)
+        # order 0: subframe 0's code at code_start; order 1: subframe 5's there
+        dots = np.stack([t0 @ first.T + t5 @ second.T, t5 @ first.T + t0 @ second.T])  # (2, P, lags)
+        rho = dots / np.sqrt(template_energy[None, :, None] * energy[None, None, :])
+        order, best, lag_i = np.unravel_index(np.argmax(rho), rho.shape)
+        per_pci = rho.max(axis=(0, 2))
+        ranked = np.argsort(per_pci)[::-1][: cfg.keep_candidates]
+        candidates = tuple(
+            Candidate(int(self.allowed[i]), float(per_pci[i]), int(lags[rho[:, i].max(axis=0).argmax()]))
+            for i in ranked
+        )
+        fraction = _parabolic_peak(rho[order, best], lag_i) if 0 < lag_i < len(lags) - 1 else 0.0
+        dot = dots[order, best, lag_i]
+        amplitude = dot / template_energy[best]
+        explained = amplitude * dot
+        unexplained = energy[lag_i] - explained
+        snr_db = 10 * math.log10(explained / unexplained) if unexplained > 0 and explained > 0 else -math.inf
+        sf0_at = code_start + lags[lag_i] + (0 if order == 0 else half)
+        return CellDetection(
+            frame_offset=int(sf0_at % frame),
+            fraction=float(fraction),
+            pci=candidates[0].pci,
+            candidates=candidates,
+            peak_metric=peak_metric,
+            snr_db=snr_db,
+            amplitude=float(amplitude),
+        )
+
+
+def _parabolic_peak(values: np.ndarray, i: int) -> float:
+    """Sub-sample position of a peak at index i relative to i, from a parabola through 3 points."""
+    a, b, c = values[i - 1], values[i], values[i + 1]
+    denominator = a - 2 * b + c
+    return float(0.5 * (a - c) / denominator) if denominator < 0 else 0.0
+
+
+def _circular_distance(a: int, b: int, period: int) -> int:
+    d = abs(a - b) % period
+    return min(d, period - d)

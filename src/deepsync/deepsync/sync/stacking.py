@@ -1,0 +1,200 @@
+"""Frame stacking: cut the ADC stream into consecutive 10 ms frames and group N of them.
+
+Every cell repeats its sync codes every 10 ms, so adding N frames makes them add up N times in
+amplitude while data averages out. The stacker knows nothing of the network's frame timing: a
+"frame" is just 10 ms of stream, and a cell's code sits at its own offset inside it.
+
+The stream arrives in chunks of any size. The stacker checks what a driver or bag can get
+wrong and reports it as a :class:`StreamEvent` instead of stacking garbage:
+
+* a gap (``first_sample_index`` jumps) or samples that are not finite: the frames that would
+  span it are dropped and stacking restarts after it; stacks before it are unaffected;
+* a chunk that goes back in time (index below what was already seen): dropped;
+* a change of sample rate: everything pending is dropped and stacking restarts at the new rate;
+* clipped or all-zero frames: stacked, but the stack carries a flag.
+
+Receiver clock offset: frame f of a stack starts ``f * frame * (1 + clock_ppm)`` samples after
+frame 0, rounded; the sub-sample remainder of each row is kept in ``Stack.row_shifts`` so
+windows can be aligned exactly. ``clock_ppm`` comes from config or from the drift the cell
+search measures (``measured_drift_ppm``); a stack whose residual drift across its rows would
+exceed ``max_drift_samples`` is marked ``aligned = False``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from deepsync.frontend.chunk import EnvelopeChunk
+from deepsync.lte.numerology import FRAME_SECONDS
+
+
+@dataclass(frozen=True)
+class StackConfig:
+    n_frames: int = 10
+    clock_ppm: float = 0.0
+    max_drift_samples: float = 0.5
+    clip_fraction: float = 1e-3  # flag a stack with more clipped samples than this
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.n_frames <= 1000:
+            raise ValueError(f"n_frames must be 1..1000, got {self.n_frames!r}")
+        if not math.isfinite(self.clock_ppm) or abs(self.clock_ppm) > 1000:
+            raise ValueError(f"clock_ppm must be a finite number within +-1000, got {self.clock_ppm!r}")
+        if not self.max_drift_samples > 0:
+            raise ValueError(f"max_drift_samples must be > 0, got {self.max_drift_samples!r}")
+
+
+@dataclass(frozen=True)
+class StreamEvent:
+    """Something wrong with the input, at stream sample ``index``."""
+
+    kind: str  # "gap" | "not_finite" | "backwards" | "rate_change"
+    index: int
+    message: str
+
+
+@dataclass(frozen=True)
+class Stack:
+    """N consecutive frames of the stream, one row per frame (float, volts)."""
+
+    rows: np.ndarray  # (n_frames, frame_samples)
+    row_starts: np.ndarray  # (n_frames,) stream index of each row's first sample
+    row_shifts: np.ndarray  # (n_frames,) exact start minus row_starts (clock remainder), samples
+    sample_rate: float
+    stamp_ns: int  # receiver time of the first sample of row 0
+    aligned: bool = True
+    flags: tuple[str, ...] = field(default=())
+
+    @property
+    def n_frames(self) -> int:
+        return self.rows.shape[0]
+
+    @property
+    def frame_samples(self) -> int:
+        return self.rows.shape[1]
+
+    @property
+    def first_sample_index(self) -> int:
+        return int(self.row_starts[0])
+
+    def stacked(self) -> np.ndarray:
+        """The frames averaged: what the cell search looks at."""
+        return self.rows.mean(axis=0)
+
+
+class FrameStacker:
+    """Turns a chunked stream into :class:`Stack` objects (see the module docstring)."""
+
+    def __init__(self, config: StackConfig | None = None) -> None:
+        self.config = config or StackConfig()
+        self.clock_ppm = self.config.clock_ppm
+        self.measured_drift_ppm: float | None = None
+        self.sample_rate: float | None = None
+        self.events: list[StreamEvent] = []
+        self._expected: int | None = None  # next stream index expected
+        self._origin = (0, 0)  # (stream index, stamp ns) the stamps are counted from
+        self._buffer = np.empty(0, dtype=np.float32)
+        self._clipped = np.empty(0, dtype=bool)
+        self._buffer_start = 0
+
+    @property
+    def frame_samples(self) -> int:
+        if self.sample_rate is None:
+            raise ValueError("frame length is unknown before the first chunk")
+        return int(round(self.sample_rate * FRAME_SECONDS))
+
+    def push(self, chunk: EnvelopeChunk) -> list[Stack]:
+        """Add a chunk of ADC codes; return the stacks it completes."""
+        volts = chunk.samples.astype(np.float32) * np.float32(chunk.volts_per_code)
+        low, high = -(2 ** (chunk.adc_bits - 1)), 2 ** (chunk.adc_bits - 1) - 1
+        clipped = (chunk.samples <= low) | (chunk.samples >= high)
+        return self.push_samples(volts, chunk.first_sample_index, chunk.sample_rate, chunk.stamp_ns, clipped)
+
+    def push_samples(
+        self,
+        samples: np.ndarray,
+        first_sample_index: int,
+        sample_rate: float,
+        stamp_ns: int = 0,
+        clipped: np.ndarray | None = None,
+    ) -> list[Stack]:
+        """Add float samples from any source (ADC volts, a recorded |x|^2, ...)."""
+        samples = np.asarray(samples, dtype=np.float32)
+        clipped = np.zeros(len(samples), dtype=bool) if clipped is None else np.asarray(clipped, dtype=bool)
+        if not (math.isfinite(sample_rate) and sample_rate > 0):
+            raise ValueError(f"sample_rate must be a positive number, got {sample_rate!r}")
+        if sample_rate != self.sample_rate:
+            if self.sample_rate is not None:
+                self._event("rate_change", first_sample_index,
+                            f"sample rate changed from {self.sample_rate:g} to {sample_rate:g} Hz")
+            self.sample_rate = float(sample_rate)
+            self._restart(first_sample_index, stamp_ns)
+        elif first_sample_index < self._expected:
+            self.events.append(StreamEvent(
+                "backwards", first_sample_index,
+                f"chunk starts at sample {first_sample_index}, before {self._expected} already received; dropped",
+            ))
+            return []
+        elif first_sample_index > self._expected:
+            self._event("gap", self._expected, f"gap of {first_sample_index - self._expected} samples")
+            self._restart(first_sample_index, stamp_ns)
+        self._expected = first_sample_index + len(samples)
+
+        bad = ~np.isfinite(samples)
+        if not bad.any():
+            return self._append(samples, clipped)
+        first, last = int(np.argmax(bad)), len(bad) - 1 - int(np.argmax(bad[::-1]))
+        stacks = self._append(samples[:first], clipped[:first])
+        self._event("not_finite", first_sample_index + first,
+                    f"{int(bad.sum())} non-finite samples up to sample {first_sample_index + last}")
+        after = first_sample_index + last + 1
+        self._restart(after, stamp_ns + round((last + 1) * 1e9 / sample_rate))
+        return stacks + self._append(samples[last + 1 :], clipped[last + 1 :])
+
+    def _event(self, kind: str, index: int, what: str) -> None:
+        self.events.append(StreamEvent(
+            kind, index, f"{what} at sample {index}: {len(self._buffer)} pending samples (an unfinished "
+            "stack) dropped; stacking restarts after it",
+        ))
+
+    def _restart(self, index: int, stamp_ns: int) -> None:
+        self._buffer = np.empty(0, dtype=np.float32)
+        self._clipped = np.empty(0, dtype=bool)
+        self._buffer_start = index
+        self._origin = (index, stamp_ns)
+
+    def _stamp(self, index: int) -> int:
+        origin_index, origin_stamp = self._origin
+        return origin_stamp + round((index - origin_index) * 1e9 / self.sample_rate)
+
+    def _append(self, samples: np.ndarray, clipped: np.ndarray) -> list[Stack]:
+        self._buffer = np.concatenate([self._buffer, samples])
+        self._clipped = np.concatenate([self._clipped, clipped])
+        frame, n = self.frame_samples, self.config.n_frames
+        period = frame * (1 + self.clock_ppm * 1e-6)
+        exact = np.arange(n) * period
+        starts = np.round(exact).astype(np.int64)
+        advance = int(round(n * period))  # where the next stack's first row starts
+        residual = 0.0 if self.measured_drift_ppm is None else self.measured_drift_ppm - self.clock_ppm
+        aligned = abs(residual) * 1e-6 * frame * (n - 1) <= self.config.max_drift_samples
+        stacks = []
+        while len(self._buffer) >= starts[-1] + frame:
+            index = starts[:, None] + np.arange(frame)[None, :]
+            rows = self._buffer[index]
+            clipped_fraction = float(self._clipped[index].mean())
+            flags = []
+            if clipped_fraction > self.config.clip_fraction:
+                flags.append(f"clipped: {100 * clipped_fraction:.2f} % of samples at the ADC rails")
+            if not np.any(rows):
+                flags.append("no signal: every sample is zero")
+            if not aligned:
+                flags.append(f"misaligned: clock drift {residual:+.2f} ppm is not compensated")
+            stacks.append(Stack(rows, self._buffer_start + starts, exact - starts, self.sample_rate,
+                                self._stamp(self._buffer_start), aligned, tuple(flags)))
+            self._buffer = self._buffer[advance:]
+            self._clipped = self._clipped[advance:]
+            self._buffer_start += advance
+        return stacks
