@@ -82,6 +82,63 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _truth_phases(bag_path: Path) -> dict[int, float]:
+    """PCI -> true subframe-0 code position modulo the frame, from a bag's ground truth."""
+    phases: dict[int, float] = {}
+    with BagReader(bag_path) as bag:
+        if TRUTH_CELL_TIMING_TOPIC not in bag.topics:
+            return phases
+        for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
+            for record in cell_timing_array_from_msg(item.message):
+                phases.setdefault(record.pci, record.toa)
+    return phases
+
+
+def detect_in_bag(bag_path: Path, towers_path: Path | None, frames: int, quiet: bool = False) -> list:
+    """Run the cell-search stage over a bag; print each stack's cells (and errors vs truth)."""
+    from deepsync.bag import read_envelope
+    from deepsync.recording import recorded_frontend
+    from deepsync.sync.stacking import StackConfig
+    from deepsync.sync.stage import SyncConfig, SyncStage
+    from deepsync.sync.towers import load_tower_database
+
+    towers = None if towers_path is None else load_tower_database(towers_path)
+    stage = SyncStage(recorded_frontend(bag_path), SyncConfig(stack=StackConfig(n_frames=frames)), towers)
+    truth = _truth_phases(bag_path)
+    mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
+    print(f"cell search over {bag_path}: {frames}-frame stacks, {mode}")
+    results = []
+    for chunk in read_envelope(bag_path):
+        for result in stage.process(chunk):
+            results.append(result)
+            if quiet:
+                continue
+            t = (result.first_sample_index) / chunk.sample_rate
+            note = "" if result.aligned else " (misaligned)"
+            print(f"  stack at {t:7.3f} s{note}: {len(result.cells)} cell(s)" + "".join(f"; {f}" for f in result.flags))
+            for event in result.events:
+                print(f"    input: {event.message}")
+            for cell in result.cells:
+                d = cell.detection
+                position = cell.coarse_index + d.fraction
+                line = (f"    PCI {d.pci:3d}  code at {position:12.2f}  peak {d.peak_metric:5.1f} sigma  "
+                        f"SNR {d.snr_db:5.1f} dB  margin {d.score_margin:.3f}  runners-up "
+                        + ", ".join(str(c.pci) for c in d.candidates[1:4]))
+                if d.pci in truth:
+                    frame = round(chunk.sample_rate * 0.01)
+                    error = (position - truth[d.pci] + frame / 2) % frame - frame / 2
+                    line += f"  (truth {error:+.2f} samples)"
+                elif truth:
+                    line += "  (no such cell in the truth)"
+                print(line)
+    return results
+
+
+def _cmd_detect(args: argparse.Namespace) -> int:
+    detect_in_bag(Path(args.bag), None if args.towers is None else Path(args.towers), args.frames)
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from deepsync.recording import record_scenario
 
@@ -109,6 +166,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     sim.add_argument("--quiet", action="store_true", help="no progress bar")
     sim.set_defaults(run=_cmd_simulate)
+
+    detect = commands.add_parser("detect", help="cell search over a bag's envelope stream")
+    detect.add_argument("--bag", required=True)
+    detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
+    detect.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
+    detect.set_defaults(run=_cmd_detect)
 
     info = commands.add_parser("info", help="describe a bag")
     info.add_argument("--bag", required=True)

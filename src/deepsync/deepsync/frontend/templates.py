@@ -133,10 +133,13 @@ class SyncTemplates:
             out[:whole] = base[-whole:]
         return out
 
-    def pss(self, n_id_2: int) -> np.ndarray:
-        """Template of the PSS symbol alone (its CP start at t = 0), ``PSS_TEMPLATE_LENGTH`` long."""
+    def pss(self, n_id_2: int, delay_samples: np.ndarray | float = 0.0) -> np.ndarray:
+        """Template of the PSS symbol alone (its CP start at t = delay), ``pss_length`` long;
+        one row per delay if ``delay_samples`` is an array."""
         envelope = np.abs(pss_waveform(n_id_2)) ** 2
-        return self.response(envelope, _WAVEFORM_RATE)[0, 0, : self.pss_length]
+        out = self.response(envelope, _WAVEFORM_RATE, np.asarray(delay_samples) / self.sample_rate)[0]
+        out = out[:, : self.pss_length]
+        return out[0] if np.ndim(delay_samples) == 0 else out
 
     @property
     def pss_length(self) -> int:

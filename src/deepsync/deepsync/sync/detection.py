@@ -34,6 +34,8 @@ import scipy.stats
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.lte.cell import N_CELL_IDS
 
+PHASES = np.array([0.0, 0.5])  # sub-sample delays at which every timing template is tried
+
 
 @dataclass(frozen=True)
 class SearchConfig:
@@ -92,8 +94,7 @@ class CellSearch:
         self.allowed = np.arange(N_CELL_IDS) if allowed_pcis is None else np.unique(allowed_pcis)
         if self.allowed.size == 0 or self.allowed.min() < 0 or self.allowed.max() >= N_CELL_IDS:
             raise ValueError("allowed_pcis must be PCIs in 0..503")
-        self._pss_spectra: dict[tuple[int, int], np.ndarray] = {}
-        self._frame_cache: dict[int, np.ndarray] = {}
+        self._cache: dict[int, np.ndarray] = {}  # template spectra by correlation length
 
     @cached_property
     def _code_templates(self) -> tuple[np.ndarray, np.ndarray]:
@@ -102,62 +103,57 @@ class CellSearch:
         centred = full - full.mean(axis=2, keepdims=True)
         return centred[:, 0], centred[:, 1]
 
-    def _pss_spectrum(self, n_id_2: int, half: int) -> np.ndarray:
-        key = (n_id_2, half)
-        if key not in self._pss_spectra:
-            template = self.templates.pss(n_id_2)
-            template = (template - template.mean()) / np.linalg.norm(template - template.mean())
-            padded = np.zeros(half)
-            padded[: len(template)] = template
-            self._pss_spectra[key] = np.conj(scipy.fft.rfft(padded))
-        return self._pss_spectra[key]
-
-    def pss_correlation(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(3, half) circular correlation of the half-frame fold of a zero-mean stacked frame
-        with each PSS template, in units of its noise spread (lag = PSS symbol start), and the
-        spreads used (measured robustly here unless given)."""
-        half = len(centred) // 2
-        folded = centred[:half] + centred[half : 2 * half]
-        spectrum = scipy.fft.rfft(folded)
-        c = np.stack([scipy.fft.irfft(spectrum * self._pss_spectrum(u, half), n=half) for u in range(3)])
-        if spreads is None:
-            spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0)
-        return z, spreads
-
     @property
     def known_pcis(self) -> bool:
         """True when identities are restricted (tower database): timing uses their full codes."""
         return len(self.allowed) < N_CELL_IDS
 
+    def _pss_spectra(self, half: int) -> np.ndarray:
+        """(3 x phases, half/2+1) conjugate spectra of the unit-norm, zero-mean PSS templates."""
+        if half not in self._cache:
+            rows = []
+            for u in range(3):
+                for shape in self.templates.pss(u, PHASES):
+                    shape = (shape - shape.mean()) / np.linalg.norm(shape - shape.mean())
+                    padded = np.zeros(half)
+                    padded[: len(shape)] = shape
+                    rows.append(padded)
+            self._cache[half] = np.conj(scipy.fft.rfft(np.array(rows), axis=1))
+        return self._cache[half]
+
     def _frame_spectra(self, frame: int) -> np.ndarray:
-        """(P, frame/2+1) conjugate spectra of each allowed PCI's frame template: its zero-mean
-        subframe-0 code at 0 and subframe-5 code half a frame later, unit norm."""
-        if frame not in self._frame_cache:
-            t0, t5 = self._code_templates
-            length = t0.shape[1]
-            templates = np.zeros((len(self.allowed), frame))
-            templates[:, :length] = t0
-            templates[:, frame // 2 : frame // 2 + length] = t5
-            templates /= np.linalg.norm(templates, axis=1, keepdims=True)
-            self._frame_cache[frame] = np.conj(scipy.fft.rfft(templates, axis=1))
-        return self._frame_cache[frame]
+        """(P x phases, frame/2+1) conjugate spectra of each allowed PCI's frame template: its
+        zero-mean subframe-0 code at 0 and subframe-5 code half a frame later, unit norm."""
+        if frame not in self._cache:
+            length = self.templates.length
+            templates = np.zeros((len(self.allowed), len(PHASES), frame))
+            for i, pci in enumerate(self.allowed):
+                for subframe, start in ((0, 0), (5, frame // 2)):
+                    shapes = self.templates.template(int(pci), subframe, PHASES)
+                    templates[i, :, start : start + length] = shapes - shapes.mean(axis=1, keepdims=True)
+            templates /= np.linalg.norm(templates, axis=2, keepdims=True)
+            self._cache[frame] = np.conj(scipy.fft.rfft(templates.reshape(-1, frame), axis=1))
+        return self._cache[frame]
 
     def timing_statistic(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
         """Correlation z-scores over candidate code positions, their spreads, and the period of
-        the lag axis: blind, the three PSS correlations of the half-frame fold (lag = PSS start,
-        mod a half-frame); with known PCIs, each PCI's full frame template (lag = subframe-0
-        code start, mod a frame), which holds twice the code energy."""
-        if not self.known_pcis:
-            z, spreads = self.pss_correlation(centred, spreads)
-            return z, spreads, len(centred) // 2
-        c = scipy.fft.irfft(scipy.fft.rfft(centred)[None, :] * self._frame_spectra(len(centred)), n=len(centred), axis=1)
+        the lag axis. Blind: the three PSS templates against the half-frame fold (lag = PSS
+        start, mod a half-frame). Known PCIs: each PCI's full frame template (lag = subframe-0
+        code start, mod a frame), twice the code energy. Every template is also tried half a
+        sample later: the envelope has energy near Nyquist, and a code between two samples
+        would otherwise lose up to 3 dB of correlation."""
+        if self.known_pcis:
+            period, signal, spectra = len(centred), centred, self._frame_spectra(len(centred))
+        else:
+            period = len(centred) // 2
+            signal = centred[:period] + centred[period : 2 * period]
+            spectra = self._pss_spectra(period)
+        c = scipy.fft.irfft(scipy.fft.rfft(signal)[None, :] * spectra, n=period, axis=1)
         if spreads is None:
             spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             z = np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0)
-        return z, spreads, len(centred)
+        return z, spreads, period
 
     def search(self, stacked: np.ndarray) -> list[CellDetection]:
         """Cells in one stacked frame (the mean of a stack's rows), strongest first.
@@ -181,6 +177,7 @@ class CellSearch:
             peak = int(np.argmax(best))
             if best[peak] < threshold:
                 break
+            # (a template half a sample late peaks at the same integer lag, so the lag stands)
             code_start = (peak - (0 if self.known_pcis else self.templates.pss_offset)) % half
             found = self._identify(residual, code_start, float(best[peak]))
             duplicate = any(

@@ -1,0 +1,231 @@
+"""Frame stacking, envelope-domain cell search, windows and the sync stage."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.fft
+
+from deepsync.bag import read_envelope
+from deepsync.frontend.chunk import EnvelopeChunk
+from deepsync.frontend.config import FrontendConfig
+from deepsync.frontend.templates import SyncTemplates
+from deepsync.frontend.video import VideoFilter
+from deepsync.recording import recorded_frontend
+from deepsync.sync.detection import CellSearch, SearchConfig
+from deepsync.sync.stacking import FrameStacker, StackConfig
+from deepsync.sync.stage import SyncConfig, SyncStage
+from deepsync.sync.towers import load_tower_database, parse_tower_database
+from deepsync.sync.windows import extract_windows
+from deepsync.configio import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+FRAME = 19200
+CONFIG = FrontendConfig()
+
+
+@pytest.fixture(scope="module")
+def templates():
+    return SyncTemplates(CONFIG)
+
+
+def coloured_noise(rng, shape):
+    """Gaussian noise shaped like the detector's output (white through the video filter)."""
+    white = rng.standard_normal(shape)
+    frequencies = scipy.fft.rfftfreq(shape[-1], 1 / CONFIG.adc_rate_hz)
+    response = np.abs(VideoFilter(CONFIG).response(frequencies))
+    shaped = scipy.fft.irfft(scipy.fft.rfft(white, axis=-1) * response, n=shape[-1], axis=-1)
+    return shaped / shaped.std()
+
+
+def frame_with_codes(templates, cells, frame=FRAME):
+    """One frame holding each (pci, subframe-0 code start, amplitude) cell's two codes."""
+    out = np.zeros(frame)
+    for pci, start, amplitude in cells:
+        for subframe, at in ((0, start), (5, start + frame // 2)):
+            whole = int(np.floor(at))
+            code = templates.template(pci, subframe, at - whole)
+            out[(whole + np.arange(len(code))) % frame] += amplitude * code / np.abs(code).max()
+    return out
+
+
+def stack_rows(templates, cells, noise, n_frames, rng):
+    return frame_with_codes(templates, cells)[None, :] + noise * coloured_noise(rng, (n_frames, FRAME))
+
+
+# -- stacking -----------------------------------------------------------------------------
+
+
+def chunked(samples, sizes, first=0, rate=1.92e6):
+    out, i = [], 0
+    for size in sizes:
+        part = samples[i : i + size]
+        out.append(EnvelopeChunk(int(1e9 * (first + i) / rate), rate, first + i, 12, 1e-3, part))
+        i += size
+    return out
+
+
+def test_stacks_do_not_depend_on_chunking():
+    rng = np.random.default_rng(1)
+    codes = rng.integers(-2000, 2000, size=3 * 10 * FRAME + 777).astype(np.int16)
+    a, b = FrameStacker(), FrameStacker()
+    whole = [s for c in chunked(codes, [len(codes)]) for s in a.push(c)]
+    sizes = rng.integers(1, 50_000, size=2000)
+    sizes = sizes[np.cumsum(sizes) <= len(codes)]
+    pieces = [s for c in chunked(codes, list(sizes) + [len(codes) - int(sizes.sum())]) for s in b.push(c)]
+    assert len(whole) == len(pieces) == 3
+    for x, y in zip(whole, pieces):
+        np.testing.assert_array_equal(x.rows, y.rows)
+        assert x.first_sample_index == y.first_sample_index and x.stamp_ns == y.stamp_ns
+    np.testing.assert_allclose(whole[1].rows[0], codes[10 * FRAME : 11 * FRAME] * 1e-3, rtol=1e-6)
+    assert not a.events
+
+
+def test_gap_nan_backwards_and_rate_change_are_reported_not_stacked():
+    stacker = FrameStacker(StackConfig(n_frames=2))
+    rng = np.random.default_rng(2)
+    good = rng.standard_normal(5 * FRAME)
+    stacks = stacker.push_samples(good[: 3 * FRAME], 0, 1.92e6)
+    assert [s.first_sample_index for s in stacks] == [0]
+    # gap of 1000 samples: the half-filled second stack is dropped, stacking restarts after it
+    stacks = stacker.push_samples(good[: 2 * FRAME], 3 * FRAME + 1000, 1.92e6)
+    assert [e.kind for e in stacker.events] == ["gap"]
+    assert "gap of 1000 samples" in stacker.events[0].message
+    assert [s.first_sample_index for s in stacks] == [3 * FRAME + 1000]
+    # non-finite samples: frames spanning them are dropped
+    bad = good.copy()
+    bad[100:110] = np.nan
+    bad[200] = np.inf
+    start = 5 * FRAME + 1000
+    stacks = stacker.push_samples(bad, start, 1.92e6)
+    assert stacker.events[-1].kind == "not_finite" and stacker.events[-1].index == start + 100
+    assert all(np.all(np.isfinite(s.rows)) for s in stacks)
+    assert [s.first_sample_index for s in stacks] == [start + 201, start + 201 + 2 * FRAME]
+    # a chunk from the past is dropped
+    assert stacker.push_samples(good[:10], 0, 1.92e6) == []
+    assert stacker.events[-1].kind == "backwards"
+    # a new sample rate restarts everything with the new frame length
+    stacks = stacker.push_samples(np.ones(4 * 10000), 10 * FRAME, 1.0e6)
+    assert stacker.events[-1].kind == "rate_change"
+    assert stacks[0].frame_samples == 10000
+
+
+def test_flags_for_clipping_and_silence():
+    stacker = FrameStacker(StackConfig(n_frames=1))
+    codes = np.zeros(FRAME, dtype=np.int16)
+    (silent,) = stacker.push(EnvelopeChunk(0, 1.92e6, 0, 12, 1e-3, codes))
+    assert any("no signal" in f for f in silent.flags)
+    codes = np.random.default_rng(3).integers(-1000, 1000, FRAME).astype(np.int16)
+    codes[:100] = 2047
+    (clipped,) = stacker.push(EnvelopeChunk(0, 1.92e6, FRAME, 12, 1e-3, codes))
+    assert any("clipped: 0.52 %" in f for f in clipped.flags)
+
+
+def test_clock_offset_is_compensated_to_the_sub_sample(templates):
+    """A receiver clock 37 ppm fast: compensated rows put the code at one place, exactly."""
+    ppm, n = 37.0, 10
+    period = FRAME * (1 + ppm * 1e-6)
+    stream = np.zeros(int(period * (n + 1)))
+    for f in range(n + 1):  # one code per frame at a drifting sub-sample position
+        at = 5000.3 + f * period
+        whole = int(np.floor(at))
+        code = templates.template(120, 0, at - whole)
+        stream[whole : whole + len(code)] += code
+    (stack,) = FrameStacker(StackConfig(n_frames=n, clock_ppm=ppm)).push_samples(stream, 0, 1.92e6)
+    assert stack.aligned
+    detection = type("D", (), {"frame_offset": 5000})()
+    windows = extract_windows(stack, detection, templates.length, margin=10)
+    expected = templates.template(120, 0, 10.3)[: windows.shape[1]]
+    for row in windows:
+        np.testing.assert_allclose(row[:276], expected[:276], atol=1e-2 * np.abs(expected).max())
+    # without compensation the last frame's code has moved 7 samples: flagged misaligned
+    stacker = FrameStacker(StackConfig(n_frames=n))
+    stacker.measured_drift_ppm = ppm
+    (drifted,) = stacker.push_samples(stream, 0, 1.92e6)
+    assert not drifted.aligned and any("misaligned" in f for f in drifted.flags)
+
+
+# -- detection ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("known", [False, True])
+def test_cells_sharing_nid2_and_cells_close_in_time_are_separated(templates, known):
+    rng = np.random.default_rng(4)
+    # 301 and 121 share N_ID2 = 1; 56 sits 5 samples from 121
+    cells = [(301, 14938.4, 1.0), (121, 6680.7, 1.0), (56, 6685.6, 0.8)]
+    rows = stack_rows(templates, cells, noise=0.6, n_frames=10, rng=rng)
+    allowed = [120, 121, 122, 301, 302, 56, 57, 405, 406] if known else None
+    found = CellSearch(templates, allowed_pcis=allowed).search(rows.mean(axis=0))
+    positions = {d.pci: d.frame_offset + d.fraction for d in found}
+    if known:
+        assert sorted(positions) == [56, 121, 301]
+    for pci, start, _ in cells:
+        timing = [p for p in (d.frame_offset + d.fraction for d in found) if abs(p - start) < 1.0]
+        assert timing, f"no detection within 1 sample of {pci}'s code at {start}"
+        if pci in positions:
+            assert positions[pci] == pytest.approx(start, abs=0.5)
+    assert len(found) == 3  # and nothing else
+
+
+def test_noise_alone_gives_false_alarms_at_the_stated_rate(templates):
+    rng = np.random.default_rng(5)
+    search = CellSearch(templates, SearchConfig(false_alarm_rate=1e-2))
+    false = sum(len(search.search(coloured_noise(rng, (FRAME,)))) > 0 for _ in range(100))
+    assert false <= 4  # 1 expected at a 1 % per-stack rate
+
+
+def test_blind_identity_is_a_ranked_candidate_list(templates):
+    rng = np.random.default_rng(6)
+    rows = stack_rows(templates, [(88, 1234.0, 1.0)], noise=0.2, n_frames=20, rng=rng)
+    (found,) = CellSearch(templates).search(rows.mean(axis=0))
+    assert found.frame_offset + found.fraction == pytest.approx(1234.0, abs=0.3)
+    assert 88 in [c.pci for c in found.candidates[:3]]
+    assert found.candidates[0].score >= found.candidates[-1].score
+
+
+def test_bad_stacked_frames(templates):
+    search = CellSearch(templates)
+    with pytest.raises(ValueError, match="NaN"):
+        search.search(np.full(FRAME, np.nan))
+    assert search.search(np.full(FRAME, 3.0)) == []
+    with pytest.raises(ValueError, match="allowed_pcis"):
+        CellSearch(templates, allowed_pcis=[600])
+
+
+def test_tower_database_validation(tmp_path):
+    db = load_tower_database(REPO / "config" / "towers" / "campus.yaml")
+    assert {120, 121, 301, 56} <= set(db.pcis) and len(db.sites) == 5
+    assert db.cells_with_pci(301)[0].carrier_hz == pytest.approx(2115e6)
+    for broken, message in (
+        ({"sites": []}, "lists no sites"),
+        ({"sites": [{"name": "A", "cells": [{"pci": 999}]}]}, r"sites\[0\].cells\[0\]: PCI 999"),
+        ({"sites": [{"name": "A", "latitude_deg": 91, "cells": [{"pci": 1}]}]}, "latitude_deg"),
+        ({"sites": [{"name": "A", "cells": [{"pci": 1, "earfcn": 99999}]}]}, "99999"),
+        ({"sites": [{"name": "A", "cells": [{"pci": 1}]}, {"name": "A", "cells": [{"pci": 2}]}]}, "unique"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            parse_tower_database(broken)
+
+
+# -- the stage on the bundled recording ---------------------------------------------------
+
+
+def test_stage_on_the_campus_bag_finds_the_cells_it_can_and_no_others():
+    bag = REPO / "bags" / "campus"
+    towers = load_tower_database(REPO / "config" / "towers" / "campus.yaml")
+    stage = SyncStage(recorded_frontend(bag), SyncConfig(), towers)
+    truth = {56: 1672.06, 301: 14938.01, 120: 6680.06, 121: 6680.06}  # code phase, from the bag's truth
+    results = [r for chunk in read_envelope(bag) for r in stage.process(chunk)]
+    assert len(results) == 30
+    seen = {56: 0, 301: 0}
+    for result in results:
+        assert result.aligned and not result.events
+        for cell in result.cells:
+            assert cell.pci in truth  # never a cell of the database that is not on the air
+            error = (cell.coarse_index + cell.detection.fraction - truth[cell.pci] + FRAME / 2) % FRAME - FRAME / 2
+            assert abs(error) <= 1.0
+            assert cell.windows.shape == (10, 276 + 20)
+            if cell.pci in seen:
+                seen[cell.pci] += 1
+    assert seen[56] >= 28 and seen[301] >= 27
+    assert abs(results[-1].clock_drift_ppm) < 0.5  # the simulated receiver clock is exact
