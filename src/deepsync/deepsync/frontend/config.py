@@ -54,8 +54,8 @@ class FrontendConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 2 <= self.adc_bits <= 16:
             raise ValueError(f"adc_bits must be 2..16 (codes are int16), got {self.adc_bits!r}")
-        if not 1 <= self.video_filter_order <= 8:
-            raise ValueError(f"video_filter_order must be 1..8, got {self.video_filter_order!r}")
+        if not 0 <= self.video_filter_order <= 8:
+            raise ValueError(f"video_filter_order must be 0..8 (0: none), got {self.video_filter_order!r}")
         if self.video_cutoff_hz >= self.adc_rate_hz:
             raise ValueError(
                 f"video_cutoff_hz ({self.video_cutoff_hz:g}) must be below adc_rate_hz "

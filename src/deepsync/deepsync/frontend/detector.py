@@ -114,6 +114,9 @@ class Detector:
         config: FrontendConfig,
         seed: int,
     ) -> None:
+        if config.video_filter_order == 0:
+            raise ValueError("video_filter_order 0 (no video filter) describes recordings only: an ADC "
+                             "needs an anti-alias filter in front of it to be simulated")
         self.config = config
         self.seed = seed
         self.video = VideoFilter(config)

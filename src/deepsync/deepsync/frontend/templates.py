@@ -71,21 +71,27 @@ def pss_waveform(n_id_2: int, oversampling: int = _OVERSAMPLING) -> np.ndarray:
 class SyncTemplates:
     """Templates of all 504 PCIs for subframes 0 and 5, for one front-end configuration."""
 
-    def __init__(self, config: FrontendConfig) -> None:
+    def __init__(self, config: FrontendConfig, length: int | None = None) -> None:
+        """``length`` (ADC samples) defaults to the code plus its filter tail; longer windows
+        show what follows the code too (the filter's and the AC coupling's tails)."""
         self.config = config
         self.sample_rate = config.adc_rate_hz
-        self.length = int(round(TEMPLATE_LENGTH * config.adc_rate_hz / BASE_RATE_HZ))
+        default = int(round(TEMPLATE_LENGTH * config.adc_rate_hz / BASE_RATE_HZ))
+        self.length = default if length is None else int(length)
         self._video = VideoFilter(config)
         self._highpass = highpass_sos(config, config.adc_rate_hz)
         self._grid: dict[tuple[int, int], np.ndarray] = {}
 
-    def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0) -> np.ndarray:
+    def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0,
+                 length: int | None = None) -> np.ndarray:
         """ADC-rate samples of video-filtered envelopes that start at t = delay.
 
         ``envelopes`` is (B, L) |s|^2 at ``rate_hz`` starting at t = 0; the result is
-        (B, D, length) for D delays, sampled at t = n / adc_rate. Fractional delays are
-        applied exactly, as a phase ramp on the filtered spectrum.
+        (B, D, length) for D delays, sampled at t = n / adc_rate (length defaults to the
+        template's). Fractional delays are applied exactly, as a phase ramp on the filtered
+        spectrum.
         """
+        length = self.length if length is None else length
         envelopes = np.atleast_2d(envelopes)
         delays = np.atleast_1d(np.asarray(delays_s, dtype=np.float64))
         ratio = rate_hz / self.sample_rate
@@ -100,7 +106,7 @@ class SyncTemplates:
         spectrum = scipy.fft.rfft(padded, axis=1) * self._video.response(frequencies)
         shift = np.exp(-2j * np.pi * frequencies[None, :] * delays[:, None])
         filtered = scipy.fft.irfft(spectrum[:, None, :] * shift[None], n=n_fft, axis=2)
-        sampled = filtered[:, :, lead : lead + self.length * ratio : ratio]
+        sampled = filtered[:, :, lead : lead + length * ratio : ratio]
         if self._highpass is not None:
             sampled = scipy.signal.sosfilt(self._highpass, sampled, axis=2)
         return sampled * (self.config.detector_responsivity_v_per_w * self.config.rf_power_gain)
@@ -110,6 +116,28 @@ class SyncTemplates:
         envelope = np.abs(sync_code_waveform(pci, subframe)) ** 2
         out = self.response(envelope, _WAVEFORM_RATE, np.asarray(delay_samples) / self.sample_rate)[0]
         return out[0] if np.ndim(delay_samples) == 0 else out
+
+    def cross_terms(self, pci_a: int, pci_b: int, subframe: int, delay_a: float, delay_b: float,
+                    length: int) -> np.ndarray:
+        """(2, length) responses of 2 Re(s_a s_b*) and 2 Im(s_a s_b*), codes at the given delays.
+
+        Two codes on one carrier that overlap in time add up before the square law:
+        |x s_a + y s_b|^2 = |x|^2 |s_a|^2 + |y|^2 |s_b|^2 + Re(x y*) 2Re(s_a s_b*) - Im(x y*) 2Im(s_a s_b*).
+        With a stable relative phase (sectors of a site, a time-synchronised network) the cross
+        term survives stacking; these are its two shapes, in the templates' units.
+        """
+        over = _OVERSAMPLING
+        a, b = sync_code_waveform(pci_a, subframe), sync_code_waveform(pci_b, subframe)
+        step = int(round((delay_b - delay_a) * over))  # b's start relative to a's, waveform samples
+        first = min(0, step)
+        product = np.zeros(len(a) + abs(step), dtype=np.complex128)
+        aligned_a, aligned_b = np.zeros_like(product), np.zeros_like(product)
+        aligned_a[-first : -first + len(a)] = a
+        aligned_b[step - first : step - first + len(b)] = b
+        product = aligned_a * np.conj(aligned_b)
+        start = delay_a + first / over  # where the product array begins, ADC samples
+        envelopes = np.stack([2 * product.real, 2 * product.imag])
+        return self.response(envelopes, _WAVEFORM_RATE, start / self.sample_rate, length)[:, 0]
 
     def all(self) -> np.ndarray:
         """(504, 2, length) templates for subframes 0 and 5, cached per configuration."""

@@ -8,6 +8,14 @@ noise-like input is close to Gaussian; its spread is measured robustly (median a
 deviation) and peaks are kept above the threshold for which the chance of *any* false peak in
 the stack (all lags and templates) is ``false_alarm_rate``.
 
+Real envelopes are not as tidy as Gaussian noise: every frame-synchronised cell leaves CRS and
+PBCH structure, and cells missing from the database leave codes of their own. A peak therefore
+only counts as a new cell if it is a PCI not yet found, shows a PSS at its PSS position, and
+(with a database) is not better explained by a PCI outside it: the database limits what is
+reported, not what is believed. Found cells are fitted
+jointly (templates, pedestals and the cross terms of codes that overlap in time) and
+cancelled before the next peak is examined.
+
 Step 2 (identity). At each peak the code sits at two places in the frame, one with subframe
 0's SSS and one with subframe 5's; every PCI hypothesis is scored for both orders, by the
 normalised correlation of both code windows with that PCI's two templates, over a few lags.
@@ -40,9 +48,13 @@ PHASES = np.array([0.0, 0.5])  # sub-sample delays at which every timing templat
 @dataclass(frozen=True)
 class SearchConfig:
     false_alarm_rate: float = 1e-3  # chance of a false timing peak anywhere in one stack
-    max_cells: int = 12
+    max_cells: int = 8
     refine_lags: int = 3  # +- lags scored in the identity step around the PSS peak
     keep_candidates: int = 8  # ranked PCI candidates carried per detection
+    cancel_spread: int = 1  # whole-sample shifts of a template used to cancel a found code
+    pss_confirm: float = 0.15  # PSS z-score needed at a detection's PSS position, per unit of its own z
+    open_set_tolerance: float = 0.02  # how much better a PCI outside the database may score
+    max_examined: int = 24  # peaks examined per stack (found cells and rejected ones)
 
     def __post_init__(self) -> None:
         if not 0 < self.false_alarm_rate < 0.5:
@@ -135,6 +147,46 @@ class CellSearch:
             self._cache[frame] = np.conj(scipy.fft.rfft(templates.reshape(-1, frame), axis=1))
         return self._cache[frame]
 
+    def pss_statistic(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(3 x phases, half) PSS correlation z-scores of the half-frame fold, and their spreads."""
+        half = len(centred) // 2
+        folded = centred[:half] + centred[half : 2 * half]
+        c = scipy.fft.irfft(scipy.fft.rfft(folded)[None, :] * self._pss_spectra(half), n=half, axis=1)
+        if spreads is None:
+            spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0), spreads
+
+    def _plausible(self, residual: np.ndarray, found: CellDetection, detections: list[CellDetection],
+                   pss_spreads: np.ndarray) -> bool:
+        """Is a new detection a cell, rather than what remains of stronger ones?
+
+        It must be a PCI not found yet (a cell has one code per half-frame); its PSS must show at
+        its PSS position in the residual, as strongly as a code that strong has it (a real code
+        gives 0.25-0.6 of its whole-code z; a template lined up with other structure, often less:
+        the PSS step of the two-step search); and, when
+        the PCIs are restricted to a tower database, no PCI outside it may explain the code
+        clearly better: that would be a cell missing from the database, not one of ours.
+        """
+        if found.amplitude <= 0 or any(d.pci == found.pci for d in detections):
+            return False
+        half = len(residual) // 2
+        z, _ = self.pss_statistic(residual, pss_spreads)
+        lag = (found.frame_offset + self.templates.pss_offset + np.arange(-2, 3)) % half
+        group = [0, 1] if found.pci % 3 == 0 else [2, 3, 4, 5]  # roots 29 and 34 look alike
+        if z[np.ix_(group, lag)].max() < self.config.pss_confirm * found.peak_metric:
+            return False
+        if self.known_pcis:
+            rivals = self._open_set_search._identify(residual, found.frame_offset % half, found.peak_metric)
+            if rivals.candidates[0].score - found.candidates[0].score > self.config.open_set_tolerance:
+                return False
+        return True
+
+    @cached_property
+    def _open_set_search(self) -> CellSearch:
+        """The same search over all 504 PCIs, to check a database PCI against everyone else."""
+        return CellSearch(self.templates, self.config)
+
     def timing_statistic(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
         """Correlation z-scores over candidate code positions, their spreads, and the period of
         the lag axis. Blind: the three PSS templates against the half-frame fold (lag = PSS
@@ -142,13 +194,11 @@ class CellSearch:
         code start, mod a frame), twice the code energy. Every template is also tried half a
         sample later: the envelope has energy near Nyquist, and a code between two samples
         would otherwise lose up to 3 dB of correlation."""
-        if self.known_pcis:
-            period, signal, spectra = len(centred), centred, self._frame_spectra(len(centred))
-        else:
-            period = len(centred) // 2
-            signal = centred[:period] + centred[period : 2 * period]
-            spectra = self._pss_spectra(period)
-        c = scipy.fft.irfft(scipy.fft.rfft(signal)[None, :] * spectra, n=period, axis=1)
+        if not self.known_pcis:
+            z, spreads = self.pss_statistic(centred, spreads)
+            return z, spreads, len(centred) // 2
+        period = len(centred)
+        c = scipy.fft.irfft(scipy.fft.rfft(centred)[None, :] * self._frame_spectra(period), n=period, axis=1)
         if spreads is None:
             spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -164,15 +214,19 @@ class CellSearch:
         """
         if not np.all(np.isfinite(stacked)):
             raise ValueError("stacked frame contains NaN or inf")
-        residual = stacked - stacked.mean()
-        if not np.any(residual):
+        centred = stacked - stacked.mean()
+        if not np.any(centred):
             return []  # constant input: nothing to correlate
+        residual = centred
         z, spreads, period = self.timing_statistic(residual)
+        pss_spreads = spreads if not self.known_pcis else self.pss_statistic(centred)[1]
         threshold = cfar_threshold(self.config.false_alarm_rate, z.size)
         half = len(stacked) // 2
         given_up = np.zeros(period, dtype=bool)  # lags whose peak could not be explained
         detections: list[CellDetection] = []
-        while len(detections) < self.config.max_cells:
+        for _ in range(self.config.max_examined):
+            if len(detections) >= self.config.max_cells:
+                break
             best = np.where(given_up, -np.inf, z.max(axis=0))
             peak = int(np.argmax(best))
             if best[peak] < threshold:
@@ -180,27 +234,63 @@ class CellSearch:
             # (a template half a sample late peaks at the same integer lag, so the lag stands)
             code_start = (peak - (0 if self.known_pcis else self.templates.pss_offset)) % half
             found = self._identify(residual, code_start, float(best[peak]))
-            duplicate = any(
-                d.pci == found.pci and _circular_distance(d.frame_offset, found.frame_offset, len(stacked)) <= 2
-                for d in detections
-            )
-            if duplicate or found.amplitude <= 0:
+            if not self._plausible(residual, found, detections, pss_spreads):
                 given_up[(peak + np.arange(-2, 3)) % period] = True
                 continue
             detections.append(found)
-            residual = residual - self._code(found, len(stacked))
+            residual = centred - self._fit(centred, detections)
             z, _, _ = self.timing_statistic(residual, spreads)
         return detections
 
-    def _code(self, detection: CellDetection, frame: int) -> np.ndarray:
-        """The fitted envelope of a detected cell's two codes over one frame (for cancellation)."""
-        out = np.zeros(frame)
-        length = self.templates.length
-        for subframe, start in ((0, detection.frame_offset), (5, detection.frame_offset + frame // 2)):
-            shape = self.templates.shifted(detection.pci, subframe, detection.fraction)
-            shape = shape - shape.mean()
-            np.add.at(out, (start + np.arange(length)) % frame, detection.amplitude * shape)
-        return out
+    def _fit(self, centred: np.ndarray, detections: list[CellDetection]) -> np.ndarray:
+        """Joint least-squares model of every detected cell's codes, for cancelling them.
+
+        Per cell: its template at the fitted delay and a few whole-sample shifts of it
+        (multipath and filter mismatch smear a real code over a few samples), with one
+        amplitude for both of its codes, plus a level under each code (the load-dependent
+        pedestal). Per pair of codes that overlap in time: the two shapes of their square-law
+        cross term (``SyncTemplates.cross_terms``), which a stable relative phase (sectors of
+        a site, a synchronised network) keeps in every frame. What remains of strong cells
+        then does not pass for more cells next to them.
+        """
+        frame, half, length = len(centred), len(centred) // 2, self.templates.length
+        spread = self.config.cancel_spread
+        columns: list[np.ndarray] = []
+
+        def place(vector: np.ndarray, shape: np.ndarray, start: int) -> None:
+            np.add.at(vector, (start + np.arange(len(shape))) % frame, shape)
+
+        for d in detections:
+            padded = {sf: np.pad(self.templates.shifted(d.pci, sf, d.fraction), (spread, spread)) for sf in (0, 5)}
+            for shift in range(-spread, spread + 1):
+                column = np.zeros(frame)
+                for sf, start in ((0, d.frame_offset), (5, d.frame_offset + half)):
+                    place(column, np.roll(padded[sf], shift), start - spread)
+                columns.append(column)
+            for start in (d.frame_offset, d.frame_offset + half):
+                column = np.zeros(frame)
+                place(column, np.ones(length + 2 * spread), start - spread)
+                columns.append(column)
+        for i, a in enumerate(detections):
+            for b in detections[i + 1 :]:
+                gap = (b.frame_offset + b.fraction - a.frame_offset - a.fraction + half) % frame - half
+                if abs(gap) >= length:
+                    continue  # codes apart in time do not mix (and the other subframe's are a half-frame off)
+                origin = a.frame_offset + min(0, math.floor(gap)) - spread
+                span = length + abs(math.floor(gap)) + 2 * spread + 1
+                pair = [np.zeros(frame), np.zeros(frame)]
+                for sf, start in ((0, origin), (5, origin + half)):
+                    delay_a = a.frame_offset + a.fraction - origin
+                    shapes = self.templates.cross_terms(a.pci, b.pci, sf, delay_a, delay_a + gap, span)
+                    for column, shape in zip(pair, shapes):
+                        place(column, shape, start)
+                columns.extend(pair)
+        basis = np.column_stack(columns)
+        rows = np.flatnonzero(np.any(basis != 0, axis=1))
+        coefficients, *_ = np.linalg.lstsq(basis[rows], centred[rows], rcond=None)
+        fitted = np.zeros(frame)
+        fitted[rows] = basis[rows] @ coefficients
+        return fitted
 
     def _windows(self, centred: np.ndarray, start: int, lags: np.ndarray, length: int) -> np.ndarray:
         """(len(lags), length) zero-mean windows of the circular signal starting at start + lag."""

@@ -15,9 +15,12 @@ wrong and reports it as a :class:`StreamEvent` instead of stacking garbage:
 
 Receiver clock offset: frame f of a stack starts ``f * frame * (1 + clock_ppm)`` samples after
 frame 0, rounded; the sub-sample remainder of each row is kept in ``Stack.row_shifts`` so
-windows can be aligned exactly. ``clock_ppm`` comes from config or from the drift the cell
-search measures (``measured_drift_ppm``); a stack whose residual drift across its rows would
-exceed ``max_drift_samples`` is marked ``aligned = False``.
+windows can be aligned exactly. The clock needs no cell to be known: everything deterministic
+in the envelope (every cell's sync codes and CRS, the symbol power profile) repeats each frame
+and moves only with the receiver clock, so each stack measures its own residual drift by
+cross-correlating the mean of its first and second halves of frames. With ``track_clock`` the
+smoothed measurement becomes the compensation for the next stacks; a stack whose residual
+drift across its rows exceeds ``max_drift_samples`` is marked ``aligned = False``.
 """
 
 from __future__ import annotations
@@ -26,15 +29,20 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.fft
 
 from deepsync.frontend.chunk import EnvelopeChunk
 from deepsync.lte.numerology import FRAME_SECONDS
+
+MAX_CLOCK_PPM = 200.0  # a receiver crystal further off than this is not believed
+DRIFT_SMOOTHING = 0.3  # weight of each stack's drift measurement in the running estimate
 
 
 @dataclass(frozen=True)
 class StackConfig:
     n_frames: int = 10
-    clock_ppm: float = 0.0
+    clock_ppm: float = 0.0  # initial receiver clock error, compensated
+    track_clock: bool = True  # follow the measured drift
     max_drift_samples: float = 0.5
     clip_fraction: float = 1e-3  # flag a stack with more clipped samples than this
 
@@ -67,6 +75,7 @@ class Stack:
     stamp_ns: int  # receiver time of the first sample of row 0
     aligned: bool = True
     flags: tuple[str, ...] = field(default=())
+    drift_ppm: float | None = None  # receiver clock error measured on this stack (None: too weak)
 
     @property
     def n_frames(self) -> int:
@@ -91,7 +100,7 @@ class FrameStacker:
     def __init__(self, config: StackConfig | None = None) -> None:
         self.config = config or StackConfig()
         self.clock_ppm = self.config.clock_ppm
-        self.measured_drift_ppm: float | None = None
+        self.measured_drift_ppm: float | None = None  # smoothed over stacks
         self.sample_rate: float | None = None
         self.events: list[StreamEvent] = []
         self._expected: int | None = None  # next stream index expected
@@ -174,27 +183,60 @@ class FrameStacker:
         self._buffer = np.concatenate([self._buffer, samples])
         self._clipped = np.concatenate([self._clipped, clipped])
         frame, n = self.frame_samples, self.config.n_frames
-        period = frame * (1 + self.clock_ppm * 1e-6)
-        exact = np.arange(n) * period
-        starts = np.round(exact).astype(np.int64)
-        advance = int(round(n * period))  # where the next stack's first row starts
-        residual = 0.0 if self.measured_drift_ppm is None else self.measured_drift_ppm - self.clock_ppm
-        aligned = abs(residual) * 1e-6 * frame * (n - 1) <= self.config.max_drift_samples
         stacks = []
-        while len(self._buffer) >= starts[-1] + frame:
+        while True:
+            period = frame * (1 + self.clock_ppm * 1e-6)
+            exact = np.arange(n) * period
+            starts = np.round(exact).astype(np.int64)
+            if len(self._buffer) < starts[-1] + frame:
+                return stacks
             index = starts[:, None] + np.arange(frame)[None, :]
             rows = self._buffer[index]
-            clipped_fraction = float(self._clipped[index].mean())
             flags = []
+            clipped_fraction = float(self._clipped[index].mean())
             if clipped_fraction > self.config.clip_fraction:
                 flags.append(f"clipped: {100 * clipped_fraction:.2f} % of samples at the ADC rails")
             if not np.any(rows):
                 flags.append("no signal: every sample is zero")
+            residual = measure_drift(rows)
+            drift = None if residual is None else self.clock_ppm + residual
+            aligned = residual is None or abs(residual) * 1e-6 * frame * (n - 1) <= self.config.max_drift_samples
             if not aligned:
-                flags.append(f"misaligned: clock drift {residual:+.2f} ppm is not compensated")
+                flags.append(f"misaligned: {residual:+.1f} ppm of clock drift was not compensated")
             stacks.append(Stack(rows, self._buffer_start + starts, exact - starts, self.sample_rate,
-                                self._stamp(self._buffer_start), aligned, tuple(flags)))
+                                self._stamp(self._buffer_start), aligned, tuple(flags), drift))
+            advance = int(round(n * period))  # where the next stack's first row starts
             self._buffer = self._buffer[advance:]
             self._clipped = self._clipped[advance:]
             self._buffer_start += advance
-        return stacks
+            if drift is not None:
+                previous = self.measured_drift_ppm
+                self.measured_drift_ppm = drift if previous is None else previous + DRIFT_SMOOTHING * (drift - previous)
+                if self.config.track_clock:
+                    self.clock_ppm = self.measured_drift_ppm
+
+
+def measure_drift(rows: np.ndarray, max_ppm: float = MAX_CLOCK_PPM, min_z: float = 5.0) -> float | None:
+    """Residual receiver clock drift (ppm) in a stack's rows, or None if it cannot be told.
+
+    The mean of the second half of the frames is the first half's shifted by (n/2 frames x
+    drift): the peak of their circular cross-correlation, refined by a parabola, gives it. The
+    peak must stand ``min_z`` robust sigmas out of the correlation, or there is nothing
+    deterministic enough in the stream to time it by.
+    """
+    n, frame = rows.shape
+    if n < 2:
+        return None
+    first, second = rows[: n // 2].mean(axis=0), rows[n // 2 : 2 * (n // 2)].mean(axis=0)
+    first, second = first - first.mean(), second - second.mean()
+    c = scipy.fft.irfft(scipy.fft.rfft(second) * np.conj(scipy.fft.rfft(first)), n=frame)
+    reach = int(np.ceil(max_ppm * 1e-6 * frame * (n // 2))) + 1
+    lags = np.arange(-reach, reach + 1)
+    lag = int(lags[np.argmax(c[lags % frame])])
+    spread = 1.4826 * np.median(np.abs(c - np.median(c)))
+    if spread <= 0 or (c[lag % frame] - np.median(c)) / spread < min_z:
+        return None
+    y0, y1, y2 = c[(lag - 1) % frame], c[lag % frame], c[(lag + 1) % frame]
+    curvature = y0 - 2 * y1 + y2
+    fraction = 0.5 * (y0 - y2) / curvature if curvature < 0 else 0.0
+    return (lag + fraction) / ((n // 2) * frame) * 1e6

@@ -5,10 +5,10 @@ and what bag replay calls for every recorded one. Bad input never raises here: i
 as ``SyncResult.events`` (gaps, non-finite samples, rate changes) or ``flags`` (clipping,
 silence, misalignment), next to whatever could still be detected.
 
-Clock drift: a cell's code moves by N frames x (1 + receiver clock error) between stacks.
-The stage measures that from cells seen in consecutive stacks (median over cells, smoothed)
-and, with ``track_clock``, lets the stacker compensate it, so stacks stay aligned; until the
-estimate is in, a stack whose drift would smear the code is flagged instead.
+The receiver clock is measured and compensated by the stacker (see ``sync.stacking``). A cell
+is reported once it has been found in ``confirm_stacks`` stacks in a row where its code should
+be (real cells persist; the envelope's other structure rarely lines up with one PCI for long);
+the unconfirmed ones are in ``SyncResult.tentative``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from deepsync.sync.stacking import FrameStacker, Stack, StackConfig, StreamEvent
 from deepsync.sync.towers import TowerDatabase
 from deepsync.sync.windows import CellWindows, extract_windows
 
-DRIFT_SMOOTHING = 0.3  # weight of each new stack-to-stack drift measurement
 
 
 @dataclass(frozen=True)
@@ -34,11 +33,14 @@ class SyncConfig:
     stack: StackConfig = field(default_factory=StackConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
     window_margin: int = 10
-    track_clock: bool = True
+    confirm_stacks: int = 3  # stacks in a row a PCI must be found in, where its code should be, to be reported
+    confirm_tolerance: float = 2.0  # samples a cell may move between stacks beyond the clock drift
 
     def __post_init__(self) -> None:
         if not 0 <= self.window_margin <= 100:
             raise ValueError(f"window_margin must be 0..100 samples, got {self.window_margin!r}")
+        if self.confirm_stacks < 1:
+            raise ValueError(f"confirm_stacks must be >= 1, got {self.confirm_stacks!r}")
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,8 @@ class SyncResult:
     aligned: bool
     flags: tuple[str, ...]
     events: tuple[StreamEvent, ...]  # input problems since the previous result
-    cells: tuple[CellWindows, ...]
+    cells: tuple[CellWindows, ...]  # confirmed cells
+    tentative: tuple[CellWindows, ...]  # detected in this stack only, so far
     clock_drift_ppm: float | None  # receiver clock error measured so far
 
     @property
@@ -74,7 +77,7 @@ class SyncStage:
         self.search = CellSearch(self.templates, self.config.search, None if towers is None else towers.pcis)
         self.stacker = FrameStacker(self.config.stack)
         self._reported_events = 0
-        self._previous: dict[int, float] = {}  # pci -> fine code position in the previous stack
+        self._previous: dict[int, tuple[float, int]] = {}  # pci -> (code position, streak) last stack
         self._previous_start: int | None = None
 
     def process(self, chunk: EnvelopeChunk) -> list[SyncResult]:
@@ -108,7 +111,10 @@ class SyncStage:
                     earfcn=earfcn,
                     carrier_hz=None if earfcn is None else self.towers.cells_with_pci(detection.pci)[0].carrier_hz,
                 ))
-        self._track_clock(stack, cells)
+        streaks = {c.pci: self._streak(stack, c) for c in cells if c.pci is not None}
+        confirmed = [c for c in cells if streaks.get(c.pci, 0) >= self.config.confirm_stacks]
+        self._previous = {c.pci: (c.coarse_index + c.detection.fraction, streaks[c.pci]) for c in cells if c.pci is not None}
+        self._previous_start = stack.first_sample_index
         return SyncResult(
             stamp_ns=stack.stamp_ns,
             first_sample_index=stack.first_sample_index,
@@ -116,32 +122,29 @@ class SyncStage:
             aligned=stack.aligned,
             flags=tuple(flags),
             events=self._new_events(),
-            cells=tuple(cells),
+            cells=tuple(confirmed),
+            tentative=tuple(c for c in cells if c not in confirmed),
             clock_drift_ppm=self.stacker.measured_drift_ppm,
         )
+
+    def _streak(self, stack: Stack, cell: CellWindows) -> int:
+        """In how many stacks in a row, this one included, the PCI was found where its code
+        should be (the previous position moved on by the frames in between and the clock).
+
+        Real cells persist; the envelope's other structure (cells missing from the tower
+        database, CRS and PBCH of synchronised cells) rarely lines up with one PCI for long.
+        """
+        if cell.pci not in self._previous or self._previous_start is None:
+            return 1
+        frames = round((stack.first_sample_index - self._previous_start) / stack.frame_samples)
+        position, streak = self._previous[cell.pci]
+        drift = (stack.drift_ppm if stack.drift_ppm is not None else self.stacker.clock_ppm) * 1e-6
+        expected = position + frames * stack.frame_samples * (1 + drift)
+        moved = abs(cell.coarse_index + cell.detection.fraction - expected)
+        return streak + 1 if frames > 0 and moved <= self.config.confirm_tolerance else 1
 
     def _earfcn(self, pci: int | None) -> int | None:
         if self.towers is None or pci is None:
             return None
         earfcns = {cell.earfcn for cell in self.towers.cells_with_pci(pci)}
         return earfcns.pop() if len(earfcns) == 1 else None
-
-    def _track_clock(self, stack: Stack, cells: list[CellWindows]) -> None:
-        """Update the receiver clock error from cells seen in this and the previous stack."""
-        positions = {c.pci: c.coarse_index + c.detection.fraction for c in cells if c.pci is not None}
-        if self._previous_start is not None and stack.first_sample_index > self._previous_start:
-            nominal = stack.first_sample_index - self._previous_start  # where the stacker moved on
-            frames = round(nominal / stack.frame_samples)
-            moves = [positions[p] - self._previous[p] for p in positions.keys() & self._previous.keys()]
-            # a cell's code moves frames x frame x (1 + e) samples in the stream
-            drifts = [(move / (frames * stack.frame_samples) - 1) * 1e6 for move in moves
-                      if abs(move - nominal) < stack.frame_samples / 4]
-            if drifts:
-                measured = float(np.median(drifts))
-                previous = self.stacker.measured_drift_ppm
-                smoothed = measured if previous is None else previous + DRIFT_SMOOTHING * (measured - previous)
-                self.stacker.measured_drift_ppm = smoothed
-                if self.config.track_clock and math.isfinite(smoothed):
-                    self.stacker.clock_ppm = smoothed
-        self._previous = positions
-        self._previous_start = stack.first_sample_index

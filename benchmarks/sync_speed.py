@@ -1,0 +1,71 @@
+"""Speed of the cell-search stage: one 10-frame stack (192,000 samples at 1.92 MHz).
+
+Times ``SyncStage.process`` on real stacks of the bundled campus bag (4 cells on the air):
+stacking (10 chunks of 10 ms), the search (blind: 504 PCIs; known: the campus tower database)
+and window extraction, on one core (BLAS limited to one thread). Templates are built once,
+before timing, as a running node builds them at start-up. Prints the median of --repeats runs.
+
+Run:  .venv/bin/python benchmarks/sync_speed.py [--repeats 30]
+Writes docs/results/sync_speed.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+from threadpoolctl import threadpool_limits
+
+from deepsync.bag import read_envelope
+from deepsync.recording import recorded_frontend
+from deepsync.sync.stage import SyncConfig, SyncStage
+from deepsync.sync.towers import load_tower_database
+
+REPO = Path(__file__).resolve().parents[1]
+BAG = REPO / "bags" / "campus"
+TOWERS = REPO / "config" / "towers" / "campus.yaml"
+
+
+def time_mode(chunks, towers, repeats: int) -> tuple[float, float]:
+    """Median and 90th percentile (ms) of processing one 10-frame stack."""
+    frontend = recorded_frontend(BAG)
+    warm = SyncStage(frontend, SyncConfig(), towers)
+    for chunk in chunks[:10]:
+        warm.process(chunk)  # builds and caches templates (start-up cost, not per stack)
+    times = []
+    for r in range(repeats):
+        stage = SyncStage(frontend, SyncConfig(), towers)
+        stage.templates, stage.search = warm.templates, warm.search
+        first = 10 * (r % (len(chunks) // 10))
+        started = time.perf_counter()
+        results = [res for chunk in chunks[first : first + 10] for res in stage.process(chunk)]
+        times.append((time.perf_counter() - started) * 1e3)
+        assert len(results) == 1
+    times.sort()
+    return statistics.median(times), times[int(0.9 * (len(times) - 1))]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=30)
+    args = parser.parse_args()
+    chunks = list(read_envelope(BAG))
+    out = {}
+    with threadpool_limits(limits=1):
+        for mode, towers in (("blind", None), ("known", load_tower_database(TOWERS))):
+            median, p90 = time_mode(chunks, towers, args.repeats)
+            out[mode] = {"median_ms": median, "p90_ms": p90}
+            label = "blind (504 PCIs)" if towers is None else f"known PCIs ({len(towers.pcis)} in the DB)"
+            print(f"{label:24s}: {median:6.1f} ms median, {p90:6.1f} ms p90 per 10-frame stack "
+                  f"(192,000 samples), one core")
+    path = REPO / "docs" / "results" / "sync_speed.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"stack": "10 frames x 19200 samples, campus bag", "repeats": args.repeats, **out}, indent=2))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
