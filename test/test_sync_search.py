@@ -233,3 +233,46 @@ def test_stage_on_the_campus_bag_finds_the_cells_it_can_and_no_others():
     assert {c.pci for c in results[-1].cells} >= {56, 301}  # confirmed: three stacks in a row
     assert not results[0].cells and not results[1].cells  # nothing is confirmed before that
     assert abs(results[-1].clock_drift_ppm) < 0.5  # the simulated receiver clock is exact
+
+
+def test_detect_command_reports_cells_and_refuses_ambiguous_input(capsys):
+    from deepsync.cli import main
+
+    bag = REPO / "bags" / "campus"
+    towers = REPO / "config" / "towers" / "campus.yaml"
+    assert main(["detect", "--bag", str(bag), "--towers", str(towers)]) == 0
+    out = capsys.readouterr().out
+    assert "PCI  56" in out and "PCI 301" in out and "(ML)" in out and "truth" in out
+    assert "no such cell" not in out
+    assert main(["detect", "--towers", str(towers)]) == 2
+    assert "either --bag or --iq" in capsys.readouterr().err
+
+
+def test_stage_survives_every_kind_of_bad_input_and_says_what_happened(templates):
+    """NaN, a gap, going back in time, a rate change, silence and clipping, in one stream."""
+    stage = SyncStage(CONFIG, SyncConfig(stack=StackConfig(n_frames=2), confirm_stacks=1))
+    rng = np.random.default_rng(9)
+    code = frame_with_codes(templates, [(301, 5000.2, 1.0)])
+
+    def frames(n, rate=1.92e6):
+        length = int(round(rate * 0.01))
+        return np.tile(code[:length] if length <= FRAME else np.resize(code, length), n) + 0.05 * rng.standard_normal(n * length)
+
+    good = frames(2)
+    nan = frames(2)
+    nan[777] = np.nan
+    results = []
+    results += stage.process_samples(good, 0, 1.92e6)  # a stack with the cell
+    results += stage.process_samples(nan, 2 * FRAME, 1.92e6)  # non-finite sample: stack dropped
+    results += stage.process_samples(frames(2), 5 * FRAME, 1.92e6)  # after a one-frame gap
+    results += stage.process_samples(frames(1), 3 * FRAME, 1.92e6)  # back in time: dropped
+    results += stage.process_samples(np.zeros(2 * FRAME), 7 * FRAME, 1.92e6)  # silence
+    results += stage.process_samples(frames(2, 1.0e6), 9 * FRAME, 1.0e6)  # another sample rate
+    chunk = EnvelopeChunk(0, 1.92e6, 10**7, 12, 1e-3, np.full(2 * FRAME, 2047, dtype=np.int16))
+    results += stage.process(chunk)  # clipped throughout (after another gap)
+    events = [e.kind for r in results for e in r.events]
+    flags = [f for r in results for f in r.flags]
+    assert {"not_finite", "gap", "backwards", "rate_change"} <= set(events)
+    assert any(f.startswith("no signal") for f in flags) and any(f.startswith("clipped") for f in flags)
+    assert results[0].pcis == [301]
+    assert all(r.cells == () for r in results if any(f.startswith("no signal") for f in r.flags))

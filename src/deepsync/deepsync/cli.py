@@ -94,40 +94,38 @@ def _truth_phases(bag_path: Path) -> dict[int, float]:
     return phases
 
 
-def detect_in_bag(bag_path: Path, towers_path: Path | None, frames: int, quiet: bool = False) -> list:
-    """Run the cell-search stage over a bag; print each stack's cells (and errors vs truth)."""
-    from deepsync.bag import read_envelope
-    from deepsync.recording import recorded_frontend
+def run_detection(chunks, frontend, towers_path: Path | None, frames: int, truth: dict[int, float], label: str) -> list:
+    """Run the cell-search stage over a stream; print each stack's confirmed cells with their
+    maximum-likelihood sub-sample arrival (and the error against ground truth, if known)."""
+    from deepsync.sync.estimators import estimate_ml, noise_psd
     from deepsync.sync.stacking import StackConfig
     from deepsync.sync.stage import SyncConfig, SyncStage
     from deepsync.sync.towers import load_tower_database
 
     towers = None if towers_path is None else load_tower_database(towers_path)
-    stage = SyncStage(recorded_frontend(bag_path), SyncConfig(stack=StackConfig(n_frames=frames)), towers)
-    truth = _truth_phases(bag_path)
+    stage = SyncStage(frontend, SyncConfig(stack=StackConfig(n_frames=frames)), towers)
     mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
-    print(f"cell search over {bag_path}: {frames}-frame stacks, {mode}")
+    print(f"cell search over {label}: {frames}-frame stacks, {mode}; a cell is reported once found in "
+          f"{stage.config.confirm_stacks} stacks in a row")
     results = []
-    for chunk in read_envelope(bag_path):
+    for chunk in chunks:
         for result in stage.process(chunk):
             results.append(result)
-            if quiet:
-                continue
-            t = (result.first_sample_index) / chunk.sample_rate
-            note = "" if result.aligned else " (misaligned)"
-            print(f"  stack at {t:7.3f} s{note}: {len(result.cells)} cell(s)" + "".join(f"; {f}" for f in result.flags))
+            clock = "" if result.clock_drift_ppm is None else f", receiver clock {result.clock_drift_ppm:+.1f} ppm"
+            print(f"  stack at {result.first_sample_index / chunk.sample_rate:7.3f} s{clock}: {len(result.cells)} "
+                  f"cell(s), {len(result.tentative)} tentative" + "".join(f"; {f}" for f in result.flags))
             for event in result.events:
                 print(f"    input: {event.message}")
             for cell in result.cells:
                 d = cell.detection
-                position = cell.coarse_index + d.fraction
-                line = (f"    PCI {d.pci:3d}  code at {position:12.2f}  peak {d.peak_metric:5.1f} sigma  "
-                        f"SNR {d.snr_db:5.1f} dB  margin {d.score_margin:.3f}  runners-up "
-                        + ", ".join(str(c.pci) for c in d.candidates[1:4]))
+                fine = estimate_ml(cell.windows, stage.templates.template(d.pci, 0), cell.margin, noise_psd(cell.windows))
+                toa = cell.coarse_index + fine.offset
+                line = (f"    PCI {d.pci:3d}  code at {toa:12.2f} +- {fine.std:.3f} samples (ML)  peak {d.peak_metric:5.1f} "
+                        f"sigma  SNR {fine.snr_db:5.1f} dB  runners-up " + ", ".join(str(c.pci) for c in d.candidates[1:4]))
                 if d.pci in truth:
                     frame = round(chunk.sample_rate * 0.01)
-                    error = (position - truth[d.pci] + frame / 2) % frame - frame / 2
-                    line += f"  (truth {error:+.2f} samples)"
+                    error = (toa - truth[d.pci] + frame / 2) % frame - frame / 2
+                    line += f"  (truth {error:+.3f} samples)"
                 elif truth:
                     line += "  (no such cell in the truth)"
                 print(line)
@@ -135,7 +133,21 @@ def detect_in_bag(bag_path: Path, towers_path: Path | None, frames: int, quiet: 
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
-    detect_in_bag(Path(args.bag), None if args.towers is None else Path(args.towers), args.frames)
+    towers = None if args.towers is None else Path(args.towers)
+    if (args.bag is None) == (args.iq is None):
+        raise ValueError("give either --bag or --iq")
+    if args.bag is not None:
+        from deepsync.bag import read_envelope
+        from deepsync.recording import recorded_frontend
+
+        bag = Path(args.bag)
+        run_detection(read_envelope(bag), recorded_frontend(bag), towers, args.frames, _truth_phases(bag), str(bag))
+    else:
+        from deepsync.sync.iq import envelope_chunks, load_rtlsdr_u8, recording_frontend
+
+        iq = load_rtlsdr_u8(args.iq)
+        chunks = envelope_chunks(iq, args.iq_rate, volts_per_code=0.5)
+        run_detection(chunks, recording_frontend(args.iq_rate), towers, args.frames, {}, f"|x|^2 of {args.iq}")
     return 0
 
 
@@ -167,8 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--quiet", action="store_true", help="no progress bar")
     sim.set_defaults(run=_cmd_simulate)
 
-    detect = commands.add_parser("detect", help="cell search over a bag's envelope stream")
-    detect.add_argument("--bag", required=True)
+    detect = commands.add_parser("detect", help="cell search over an envelope stream (bag or I/Q recording)")
+    detect.add_argument("--bag", help="rosbag2 bag with /deepsync/envelope")
+    detect.add_argument("--iq", help="RTL-SDR recording (8-bit I/Q): its |x|^2 is the envelope")
+    detect.add_argument("--iq-rate", type=_positive_float, default=1.92e6, help="sample rate of --iq (Hz)")
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
     detect.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
     detect.set_defaults(run=_cmd_detect)

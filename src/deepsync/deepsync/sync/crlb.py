@@ -63,10 +63,14 @@ class Bound:
     std_metres: float
 
 
-def _template(template: np.ndarray) -> np.ndarray:
-    t = np.asarray(template, dtype=np.float64)
-    if t.ndim != 1 or t.size < 4:
-        raise ValueError(f"template must be a 1-D array of at least 4 samples, got shape {t.shape}")
+def check_template(template: np.ndarray, min_length: int = 4) -> np.ndarray:
+    """A template as float64, or ValueError: 1-D, finite, not constant (else it has no timing)."""
+    try:
+        t = np.asarray(template, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"template must be a numeric array: {error}") from None
+    if t.ndim != 1 or t.size < min_length:
+        raise ValueError(f"template must be a 1-D array of at least {min_length} samples, got shape {t.shape}")
     if not np.all(np.isfinite(t)):
         raise ValueError("template contains NaN or inf")
     if not np.any(t - t.mean()):
@@ -115,7 +119,7 @@ def fisher_information(
     ``window_length // 2 + 1`` rfft bins of the window (``window_length`` defaults to
     ``2 * (len(noise_psd) - 1)``, or to the template length for a scalar).
     """
-    t = _template(template)
+    t = check_template(template)
     if not (math.isfinite(amplitude)):
         raise ValueError(f"amplitude must be finite, got {amplitude!r}")
     if int(n_frames) != n_frames or n_frames < 1:
@@ -186,7 +190,7 @@ def fit_amplitude(
     bins of the window) the fit is weighted by 1 / P (generalised least squares).
     """
     x = np.asarray(window, dtype=np.float64)
-    t = _template(template)
+    t = check_template(template)
     if x.ndim != 1 or not np.all(np.isfinite(x)):
         raise ValueError("window must be a finite 1-D array")
     if len(x) < len(t):
@@ -206,7 +210,7 @@ def snr_db(amplitude: float, template: np.ndarray, noise_variance: float) -> flo
     Same definition as ``docs/results/sync_snr.json``: energy of the mean-removed expected code
     over the template length, divided by the noise energy over the same samples.
     """
-    t = _template(template)
+    t = check_template(template)
     signal = amplitude**2 * float(np.sum((t - t.mean()) ** 2))
     noise = noise_variance * len(t)
     if noise <= 0:

@@ -8,25 +8,23 @@ noise-like input is close to Gaussian; its spread is measured robustly (median a
 deviation) and peaks are kept above the threshold for which the chance of *any* false peak in
 the stack (all lags and templates) is ``false_alarm_rate``.
 
+Step 2 (identity). At each peak the code sits at two places in the frame, one with subframe
+0's SSS and one with subframe 5's; every PCI hypothesis is scored for both orders, by the
+normalised correlation of both code windows with that PCI's two templates, over a few lags.
+Found cells are fitted jointly (templates, pedestals and the cross terms of codes that overlap
+in time) and cancelled before the next peak is examined, so a cell next to a stronger one, or
+at the same timing, shows up in the residual.
+
 Real envelopes are not as tidy as Gaussian noise: every frame-synchronised cell leaves CRS and
 PBCH structure, and cells missing from the database leave codes of their own. A peak therefore
 only counts as a new cell if it is a PCI not yet found, shows a PSS at its PSS position, and
 (with a database) is not better explained by a PCI outside it: the database limits what is
-reported, not what is believed. Found cells are fitted
-jointly (templates, pedestals and the cross terms of codes that overlap in time) and
-cancelled before the next peak is examined.
+reported, not what is believed. (The stage then asks for a cell to persist over stacks.)
 
-Step 2 (identity). At each peak the code sits at two places in the frame, one with subframe
-0's SSS and one with subframe 5's; every PCI hypothesis is scored for both orders, by the
-normalised correlation of both code windows with that PCI's two templates, over a few lags.
-The best one is fitted (sub-sample delay, amplitude) and cancelled, and the search repeats on
-the residual, with the noise spread of the first pass: cells next to a stronger one, or at
-the same timing (sectors of a site), show up once the stronger code is gone.
-
-What the envelope can tell (see ``benchmarks/pci_confusion.py``): the PSS envelopes of
-N_ID2 = 1 and 2 (roots 29 and 34, complex conjugates) are identical, and the SSS envelopes of
-different N_ID1 correlate up to ~0.97, so identity is carried as ranked candidates with
-scores. A tower database (the PCIs plausible where the receiver is) turns them into a PCI.
+What the envelope can tell (``benchmarks/cell_search.py``, ``docs/cell_search.md``): the PSS
+envelopes of N_ID2 = 1 and 2 (roots 29 and 34, complex conjugates) are identical, and the SSS
+envelopes of different N_ID1 correlate up to ~0.97, so identity is carried as ranked
+candidates with scores and a tower database decides which may be reported.
 """
 
 from __future__ import annotations
@@ -76,9 +74,9 @@ class CellDetection:
 
     frame_offset: int  # where the subframe-0 code starts within the stack's frames (0..frame-1)
     fraction: float  # sub-sample refinement of frame_offset from the identity step (samples)
-    pci: int | None  # the best-supported PCI among those allowed; None if nothing fits
+    pci: int  # the best-supported PCI among those allowed
     candidates: tuple[Candidate, ...]  # ranked, best first
-    peak_metric: float  # PSS correlation peak in units of its noise spread (CFAR statistic)
+    peak_metric: float  # timing-statistic peak in units of its noise spread (the CFAR statistic)
     snr_db: float  # code energy / residual energy in the stacked code windows
     amplitude: float  # least-squares scale of the template (volts per unit template)
 
@@ -106,7 +104,7 @@ class CellSearch:
         self.allowed = np.arange(N_CELL_IDS) if allowed_pcis is None else np.unique(allowed_pcis)
         if self.allowed.size == 0 or self.allowed.min() < 0 or self.allowed.max() >= N_CELL_IDS:
             raise ValueError("allowed_pcis must be PCIs in 0..503")
-        self._cache: dict[int, np.ndarray] = {}  # template spectra by correlation length
+        self._cache: dict[tuple[str, int], np.ndarray] = {}  # template spectra by kind and length
 
     @cached_property
     def _code_templates(self) -> tuple[np.ndarray, np.ndarray]:
@@ -122,7 +120,8 @@ class CellSearch:
 
     def _pss_spectra(self, half: int) -> np.ndarray:
         """(3 x phases, half/2+1) conjugate spectra of the unit-norm, zero-mean PSS templates."""
-        if half not in self._cache:
+        key = ("pss", half)
+        if key not in self._cache:
             rows = []
             for u in range(3):
                 for shape in self.templates.pss(u, PHASES):
@@ -130,13 +129,14 @@ class CellSearch:
                     padded = np.zeros(half)
                     padded[: len(shape)] = shape
                     rows.append(padded)
-            self._cache[half] = np.conj(scipy.fft.rfft(np.array(rows), axis=1))
-        return self._cache[half]
+            self._cache[key] = np.conj(scipy.fft.rfft(np.array(rows), axis=1))
+        return self._cache[key]
 
     def _frame_spectra(self, frame: int) -> np.ndarray:
         """(P x phases, frame/2+1) conjugate spectra of each allowed PCI's frame template: its
         zero-mean subframe-0 code at 0 and subframe-5 code half a frame later, unit norm."""
-        if frame not in self._cache:
+        key = ("frame", frame)
+        if key not in self._cache:
             length = self.templates.length
             templates = np.zeros((len(self.allowed), len(PHASES), frame))
             for i, pci in enumerate(self.allowed):
@@ -144,29 +144,25 @@ class CellSearch:
                     shapes = self.templates.template(int(pci), subframe, PHASES)
                     templates[i, :, start : start + length] = shapes - shapes.mean(axis=1, keepdims=True)
             templates /= np.linalg.norm(templates, axis=2, keepdims=True)
-            self._cache[frame] = np.conj(scipy.fft.rfft(templates.reshape(-1, frame), axis=1))
-        return self._cache[frame]
+            self._cache[key] = np.conj(scipy.fft.rfft(templates.reshape(-1, frame), axis=1))
+        return self._cache[key]
 
     def pss_statistic(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(3 x phases, half) PSS correlation z-scores of the half-frame fold, and their spreads."""
         half = len(centred) // 2
         folded = centred[:half] + centred[half : 2 * half]
         c = scipy.fft.irfft(scipy.fft.rfft(folded)[None, :] * self._pss_spectra(half), n=half, axis=1)
-        if spreads is None:
-            spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0), spreads
+        return _normalised(c, spreads)
 
     def _plausible(self, residual: np.ndarray, found: CellDetection, detections: list[CellDetection],
                    pss_spreads: np.ndarray) -> bool:
         """Is a new detection a cell, rather than what remains of stronger ones?
 
         It must be a PCI not found yet (a cell has one code per half-frame); its PSS must show at
-        its PSS position in the residual, as strongly as a code that strong has it (a real code
-        gives 0.25-0.6 of its whole-code z; a template lined up with other structure, often less:
-        the PSS step of the two-step search); and, when
-        the PCIs are restricted to a tower database, no PCI outside it may explain the code
-        clearly better: that would be a cell missing from the database, not one of ours.
+        its PSS position in the residual, in proportion to its strength (a real code gives
+        0.25-0.6 of its whole-code z; a template lined up with other structure, often less);
+        and, when the PCIs are restricted to a tower database, no PCI outside it may explain
+        the code clearly better: that would be a cell missing from the database, not ours.
         """
         if found.amplitude <= 0 or any(d.pci == found.pci for d in detections):
             return False
@@ -199,19 +195,11 @@ class CellSearch:
             return z, spreads, len(centred) // 2
         period = len(centred)
         c = scipy.fft.irfft(scipy.fft.rfft(centred)[None, :] * self._frame_spectra(period), n=period, axis=1)
-        if spreads is None:
-            spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0)
+        z, spreads = _normalised(c, spreads)
         return z, spreads, period
 
     def search(self, stacked: np.ndarray) -> list[CellDetection]:
-        """Cells in one stacked frame (the mean of a stack's rows), strongest first.
-
-        Each found cell's code is fitted (sub-sample delay, amplitude) and cancelled before
-        the next search, so a weaker cell next to a strong one, or at the same timing, is
-        seen in the residual rather than hidden under the strong one's correlation peak.
-        """
+        """Cells in one stacked frame (the mean of a stack's rows), strongest first."""
         if not np.all(np.isfinite(stacked)):
             raise ValueError("stacked frame contains NaN or inf")
         centred = stacked - stacked.mean()
@@ -345,6 +333,10 @@ def _parabolic_peak(values: np.ndarray, i: int) -> float:
     return float(0.5 * (a - c) / denominator) if denominator < 0 else 0.0
 
 
-def _circular_distance(a: int, b: int, period: int) -> int:
-    d = abs(a - b) % period
-    return min(d, period - d)
+def _normalised(c: np.ndarray, spreads: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Correlation rows in units of their noise spread (median absolute deviation, measured
+    here unless given: later passes keep the first pass's spread), and the spreads."""
+    if spreads is None:
+        spreads = 1.4826 * np.median(np.abs(c - np.median(c, axis=1, keepdims=True)), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0), spreads

@@ -77,7 +77,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 import scipy.optimize
 
-from deepsync.sync.crlb import psd_bins
+from deepsync.sync.crlb import check_template, psd_bins
 
 MODEL_FLOOR_SAMPLES = 0.003
 MAX_JACKKNIFE_GROUPS = 20
@@ -97,17 +97,7 @@ class TimingEstimate:
 
 
 def _as_template(template: np.ndarray) -> np.ndarray:
-    try:
-        t = np.asarray(template, dtype=np.float64)
-    except (TypeError, ValueError) as error:
-        raise ValueError(f"template must be a numeric array: {error}") from None
-    if t.ndim != 1 or t.size < 8:
-        raise ValueError(f"template must be a 1-D array of at least 8 samples, got shape {t.shape}")
-    if not np.all(np.isfinite(t)):
-        raise ValueError("template contains NaN or inf")
-    if not np.any(t - t.mean()):
-        raise ValueError("template is constant: it carries no timing information")
-    return t
+    return check_template(template, min_length=8)
 
 
 def _as_windows(windows: np.ndarray) -> np.ndarray:

@@ -1,9 +1,9 @@
 """The cell-search stage: ADC chunks in, detected cells with their windows out, per stack.
 
 ``SyncStage.process(chunk)`` is what the sync node calls for every EnvelopeSamples message
-and what bag replay calls for every recorded one. Bad input never raises here: it ends up
-as ``SyncResult.events`` (gaps, non-finite samples, rate changes) or ``flags`` (clipping,
-silence, misalignment), next to whatever could still be detected.
+and what bag replay calls for every recorded one. What is wrong with the stream never raises
+here: it ends up as ``SyncResult.events`` (gaps, non-finite samples, going back in time, rate
+changes) or ``flags`` (clipping, silence, misalignment), next to whatever could still be found.
 
 The receiver clock is measured and compensated by the stacker (see ``sync.stacking``). A cell
 is reported once it has been found in ``confirm_stacks`` stacks in a row where its code should
@@ -13,7 +13,6 @@ the unconfirmed ones are in ``SyncResult.tentative``.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,8 +23,8 @@ from deepsync.frontend.templates import SyncTemplates
 from deepsync.sync.detection import CellSearch, SearchConfig
 from deepsync.sync.stacking import FrameStacker, Stack, StackConfig, StreamEvent
 from deepsync.sync.towers import TowerDatabase
+from deepsync.lte.earfcn import downlink_frequency_hz
 from deepsync.sync.windows import CellWindows, extract_windows
-
 
 
 @dataclass(frozen=True)
@@ -59,7 +58,7 @@ class SyncResult:
 
     @property
     def pcis(self) -> list[int]:
-        return [c.pci for c in self.cells if c.pci is not None]
+        return [c.pci for c in self.cells]
 
 
 class SyncStage:
@@ -109,11 +108,11 @@ class SyncStage:
                     windows=windows,
                     stamp_ns=stack.stamp_ns,
                     earfcn=earfcn,
-                    carrier_hz=None if earfcn is None else self.towers.cells_with_pci(detection.pci)[0].carrier_hz,
+                    carrier_hz=None if earfcn is None else downlink_frequency_hz(earfcn),
                 ))
-        streaks = {c.pci: self._streak(stack, c) for c in cells if c.pci is not None}
-        confirmed = [c for c in cells if streaks.get(c.pci, 0) >= self.config.confirm_stacks]
-        self._previous = {c.pci: (c.coarse_index + c.detection.fraction, streaks[c.pci]) for c in cells if c.pci is not None}
+        streaks = {c.pci: self._streak(stack, c) for c in cells}
+        confirmed = [c for c in cells if streaks[c.pci] >= self.config.confirm_stacks]
+        self._previous = {c.pci: (c.coarse_index + c.detection.fraction, streaks[c.pci]) for c in cells}
         self._previous_start = stack.first_sample_index
         return SyncResult(
             stamp_ns=stack.stamp_ns,
@@ -143,8 +142,9 @@ class SyncStage:
         moved = abs(cell.coarse_index + cell.detection.fraction - expected)
         return streak + 1 if frames > 0 and moved <= self.config.confirm_tolerance else 1
 
-    def _earfcn(self, pci: int | None) -> int | None:
-        if self.towers is None or pci is None:
+    def _earfcn(self, pci: int) -> int | None:
+        """The EARFCN the tower database gives a PCI, if it gives exactly one."""
+        if self.towers is None:
             return None
         earfcns = {cell.earfcn for cell in self.towers.cells_with_pci(pci)}
         return earfcns.pop() if len(earfcns) == 1 else None
