@@ -17,6 +17,7 @@ from deepsync.configio import ConfigError
 REPO = Path(__file__).resolve().parents[3]
 DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus.yaml"
 DEMO_BAG = REPO / "bags" / "campus"
+DEMO_TOWERS = REPO / "config" / "towers" / "campus.yaml"
 
 
 def _positive_float(text: str) -> float:
@@ -94,9 +95,15 @@ def _truth_phases(bag_path: Path) -> dict[int, float]:
     return phases
 
 
-def run_detection(chunks, frontend, towers_path: Path | None, frames: int, truth: dict[int, float], label: str) -> list:
-    """Run the cell-search stage over a stream; print each stack's confirmed cells with their
-    maximum-likelihood sub-sample arrival (and the error against ground truth, if known)."""
+def _frame_error(toa: float, truth: float, frame: int) -> float:
+    return (toa - truth + frame / 2) % frame - frame / 2
+
+
+def run_detection(chunks, frontend, towers_path: Path | None, frames: int, truth: dict[int, float], label: str,
+                  verbose: bool = True) -> list[dict]:
+    """Run the cell-search stage over a stream; print each stack's confirmed cells (if verbose) with
+    their maximum-likelihood sub-sample arrival and the error against ground truth, if known.
+    Returns one record per stack: its start time and its confirmed cells."""
     from deepsync.sync.estimators import estimate_ml, noise_psd
     from deepsync.sync.stacking import StackConfig
     from deepsync.sync.stage import SyncConfig, SyncStage
@@ -107,29 +114,78 @@ def run_detection(chunks, frontend, towers_path: Path | None, frames: int, truth
     mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
     print(f"cell search over {label}: {frames}-frame stacks, {mode}; a cell is reported once found in "
           f"{stage.config.confirm_stacks} stacks in a row")
-    results = []
+    stacks = []
     for chunk in chunks:
+        frame = round(chunk.sample_rate * 0.01)
         for result in stage.process(chunk):
-            results.append(result)
-            clock = "" if result.clock_drift_ppm is None else f", receiver clock {result.clock_drift_ppm:+.1f} ppm"
-            print(f"  stack at {result.first_sample_index / chunk.sample_rate:7.3f} s{clock}: {len(result.cells)} "
-                  f"cell(s), {len(result.tentative)} tentative" + "".join(f"; {f}" for f in result.flags))
-            for event in result.events:
-                print(f"    input: {event.message}")
+            cells = []
             for cell in result.cells:
                 d = cell.detection
-                fine = estimate_ml(cell.windows, stage.templates.template(d.pci, 0), cell.margin, noise_psd(cell.windows))
+                fine = estimate_ml(cell.windows, stage.search.code_template(d), cell.margin, noise_psd(cell.windows))
                 toa = cell.coarse_index + fine.offset
-                line = (f"    PCI {d.pci:3d}  code at {toa:12.2f} +- {fine.std:.3f} samples (ML)  peak {d.peak_metric:5.1f} "
-                        f"sigma  SNR {fine.snr_db:5.1f} dB  runners-up " + ", ".join(str(c.pci) for c in d.candidates[1:4]))
-                if d.pci in truth:
-                    frame = round(chunk.sample_rate * 0.01)
-                    error = (toa - truth[d.pci] + frame / 2) % frame - frame / 2
-                    line += f"  (truth {error:+.3f} samples)"
-                elif truth:
-                    line += "  (no such cell in the truth)"
-                print(line)
-    return results
+                error = _frame_error(toa, truth[d.pci], frame) if d.pci in truth else None
+                cells.append({"pci": d.pci, "toa": toa, "std": fine.std, "snr_db": fine.snr_db,
+                              "peak_sigma": d.peak_metric, "truth_error": error,
+                              "runners_up": [c.pci for c in d.candidates[1:4]]})
+            stacks.append({"time_s": result.first_sample_index / chunk.sample_rate,
+                           "clock_drift_ppm": result.clock_drift_ppm, "flags": list(result.flags), "cells": cells})
+            if verbose:
+                _print_stack(result, stacks[-1], truth)
+    return stacks
+
+
+def _print_stack(result, record: dict, truth: dict[int, float]) -> None:
+    clock = "" if result.clock_drift_ppm is None else f", receiver clock {result.clock_drift_ppm:+.1f} ppm"
+    print(f"  stack at {record['time_s']:7.3f} s{clock}: {len(result.cells)} cell(s), {len(result.tentative)} "
+          "tentative" + "".join(f"; {f}" for f in result.flags))
+    for event in result.events:
+        print(f"    input: {event.message}")
+    for cell in record["cells"]:
+        line = (f"    PCI {cell['pci']:3d}  code at {cell['toa']:12.2f} +- {cell['std']:.3f} samples (ML)  peak "
+                f"{cell['peak_sigma']:5.1f} sigma  SNR {cell['snr_db']:5.1f} dB  runners-up "
+                + ", ".join(map(str, cell["runners_up"])))
+        if cell["truth_error"] is not None:
+            line += f"  (truth {cell['truth_error']:+.3f} samples)"
+        elif truth:
+            line += "  (no such cell in the truth)"
+        print(line)
+
+
+def summarize_detection(stacks: list[dict], truth: dict[int, float]) -> dict:
+    """Per cell: in how many stacks it was reported, its timing error against the truth, its claimed
+    std; and the truth cells never reported."""
+    by_pci: dict[int, list[dict]] = {}
+    for stack in stacks:
+        for cell in stack["cells"]:
+            by_pci.setdefault(cell["pci"], []).append(cell)
+    cells = {}
+    for pci, found in sorted(by_pci.items()):
+        errors = [c["truth_error"] for c in found if c["truth_error"] is not None]
+        cells[pci] = {
+            "stacks_reported": len(found),
+            "in_truth": (pci in truth) if truth else None,  # None: no ground truth to compare with
+            "median_snr_db": _median([c["snr_db"] for c in found]),
+            "median_claimed_std": _median([c["std"] for c in found]),
+            "rms_truth_error": math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else None,
+        }
+    return {"stacks": len(stacks), "cells": cells, "missed": sorted(set(truth) - set(by_pci))}
+
+
+def _median(values: list[float]) -> float:
+    ordered = sorted(values)
+    middle = len(ordered) // 2
+    return ordered[middle] if len(ordered) % 2 else (ordered[middle - 1] + ordered[middle]) / 2
+
+
+def _print_summary(summary: dict) -> None:
+    print(f"  {summary['stacks']} stacks:")
+    for pci, cell in summary["cells"].items():
+        truth = {None: "", False: "  not in the truth"}.get(
+            cell["in_truth"], f"  RMS error vs truth {cell['rms_truth_error']:.3f} samples")
+        print(f"    PCI {pci:3d}  reported in {cell['stacks_reported']:3d} stacks  SNR {cell['median_snr_db']:5.1f} dB  "
+              f"claimed std {cell['median_claimed_std']:.3f} samples{truth}")
+    if summary["missed"]:
+        print("    never reported: " + ", ".join(f"PCI {pci}" for pci in summary["missed"]))
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
@@ -141,26 +197,44 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         from deepsync.recording import recorded_frontend
 
         bag = Path(args.bag)
-        run_detection(read_envelope(bag), recorded_frontend(bag), towers, args.frames, _truth_phases(bag), str(bag))
+        truth = _truth_phases(bag)
+        stacks = run_detection(read_envelope(bag), recorded_frontend(bag), towers, args.frames, truth, str(bag))
     else:
         from deepsync.sync.iq import envelope_chunks, load_rtlsdr_u8, recording_frontend
 
         iq = load_rtlsdr_u8(args.iq)
         chunks = envelope_chunks(iq, args.iq_rate, volts_per_code=0.5)
-        run_detection(chunks, recording_frontend(args.iq_rate), towers, args.frames, {}, f"|x|^2 of {args.iq}")
+        truth = {}
+        stacks = run_detection(chunks, recording_frontend(args.iq_rate), towers, args.frames, truth, f"|x|^2 of {args.iq}")
+    _print_summary(summarize_detection(stacks, truth))
     return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from deepsync.recording import record_scenario
+    from deepsync.bag import read_envelope
+    from deepsync.recording import recorded_frontend
 
+    out = Path(args.out)
     print(f"== the bundled recording {DEMO_BAG.relative_to(REPO)}")
     describe_bag(DEMO_BAG)
-    out = Path(args.out)
-    print(f"\n== simulating {args.seconds:g} s of {DEMO_SCENARIO.relative_to(REPO)} into {out}")
-    summary = record_scenario(DEMO_SCENARIO, args.seconds, out, workers=args.workers, overwrite=True,
-                              progress=not args.quiet)
-    _print_recording(summary)
+    print("\n== cell search and classical sub-sample timing")
+    truth = _truth_phases(DEMO_BAG)
+    stacks = run_detection(read_envelope(DEMO_BAG), recorded_frontend(DEMO_BAG), DEMO_TOWERS, 10, truth,
+                           str(DEMO_BAG.relative_to(REPO)), verbose=args.verbose)
+    summary = summarize_detection(stacks, truth)
+    _print_summary(summary)
+    out.mkdir(parents=True, exist_ok=True)
+    report = out / "cell_search.json"
+    report.write_text(json.dumps({"bag": str(DEMO_BAG.relative_to(REPO)), "summary": summary, "stacks": stacks},
+                                 indent=1))
+    print(f"  per-stack results in {report}")
+    if args.simulate:
+        from deepsync.recording import record_scenario
+
+        bag = out / "recording"
+        print(f"\n== simulating {args.simulate:g} s of {DEMO_SCENARIO.relative_to(REPO)} into {bag}")
+        _print_recording(record_scenario(DEMO_SCENARIO, args.simulate, bag, workers=args.workers, overwrite=True,
+                                         progress=not args.quiet))
     return 0
 
 
@@ -193,9 +267,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = commands.add_parser("demo", help="the main job on the bundled data (no ROS needed)")
     demo.add_argument("--out", default=str(REPO / "out" / "demo_campus"), help="where the demo writes")
-    demo.add_argument("--seconds", type=_positive_float, default=1.0)
+    demo.add_argument("--verbose", action="store_true", help="print every stack's cells")
+    demo.add_argument("--simulate", type=_positive_float, metavar="SECONDS",
+                      help="also simulate a fresh recording of the demo scenario this long")
     demo.add_argument("--workers", type=int, default=workers)
-    demo.add_argument("--quiet", action="store_true")
+    demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(run=_cmd_demo)
     return parser
 

@@ -80,7 +80,7 @@ class SyncTemplates:
         self.length = default if length is None else int(length)
         self._video = VideoFilter(config)
         self._highpass = highpass_sos(config, config.adc_rate_hz)
-        self._grid: dict[tuple[int, int], np.ndarray] = {}
+        self._grid: dict[tuple[int, ...], np.ndarray] = {}  # shapes on a fraction grid, by PCI(s) and subframe
 
     def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0,
                  length: int | None = None) -> np.ndarray:
@@ -126,17 +126,9 @@ class SyncTemplates:
         With a stable relative phase (sectors of a site, a time-synchronised network) the cross
         term survives stacking; these are its two shapes, in the templates' units.
         """
-        over = _OVERSAMPLING
-        a, b = sync_code_waveform(pci_a, subframe), sync_code_waveform(pci_b, subframe)
-        step = int(round((delay_b - delay_a) * over))  # b's start relative to a's, waveform samples
-        first = min(0, step)
-        product = np.zeros(len(a) + abs(step), dtype=np.complex128)
-        aligned_a, aligned_b = np.zeros_like(product), np.zeros_like(product)
-        aligned_a[-first : -first + len(a)] = a
-        aligned_b[step - first : step - first + len(b)] = b
-        product = aligned_a * np.conj(aligned_b)
-        start = delay_a + first / over  # where the product array begins, ADC samples
-        envelopes = np.stack([2 * product.real, 2 * product.imag])
+        step = int(round((delay_b - delay_a) * _OVERSAMPLING))  # b's start relative to a's, waveform samples
+        envelopes, first = _cross_envelopes(pci_a, pci_b, subframe, step)
+        start = delay_a + first / _OVERSAMPLING  # where the product array begins, ADC samples
         return self.response(envelopes, _WAVEFORM_RATE, start / self.sample_rate, length)[:, 0]
 
     def all(self) -> np.ndarray:
@@ -148,18 +140,18 @@ class SyncTemplates:
         cached grid of 1/``FRACTION_GRID`` sample steps, so within 1/(2 x grid) sample of exact."""
         key = (pci, subframe)
         if key not in self._grid:
-            fractions = np.arange(FRACTION_GRID) / FRACTION_GRID
-            self._grid[key] = self.template(pci, subframe, fractions)
-        whole = math.floor(delay_samples)
-        step = int(round((delay_samples - whole) * FRACTION_GRID))
-        whole, step = whole + step // FRACTION_GRID, step % FRACTION_GRID
-        base = self._grid[key][step]
-        out = np.zeros_like(base)
-        if 0 <= whole < len(base):
-            out[whole:] = base[: len(base) - whole]
-        elif -len(base) < whole < 0:
-            out[:whole] = base[-whole:]
-        return out
+            self._grid[key] = self.template(pci, subframe, np.arange(FRACTION_GRID) / FRACTION_GRID)
+        return _from_grid(self._grid[key], delay_samples)
+
+    def shifted_cross_terms(self, pci_a: int, pci_b: int, subframe: int, delay_samples: float) -> np.ndarray:
+        """``cross_terms`` of two codes that both start at ``delay_samples`` (co-sited sectors),
+        ``length`` long, fast: from a cached grid, as ``shifted``."""
+        key = (pci_a, pci_b, subframe)
+        if key not in self._grid:
+            envelopes, _ = _cross_envelopes(pci_a, pci_b, subframe, 0)
+            grid = self.response(envelopes, _WAVEFORM_RATE, np.arange(FRACTION_GRID) / FRACTION_GRID / self.sample_rate)
+            self._grid[key] = np.swapaxes(grid, 0, 1)  # (fractions, 2, length)
+        return _from_grid(self._grid[key], delay_samples)
 
     def pss(self, n_id_2: int, delay_samples: np.ndarray | float = 0.0) -> np.ndarray:
         """Template of the PSS symbol alone (its CP start at t = delay), ``pss_length`` long;
@@ -177,6 +169,35 @@ class SyncTemplates:
     def pss_offset(self) -> int:
         """Samples from the code start (SSS CP) to the PSS symbol's CP start."""
         return int(round(PSS_OFFSET_BASE * self.sample_rate / BASE_RATE_HZ))
+
+
+def _cross_envelopes(pci_a: int, pci_b: int, subframe: int, step: int) -> tuple[np.ndarray, int]:
+    """2Re and 2Im of s_a s_b* with b starting ``step`` waveform samples after a, and where
+    the product array begins relative to a's start (waveform samples)."""
+    a, b = sync_code_waveform(pci_a, subframe), sync_code_waveform(pci_b, subframe)
+    first = min(0, step)
+    aligned_a = np.zeros(len(a) + abs(step), dtype=np.complex128)
+    aligned_b = np.zeros_like(aligned_a)
+    aligned_a[-first : -first + len(a)] = a
+    aligned_b[step - first : step - first + len(b)] = b
+    product = aligned_a * np.conj(aligned_b)
+    return np.stack([2 * product.real, 2 * product.imag]), first
+
+
+def _from_grid(grid: np.ndarray, delay_samples: float) -> np.ndarray:
+    """Row of a (FRACTION_GRID, ..., length) grid of shapes starting at k / FRACTION_GRID,
+    moved by whole samples so the shape starts at ``delay_samples`` (zeros shifted in)."""
+    whole = math.floor(delay_samples)
+    step = int(round((delay_samples - whole) * FRACTION_GRID))
+    whole, step = whole + step // FRACTION_GRID, step % FRACTION_GRID
+    base = grid[step]
+    length = base.shape[-1]
+    out = np.zeros_like(base)
+    if 0 <= whole < length:
+        out[..., whole:] = base[..., : length - whole]
+    elif -length < whole < 0:
+        out[..., :whole] = base[..., -whole:]
+    return out
 
 
 @lru_cache(maxsize=4)

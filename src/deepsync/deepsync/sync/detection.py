@@ -40,6 +40,8 @@ import scipy.stats
 
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.lte.cell import N_CELL_IDS
+from deepsync.sync.correlation import correlate, frame_spectra, template_spectra, unit_frame_parts
+from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
 
 PHASES = np.array([0.0, 0.5])  # sub-sample delays at which every timing template is tried
 
@@ -55,10 +57,14 @@ class SearchConfig:
     open_set_tolerance: float = 0.02  # how much better a PCI outside the database may score
     max_examined: int = 24  # peaks examined per stack (found cells and rejected ones)
     full_code_timing: bool = True  # with known PCIs, time by their whole codes (+9 dB, slower)
+    pair_false_alarm: float = 1e-3  # chance that one sector alone passes for a co-sited pair at a site peak
+    pair_min_gain: float = 0.25  # and what the pair must add to one sector's statistic, relatively
 
     def __post_init__(self) -> None:
         if not 0 < self.false_alarm_rate < 0.5:
             raise ValueError(f"false_alarm_rate must be in (0, 0.5), got {self.false_alarm_rate!r}")
+        if not 0 < self.pair_false_alarm < 0.5:
+            raise ValueError(f"pair_false_alarm must be in (0, 0.5), got {self.pair_false_alarm!r}")
         if self.max_cells < 1 or self.refine_lags < 1:
             raise ValueError("max_cells and refine_lags must be >= 1")
 
@@ -81,6 +87,7 @@ class CellDetection:
     peak_metric: float  # timing-statistic peak in units of its noise spread (the CFAR statistic)
     snr_db: float  # code energy / residual energy in the stacked code windows
     amplitude: float  # least-squares scale of the template (volts per unit template)
+    site: SiteFit | None = None  # found with a co-sited sector whose code coincides with this one's
 
     @property
     def score_margin(self) -> float:
@@ -97,16 +104,20 @@ def cfar_threshold(false_alarm_rate: float, tests: int) -> float:
 
 
 class CellSearch:
-    """Searches stacks for cells; ``allowed_pcis`` restricts identities (tower database)."""
+    """Searches stacks for cells; ``allowed_pcis`` restricts identities (tower database), and
+    ``cosited_pairs`` (PCIs of one site and carrier, see ``TowerDatabase.cosited_pairs``) adds
+    the site hypothesis of ``deepsync.sync.sites`` to the known-PCI search."""
 
     def __init__(self, templates: SyncTemplates, config: SearchConfig | None = None,
-                 allowed_pcis: list[int] | None = None) -> None:
+                 allowed_pcis: list[int] | None = None, cosited_pairs: list[tuple[int, int]] | None = None) -> None:
         self.templates = templates
         self.config = config or SearchConfig()
         self.allowed = np.arange(N_CELL_IDS) if allowed_pcis is None else np.unique(allowed_pcis)
         if self.allowed.size == 0 or self.allowed.min() < 0 or self.allowed.max() >= N_CELL_IDS:
             raise ValueError("allowed_pcis must be PCIs in 0..503")
         self._cache: dict[tuple[str, int], np.ndarray] = {}  # template spectra by kind and length
+        self.sites = (SiteSearch(templates, cosited_pairs, self.allowed, PHASES)
+                      if cosited_pairs and self.full_code_timing else None)
 
     @cached_property
     def _code_templates(self) -> tuple[np.ndarray, np.ndarray]:
@@ -129,14 +140,9 @@ class CellSearch:
         """(3 x phases, half/2+1) conjugate spectra of the unit-norm, zero-mean PSS templates."""
         key = ("pss", half)
         if key not in self._cache:
-            rows = []
-            for u in range(3):
-                for shape in self.templates.pss(u, PHASES):
-                    shape = (shape - shape.mean()) / np.linalg.norm(shape - shape.mean())
-                    padded = np.zeros(half)
-                    padded[: len(shape)] = shape
-                    rows.append(padded)
-            self._cache[key] = np.conj(scipy.fft.rfft(np.array(rows), axis=1))
+            shapes = np.array([self.templates.pss(u, PHASES) for u in range(3)]).reshape(3 * len(PHASES), -1)
+            shapes -= shapes.mean(axis=1, keepdims=True)
+            self._cache[key] = template_spectra(shapes / np.linalg.norm(shapes, axis=1, keepdims=True), half)
         return self._cache[key]
 
     def _frame_spectra(self, frame: int) -> np.ndarray:
@@ -144,22 +150,17 @@ class CellSearch:
         zero-mean subframe-0 code at 0 and subframe-5 code half a frame later, unit norm."""
         key = ("frame", frame)
         if key not in self._cache:
-            length = self.templates.length
-            templates = np.zeros((len(self.allowed), len(PHASES), frame))
-            for i, pci in enumerate(self.allowed):
-                for subframe, start in ((0, 0), (5, frame // 2)):
-                    shapes = self.templates.template(int(pci), subframe, PHASES)
-                    templates[i, :, start : start + length] = shapes - shapes.mean(axis=1, keepdims=True)
-            templates /= np.linalg.norm(templates, axis=2, keepdims=True)
-            self._cache[key] = np.conj(scipy.fft.rfft(templates.reshape(-1, frame), axis=1))
+            parts = np.array([[self.templates.template(int(pci), subframe, PHASES) for subframe in (0, 5)]
+                              for pci in self.allowed])  # (P, 2, phases, L)
+            spectra = frame_spectra(unit_frame_parts(np.swapaxes(parts, 1, 2)), frame)
+            self._cache[key] = spectra.reshape(-1, spectra.shape[-1])
         return self._cache[key]
 
     def pss_statistic(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(3 x phases, half) PSS correlation z-scores of the half-frame fold, and their spreads."""
         half = len(centred) // 2
         folded = centred[:half] + centred[half : 2 * half]
-        c = scipy.fft.irfft(scipy.fft.rfft(folded)[None, :] * self._pss_spectra(half), n=half, axis=1)
-        return _normalised(c, spreads)
+        return _normalised(correlate(scipy.fft.rfft(folded), self._pss_spectra(half), half), spreads)
 
     def _plausible(self, residual: np.ndarray, found: CellDetection, detections: list[CellDetection],
                    pss_z: np.ndarray) -> bool:
@@ -200,12 +201,16 @@ class CellSearch:
             z, spreads = self.pss_statistic(centred, spreads)
             return z, spreads, len(centred) // 2
         period = len(centred)
-        c = scipy.fft.irfft(scipy.fft.rfft(centred)[None, :] * self._frame_spectra(period), n=period, axis=1)
-        z, spreads = _normalised(c, spreads)
+        z, spreads = _normalised(correlate(scipy.fft.rfft(centred), self._frame_spectra(period), period), spreads)
         return z, spreads, period
 
     def search(self, stacked: np.ndarray) -> list[CellDetection]:
-        """Cells in one stacked frame (the mean of a stack's rows), strongest first."""
+        """Cells in one stacked frame (the mean of a stack's rows), strongest first.
+
+        Peaks of the single templates are examined first, strongest first, each found cell
+        cancelled before the next; when none is left above the threshold, the co-sited pairs'
+        statistic (if any) is computed on what remains, and a pair found there goes through
+        the same loop. The threshold counts both kinds of test."""
         if not np.all(np.isfinite(stacked)):
             raise ValueError("stacked frame contains NaN or inf")
         centred = stacked - stacked.mean()
@@ -214,28 +219,90 @@ class CellSearch:
         residual = centred
         z, spreads, period = self.timing_statistic(residual)
         pss_z, pss_spreads = self.pss_statistic(centred) if self.full_code_timing else (z, spreads)
-        threshold = cfar_threshold(self.config.false_alarm_rate, z.size)
+        tests = z.size + (0 if self.sites is None else self.sites.rows * period)
+        threshold = cfar_threshold(self.config.false_alarm_rate, tests)
         half = len(stacked) // 2
-        given_up = np.zeros(period, dtype=bool)  # lags whose peak could not be explained
+        given_up = np.zeros((2, period), dtype=bool)  # lags whose single / site peak could not be explained
+        site_noise = None if self.sites is None else SiteNoise(self.sites, scipy.fft.rfft(centred), period)
+        site_z = None  # computed once the single peaks are exhausted
         detections: list[CellDetection] = []
         for _ in range(self.config.max_examined):
             if len(detections) >= self.config.max_cells:
                 break
-            best = np.where(given_up, -np.inf, z.max(axis=0))
+            best = np.where(given_up[0], -np.inf, z.max(axis=0))
             peak = int(np.argmax(best))
-            if best[peak] < threshold:
-                break
-            # (a template half a sample late peaks at the same integer lag, so the lag stands)
-            code_start = (peak - (0 if self.full_code_timing else self.templates.pss_offset)) % half
-            found = self._identify(residual, code_start, float(best[peak]))
-            if not self._plausible(residual, found, detections, pss_z):
-                given_up[(peak + np.arange(-2, 3)) % period] = True
+            site = best[peak] < threshold
+            if site:
+                if self.sites is None:
+                    break
+                every = self.sites.every_pair
+                if site_z is None:
+                    correlations = self.sites.correlations(scipy.fft.rfft(residual), period, every)
+                    site_z = self.sites.statistic(correlations, site_noise.covariances(every, correlations))
+                best = np.where(given_up[1], -np.inf, site_z.max(axis=0))
+                peak = int(np.argmax(best))
+                if best[peak] < threshold:
+                    break
+                match = self.sites.identify(residual, peak, every, site_noise.covariances(every),
+                                            self.config.pair_false_alarm, self.config.pair_min_gain)
+                added = match is not None and self._add_site(match, float(best[peak]), detections)
+            else:
+                # (a template half a sample late peaks at the same integer lag, so the lag stands)
+                code_start = (peak - (0 if self.full_code_timing else self.templates.pss_offset)) % half
+                found = self._identify(residual, code_start, float(best[peak]))
+                match = None if site_noise is None else self._pair_of(residual, found, site_noise)
+                if match is not None:  # a sector whose co-sited partner is there too
+                    added = self._add_site(match, found.peak_metric, detections)
+                else:
+                    added = self._plausible(residual, found, detections, pss_z)
+                    if added:
+                        detections.append(found)
+            if not added:
+                given_up[int(site), (peak + np.arange(-2, 3)) % period] = True
                 continue
-            detections.append(found)
             residual = centred - self._fit(centred, detections)
             z, _, _ = self.timing_statistic(residual, spreads)
             pss_z = self.pss_statistic(residual, pss_spreads)[0] if self.full_code_timing else z
+            site_z = None
         return detections
+
+    def _pair_of(self, residual: np.ndarray, found: CellDetection, noise: SiteNoise) -> SiteMatch | None:
+        """The co-sited pair a single detection belongs to, if its partner's code is there too
+        (strong pairs often raise a sector's own template first)."""
+        pairs = self.sites.pairs_with(found.pci)
+        if not pairs.size or found.amplitude <= 0:
+            return None
+        return self.sites.identify(residual, found.frame_offset, pairs, noise.covariances(pairs),
+                                   self.config.pair_false_alarm, self.config.pair_min_gain)
+
+    def _add_site(self, match: SiteMatch, peak_metric: float, detections: list[CellDetection]) -> bool:
+        """Both sectors of a pair become detections carrying the pair's fit; False if either
+        was found already (what is left of a cancelled cell is not its pair)."""
+        if any(d.pci in match.fit.pcis for d in detections):
+            return False
+        candidates: list[Candidate] = []
+        for pair, score, lag in match.ranked:
+            candidates += [Candidate(pci, score, lag) for pci in pair if pci not in {c.pci for c in candidates}]
+        for own, pci in enumerate(match.fit.pcis):
+            ranked = [c for c in candidates if c.pci == pci] + [c for c in candidates if c.pci != pci]
+            detections.append(CellDetection(
+                frame_offset=match.frame_offset,
+                fraction=match.fraction,
+                pci=pci,
+                candidates=tuple(ranked[: self.config.keep_candidates]),
+                peak_metric=peak_metric,
+                snr_db=match.snr_db,
+                amplitude=match.fit.coefficients[own],
+                site=match.fit,
+            ))
+        return True
+
+    def code_template(self, detection: CellDetection, subframe: int = 0) -> np.ndarray:
+        """What the detection's code looks like in the envelope (code start at 0): its PCI's
+        template, or for a co-sited pair found together, the pair's fitted sum."""
+        if detection.site is None:
+            return self.templates.template(detection.pci, subframe)
+        return detection.site.template(self.templates, subframe)
 
     def _fit(self, centred: np.ndarray, detections: list[CellDetection]) -> np.ndarray:
         """Joint least-squares model of every detected cell's codes, for cancelling them.
@@ -271,6 +338,13 @@ class CellSearch:
                 gap = (b.frame_offset + b.fraction - a.frame_offset - a.fraction + half) % frame - half
                 if abs(gap) >= length:
                     continue  # codes apart in time do not mix (and the other subframe's are a half-frame off)
+                if gap == 0:  # co-sited sectors found together: cached shapes
+                    for k in range(2):
+                        column = np.zeros(frame)
+                        for sf, start in ((0, a.frame_offset), (5, a.frame_offset + half)):
+                            place(column, self.templates.shifted_cross_terms(a.pci, b.pci, sf, a.fraction)[k], start)
+                        columns.append(column)
+                    continue
                 origin = a.frame_offset + min(0, math.floor(gap)) - spread
                 span = length + abs(math.floor(gap)) + 2 * spread + 1
                 pair = [np.zeros(frame), np.zeros(frame)]

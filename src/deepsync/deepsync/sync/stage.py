@@ -73,7 +73,8 @@ class SyncStage:
         self.config = config or SyncConfig()
         self.towers = towers
         self.templates = SyncTemplates(frontend)
-        self.search = CellSearch(self.templates, self.config.search, None if towers is None else towers.pcis)
+        self.search = CellSearch(self.templates, self.config.search, None if towers is None else towers.pcis,
+                                 None if towers is None else towers.cosited_pairs())
         self.stacker = FrameStacker(self.config.stack)
         self._reported_events = 0
         self._previous: dict[int, tuple[float, int]] = {}  # pci -> (code position, streak) last stack

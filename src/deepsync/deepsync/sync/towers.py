@@ -66,6 +66,17 @@ class TowerDatabase:
         """Every database cell using ``pci`` (PCIs repeat across a network, on other sites)."""
         return [cell for cell in self.cells if cell.pci == pci]
 
+    def cosited_pairs(self) -> list[tuple[int, int]]:
+        """Pairs of PCIs on one site and one carrier (or carriers not given): sectors whose
+        sync codes arrive at the same time and add up before the square law."""
+        pairs = set()
+        for site in self.sites:
+            for i, a in enumerate(site.cells):
+                for b in site.cells[i + 1 :]:
+                    if a.pci != b.pci and a.earfcn == b.earfcn:
+                        pairs.add((min(a.pci, b.pci), max(a.pci, b.pci)))
+        return sorted(pairs)
+
 
 _SITE_KEYS = {"name", "latitude_deg", "longitude_deg", "height_m", "timing_offset_us", "cells"}
 

@@ -1,0 +1,42 @@
+"""Circular cross-correlation of a stacked frame with many templates, by FFT, in float32.
+
+The timing search correlates one frame with dozens of templates at every lag, several times
+per stack; the cost is memory traffic, so spectra and results are single precision (relative
+error ~1e-7, far below any noise the z-scores are made of), which runs several times faster
+than double precision on this project's machines.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.fft
+
+
+def unit_frame_parts(parts: np.ndarray) -> np.ndarray:
+    """Zero-mean each code (last axis) and scale each (..., 2, L) subframe-0/subframe-5 pair to
+    unit norm: the two codes of a frame template, as the timing correlation uses them."""
+    centred = parts - parts.mean(axis=-1, keepdims=True)
+    return centred / np.linalg.norm(centred, axis=(-2, -1), keepdims=True)
+
+
+def template_spectra(templates: np.ndarray, n: int) -> np.ndarray:
+    """Conjugate spectra (complex64) of (..., L) templates starting at lag 0 of an n-periodic signal."""
+    padded = np.zeros((*templates.shape[:-1], n))
+    padded[..., : templates.shape[-1]] = templates
+    return np.conj(scipy.fft.rfft(padded, axis=-1)).astype(np.complex64)
+
+
+def frame_spectra(parts: np.ndarray, frame: int) -> np.ndarray:
+    """Conjugate spectra (complex64) of frame templates from (..., 2, L) code parts: subframe
+    0's code at 0, subframe 5's half a frame later."""
+    templates = np.zeros((*parts.shape[:-2], frame))
+    length = parts.shape[-1]
+    templates[..., :length] = parts[..., 0, :]
+    templates[..., frame // 2 : frame // 2 + length] = parts[..., 1, :]
+    return template_spectra(templates, frame)
+
+
+def correlate(spectrum: np.ndarray, spectra: np.ndarray, n: int) -> np.ndarray:
+    """(..., n) float32 circular correlations at every lag, from a signal's rfft and templates'
+    conjugate spectra."""
+    return scipy.fft.irfft(spectrum.astype(np.complex64) * spectra, n=n, axis=-1)

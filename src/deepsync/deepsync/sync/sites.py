@@ -1,0 +1,238 @@
+"""Co-sited sectors found together: the site hypothesis of the known-PCI cell search.
+
+Two sectors of one site on one carrier send their sync codes at the same instant, and at the
+receiver the codes add before the square law:
+
+    |x s_a + y s_b|^2 = |x|^2 |s_a|^2 + |y|^2 |s_b|^2 + Re(x y*) 2Re(s_a s_b*) - Im(x y*) 2Im(s_a s_b*)
+
+The sectors' transmit chains and antennas fix x y* while the receiver stays put, so the cross
+term survives stacking, and it dominates: a sync code's envelope is nearly constant, so |s|^2
+varies little about its mean, while s_a s_b* is all variation. At equal power neither sector's
+own template matches the sum (on the campus bag about 1 sigma, against 5 to 14 sigma for the pair).
+
+So the pair's code is sought in the 4-dimensional span of those four shapes, coefficients
+unknown. At every lag the four correlations c, whose noise covariance S is measured from the
+stack itself (robustly, as the single templates' spreads are), give c' S^-1 c: chi-square with 4
+degrees of freedom on noise alone. It enters the CFAR as the Gaussian z of the same tail
+probability, beside the single templates' z. A site peak counts as a pair only if the pair
+explains significantly more than its better sector alone (the excess is chi-square with 3
+degrees of freedom when one sector is all there is: a generalised likelihood-ratio test);
+otherwise the single-cell search takes the peak.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.special
+import scipy.stats
+
+from deepsync.frontend.templates import SyncTemplates
+from deepsync.sync.correlation import correlate, frame_spectra, unit_frame_parts
+
+COMPONENTS = 4  # |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*)
+_EXACT_FROM_Z = 2.9
+_EXACT_FROM_CHI2 = float(scipy.stats.chi2.isf(scipy.stats.norm.sf(_EXACT_FROM_Z), COMPONENTS))
+
+
+def chi2_4_z(statistic: np.ndarray) -> np.ndarray:
+    """The Gaussian z with the same upper-tail probability as a chi-square(4) value, exact
+    (closed form: log P(X > x) = -x/2 + log(1 + x/2)) from z = 2.9 up, where thresholds and
+    peaks are. Below, where only the order matters, Fisher's sqrt(2x) - sqrt(7), capped at
+    2.9 so the whole map stays monotonic, spares the exact inverse on every lag."""
+    z = np.minimum(np.sqrt(2 * np.maximum(statistic, 0)) - math.sqrt(7), _EXACT_FROM_Z).astype(statistic.dtype)
+    tail = statistic > _EXACT_FROM_CHI2
+    x = statistic[tail].astype(np.float64)
+    z[tail] = -scipy.special.ndtri_exp(-x / 2 + np.log1p(x / 2))
+    return z
+
+
+@dataclass(frozen=True)
+class SiteFit:
+    """Least-squares model of two co-sited sectors' coinciding codes."""
+
+    pcis: tuple[int, int]
+    coefficients: tuple[float, float, float, float]  # scales of |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*)
+
+    def template(self, templates: SyncTemplates, subframe: int = 0, delay: float = 0.0) -> np.ndarray:
+        """What the pair's code looks like in the envelope, starting at ``delay`` samples."""
+        return np.asarray(self.coefficients) @ pair_shapes(templates, self.pcis, subframe, delay)
+
+
+def pair_shapes(templates: SyncTemplates, pcis: tuple[int, int], subframe: int, delay: float) -> np.ndarray:
+    """(4, L) the pair's component shapes with both codes starting at ``delay`` samples."""
+    a, b = pcis
+    own = [templates.shifted(pci, subframe, delay) for pci in pcis]
+    return np.stack([*own, *templates.shifted_cross_terms(a, b, subframe, delay)])
+
+
+@dataclass(frozen=True)
+class SiteMatch:
+    """A site peak explained by two sectors."""
+
+    fit: SiteFit
+    frame_offset: int  # subframe-0 code start within the frame
+    fraction: float  # sub-sample refinement, samples
+    snr_db: float  # pair model energy / residual energy in the two code windows
+    ranked: tuple[tuple[tuple[int, int], float, int], ...]  # (pair, multiple correlation, lag), best first
+
+
+class SiteSearch:
+    """The site hypotheses of a known-PCI search: one per co-sited pair, per template phase."""
+
+    def __init__(self, templates: SyncTemplates, pairs: list[tuple[int, int]], allowed: np.ndarray,
+                 phases: np.ndarray) -> None:
+        unknown = sorted({pci for pair in pairs for pci in pair} - {int(pci) for pci in allowed})
+        if unknown:
+            raise ValueError(f"co-sited PCIs {unknown} are not among the allowed PCIs")
+        self.templates = templates
+        self.pairs = [tuple(sorted(pair)) for pair in pairs]
+        self.phases = phases
+        parts = np.empty((len(pairs), len(phases), COMPONENTS, 2, templates.length))
+        for k, (a, b) in enumerate(self.pairs):  # exact shapes (the fraction grids are built on demand)
+            for s, subframe in enumerate((0, 5)):
+                parts[k, :, 0, s] = templates.template(a, subframe, phases)
+                parts[k, :, 1, s] = templates.template(b, subframe, phases)
+                for p, phase in enumerate(phases):
+                    parts[k, p, 2:, s] = templates.cross_terms(a, b, subframe, phase, phase, templates.length)
+        self._parts = unit_frame_parts(parts)  # (pairs, phases, 4, 2, L)
+        self._gram = np.einsum("kpisl,kpjsl->kpij", self._parts, self._parts)  # (pairs, phases, 4, 4)
+        # orthonormal bases of each pair's span over both code windows, for candidate scores
+        flat = self._parts.reshape(*self._parts.shape[:3], -1)
+        self._bases = np.linalg.qr(np.swapaxes(flat, -1, -2))[0]  # (pairs, phases, 2L, 4)
+        self._spectra: dict[int, np.ndarray] = {}
+
+    @property
+    def rows(self) -> int:
+        """Hypotheses tested at every lag: one per pair and template phase."""
+        return len(self.pairs) * len(self.phases)
+
+    @property
+    def every_pair(self) -> np.ndarray:
+        return np.arange(len(self.pairs))
+
+    def pairs_with(self, pci: int) -> np.ndarray:
+        """Indices of the pairs ``pci`` belongs to."""
+        return np.array([k for k, pair in enumerate(self.pairs) if pci in pair], dtype=int)
+
+    def correlations(self, spectrum: np.ndarray, frame: int, pairs: np.ndarray) -> np.ndarray:
+        """(pairs, phases, 4, frame) correlations with the given pairs' unit frame templates, of
+        the frame whose rfft is ``spectrum``."""
+        if frame not in self._spectra:
+            self._spectra[frame] = frame_spectra(self._parts, frame)
+        return correlate(spectrum, self._spectra[frame][pairs], frame)
+
+    def statistic(self, correlations: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+        """(pairs x phases, frame) Gaussian-equivalent z of c' S^-1 c at every lag: the
+        correlations whitened (S = R R', w = R^-1 c, lower triangular), then |w|^2."""
+        whitening = np.linalg.inv(np.linalg.cholesky(covariances)).astype(np.float32)
+        chi2 = np.zeros((*correlations.shape[:2], correlations.shape[-1]), dtype=np.float32)
+        for i in range(COMPONENTS):
+            w = whitening[:, :, i, 0, None] * correlations[:, :, 0]
+            for j in range(1, i + 1):
+                w += whitening[:, :, i, j, None] * correlations[:, :, j]
+            chi2 += w * w
+        return chi2_4_z(chi2).reshape(-1, correlations.shape[-1])
+
+    def identify(self, centred: np.ndarray, code_start: int, pairs: np.ndarray, covariances: np.ndarray,
+                 pair_false_alarm: float, min_gain: float) -> SiteMatch | None:
+        """Which of ``pairs`` (indices; ``covariances`` their noise), at which sub-sample
+        position and with which coefficients, explains a code at ``code_start`` (subframe-0
+        code start, mod a frame); None if one sector alone explains it about as well: the pair
+        must add significantly (at ``pair_false_alarm``, shared among the pairs tried) and at
+        least ``min_gain`` x the sector's own statistic (template mismatch at high SNR leaks a
+        little of a lone sector into the other shapes)."""
+        frame, half, length = len(centred), len(centred) // 2, self.templates.length
+        lags = np.arange(-1, 2)
+        index = code_start + lags[:, None, None] + np.array([0, half])[None, :, None] + np.arange(length)
+        windows = centred[index % frame]  # (lags, 2, L)
+        c = np.einsum("kpcsl,nsl->kpcn", self._parts[pairs], windows)  # (pairs, phases, 4, lags)
+        precisions = np.linalg.inv(covariances)
+        full = np.einsum("kpin,kpij,kpjn->kpn", c, precisions, c)
+        # one sector alone: E[c] = amplitude x its column of the templates' Gram matrix g, so
+        # its GLR statistic is (g' S^-1 c)^2 / (g' S^-1 g), and what the pair adds is chi2(3)
+        gram = self._gram[pairs][..., :2]  # (pairs, phases, 4, sector)
+        weights = np.einsum("kpij,kpjm->kpim", precisions, gram)
+        alone = (np.einsum("kpim,kpin->kpmn", weights, c) ** 2
+                 / np.einsum("kpim,kpim->kpm", weights, gram)[..., None]).max(axis=2)  # (pairs, phases, lags)
+        k, p, n = np.unravel_index(np.argmax(full), full.shape)
+        gain = full[k, p, n] - alone[k, p, n]
+        if gain < scipy.stats.chi2.isf(pair_false_alarm / len(pairs), COMPONENTS - 1) or gain < min_gain * alone[k, p, n]:
+            return None
+        # positions lag + phase on a half-sample grid; a parabola through the best and its neighbours
+        positions = (lags[:, None] + self.phases[None, :]).ravel()
+        order = np.argsort(positions)
+        values = full[k].T.ravel()[order]
+        best = int(np.argmax(values))
+        refined = float(positions[order][best])
+        if 0 < best < len(values) - 1:
+            a, b, c_ = values[best - 1], values[best], values[best + 1]
+            if a - 2 * b + c_ < 0:
+                refined += 0.5 * 0.5 * (a - c_) / (a - 2 * b + c_)
+        whole = round(refined)
+        offset, fraction = int((code_start + whole) % frame), refined - whole
+        fit, snr_db = self._fit(centred, self.pairs[pairs[k]], offset, fraction)
+        flat = windows.reshape(len(lags), -1)
+        flat = flat - flat.mean(axis=1, keepdims=True)
+        explained = np.einsum("kpmc,nm->kpcn", self._bases[pairs], flat)  # (pairs, phases, 4, lags)
+        score = np.sqrt(np.sum(explained**2, axis=2) / np.sum(flat**2, axis=1))  # multiple correlation
+        best_per_pair = score.max(axis=1)  # (pairs, lags)
+        ranked = sorted(
+            ((self.pairs[pair], float(best_per_pair[j].max()), int(lags[best_per_pair[j].argmax()]))
+             for j, pair in enumerate(pairs)),
+            key=lambda item: -item[1],
+        )
+        return SiteMatch(fit, offset, fraction, snr_db, tuple(ranked))
+
+    def _fit(self, centred: np.ndarray, pair: tuple[int, int], offset: int, fraction: float) -> tuple[SiteFit, float]:
+        """Least squares of the pair's four shapes (one set of coefficients for both codes)
+        plus a pedestal under each code, on the two code windows."""
+        frame, half, length = len(centred), len(centred) // 2, self.templates.length
+        shapes = np.concatenate([pair_shapes(self.templates, pair, sf, fraction) for sf in (0, 5)], axis=1)
+        pedestals = np.kron(np.eye(2), np.ones(length))
+        basis = np.vstack([shapes, pedestals]).T  # (2L, 6)
+        index = (offset + np.array([0, half])[:, None] + np.arange(length)) % frame
+        window = centred[index].ravel()
+        coefficients, *_ = np.linalg.lstsq(basis, window, rcond=None)
+        model = shapes.T @ coefficients[:COMPONENTS]
+        residual = window - basis @ coefficients
+        energy, rest = float(model @ model), float(residual @ residual)
+        snr_db = 10 * math.log10(energy / rest) if energy > 0 and rest > 0 else -math.inf
+        return SiteFit(pair, tuple(float(x) for x in coefficients[:COMPONENTS])), snr_db
+
+
+class SiteNoise:
+    """Noise covariances of each pair's four correlations (per template phase) in one stack,
+    measured when a pass first needs the pair and kept for the stack's later passes, as the
+    single templates' spreads are."""
+
+    def __init__(self, search: SiteSearch, spectrum: np.ndarray, frame: int) -> None:
+        self._search, self._spectrum, self._frame = search, spectrum, frame
+        self._covariances: dict[int, np.ndarray] = {}  # pair index -> (phases, 4, 4)
+
+    def covariances(self, pairs: np.ndarray, correlations: np.ndarray | None = None) -> np.ndarray:
+        """(pairs, phases, 4, 4); those not measured yet are measured on ``correlations`` (of
+        the same pairs, any pass) or else on the stack's first pass."""
+        missing = np.array([i for i, k in enumerate(pairs) if int(k) not in self._covariances], dtype=int)
+        if missing.size:
+            if correlations is None:
+                measured = _covariances(self._search.correlations(self._spectrum, self._frame, pairs[missing]))
+            else:
+                measured = _covariances(correlations[missing])
+            self._covariances.update(zip((int(k) for k in pairs[missing]), measured))
+        return np.stack([self._covariances[int(k)] for k in pairs])
+
+
+def _covariances(correlations: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) covariance of the four correlations over the lags where none stands out
+    (5 robust sigmas): codes occupy a few lags of thousands. Every 32nd lag is enough."""
+    sample = correlations[..., ::32].astype(np.float64)
+    median = np.median(sample, axis=-1, keepdims=True)
+    spread = 1.4826 * np.median(np.abs(sample - median), axis=-1, keepdims=True)
+    quiet = np.all(np.abs(sample - median) < 5 * spread, axis=-2, keepdims=True)  # (..., 1, lags)
+    count = quiet.sum(axis=-1, keepdims=True)
+    mean = np.sum(sample * quiet, axis=-1, keepdims=True) / count
+    centred = (sample - mean) * quiet
+    return np.einsum("...il,...jl->...ij", centred, centred) / (count - 1)
