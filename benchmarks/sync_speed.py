@@ -2,8 +2,10 @@
 
 Times ``SyncStage.process`` on real stacks of the bundled campus bag (4 cells on the air):
 stacking (10 chunks of 10 ms), the search (blind: 504 PCIs; known: the campus tower database,
-timed by the PSS or by the PCIs' whole codes) and window extraction, on one core (BLAS limited to one thread). Templates are built once,
-before timing, as a running node builds them at start-up. Prints the median of --repeats runs.
+timed by the PSS or by the PCIs' whole codes, with or without its co-sited sector pairs, the
+default) and window extraction, on one core (BLAS limited to one thread). Templates are built
+once, before timing, as a running node builds them at start-up. Prints the median of
+--repeats runs.
 
 Run:  .venv/bin/python benchmarks/sync_speed.py [--repeats 30]
 Writes docs/results/sync_speed.json.
@@ -58,10 +60,13 @@ def main() -> None:
     with threadpool_limits(limits=1):
         database = load_tower_database(TOWERS)
         fast = SyncConfig(search=SearchConfig(full_code_timing=False))
+        no_sites = SyncConfig(search=SearchConfig(site_hypotheses=False))
+        pairs = len(database.cosited_pairs())
         for mode, towers, config, label in (
             ("blind", None, SyncConfig(), "blind (504 PCIs)"),
             ("known_fast", database, fast, f"known, PSS timing ({len(database.pcis)} PCIs)"),
-            ("known", database, SyncConfig(), f"known, full-code timing ({len(database.pcis)} PCIs)"),
+            ("known_no_sites", database, no_sites, f"known, full-code timing ({len(database.pcis)} PCIs)"),
+            ("known", database, SyncConfig(), f"known, full codes + {pairs} co-sited pairs"),
         ):
             median, p90 = time_mode(chunks, towers, args.repeats, config)
             out[mode] = {"median_ms": median, "p90_ms": p90}

@@ -151,6 +151,8 @@ def test_field_types(parsed: dict) -> None:
         "n_frames": "uint16",
         "window_length": "uint16",
         "windows": "float32[]",
+        "cosited_pci": "int16",
+        "site_coefficients": "float32[]",
     }
     assert field_types(parsed, "SyncWindowArray") == {
         "header": "std_msgs/Header",

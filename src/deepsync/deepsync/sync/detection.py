@@ -57,6 +57,7 @@ class SearchConfig:
     open_set_tolerance: float = 0.02  # how much better a PCI outside the database may score
     max_examined: int = 24  # peaks examined per stack (found cells and rejected ones)
     full_code_timing: bool = True  # with known PCIs, time by their whole codes (+9 dB, slower)
+    site_hypotheses: bool = True  # with full-code timing, also search the co-sited pairs given (+cost)
     pair_false_alarm: float = 1e-3  # chance that one sector alone passes for a co-sited pair at a site peak
     pair_min_gain: float = 0.25  # and what the pair must add to one sector's statistic, relatively
 
@@ -117,7 +118,7 @@ class CellSearch:
             raise ValueError("allowed_pcis must be PCIs in 0..503")
         self._cache: dict[tuple[str, int], np.ndarray] = {}  # template spectra by kind and length
         self.sites = (SiteSearch(templates, cosited_pairs, self.allowed, PHASES)
-                      if cosited_pairs and self.full_code_timing else None)
+                      if cosited_pairs and self.full_code_timing and self.config.site_hypotheses else None)
 
     @cached_property
     def _code_templates(self) -> tuple[np.ndarray, np.ndarray]:

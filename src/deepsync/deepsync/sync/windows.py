@@ -42,6 +42,12 @@ class CellWindows:
         return self.detection.pci
 
     @property
+    def cosited_pci(self) -> int | None:
+        """The co-sited sector found together with this one (its code shares the windows)."""
+        site = self.detection.site
+        return None if site is None else next(pci for pci in site.pcis if pci != self.detection.pci)
+
+    @property
     def n_frames(self) -> int:
         return self.windows.shape[0]
 
