@@ -230,6 +230,7 @@ class CellSearch:
         for _ in range(self.config.max_examined):
             if len(detections) >= self.config.max_cells:
                 break
+            before = len(detections)
             best = np.where(given_up[0], -np.inf, z.max(axis=0))
             peak = int(np.argmax(best))
             site = best[peak] < threshold
@@ -264,8 +265,19 @@ class CellSearch:
             residual = centred - self._fit(centred, detections)
             z, _, _ = self.timing_statistic(residual, spreads)
             pss_z = self.pss_statistic(residual, pss_spreads)[0] if self.full_code_timing else z
-            site_z = None
+            if site_z is not None:
+                # cancelling changes the residual only around the new codes: the site rows stay
+                # valid elsewhere and are not recomputed (the costliest part of the search)
+                for d in detections[before:]:
+                    given_up[1, self._overlapping_lags(d.frame_offset, period)] = True
         return detections
+
+    def _overlapping_lags(self, code_start: int, period: int) -> np.ndarray:
+        """Lags at which a frame template overlaps either code of a cell whose subframe-0 code
+        starts at ``code_start`` (with the cancellation's spread)."""
+        reach = self.templates.length + self.config.cancel_spread + 1
+        near = code_start + np.arange(-reach, reach + 1)
+        return np.concatenate([near, near + period // 2]) % period
 
     def _pair_of(self, residual: np.ndarray, found: CellDetection, noise: SiteNoise) -> SiteMatch | None:
         """The co-sited pair a single detection belongs to, if its partner's code is there too
