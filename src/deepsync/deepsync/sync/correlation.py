@@ -40,3 +40,11 @@ def correlate(spectrum: np.ndarray, spectra: np.ndarray, n: int) -> np.ndarray:
     """(..., n) float32 circular correlations at every lag, from a signal's rfft and templates'
     conjugate spectra."""
     return scipy.fft.irfft(spectrum.astype(np.complex64) * spectra, n=n, axis=-1)
+
+
+def parabolic_peak(values: np.ndarray, i: int) -> float:
+    """Sub-sample position of a peak at index i relative to i, from a parabola through 3 points
+    (0 if they do not curve downwards)."""
+    a, b, c = values[i - 1], values[i], values[i + 1]
+    denominator = a - 2 * b + c
+    return float(0.5 * (a - c) / denominator) if denominator < 0 else 0.0

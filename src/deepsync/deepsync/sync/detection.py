@@ -16,6 +16,10 @@ Found cells are fitted jointly (templates, pedestals and the cross terms of code
 in time) and cancelled before the next peak is examined, so a cell next to a stronger one, or
 at the same timing, shows up in the residual.
 
+With a tower database, two sectors of one site (same carrier, same timing) are also sought as
+one hypothesis, their codes and the cross term between them (``deepsync.sync.sites``): at
+similar power that cross term dominates the envelope, and neither sector's template matches.
+
 Real envelopes are not as tidy as Gaussian noise: every frame-synchronised cell leaves CRS and
 PBCH structure, and cells missing from the database leave codes of their own. A peak therefore
 only counts as a new cell if it is a PCI not yet found, shows a PSS at its PSS position, and
@@ -40,7 +44,7 @@ import scipy.stats
 
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.lte.cell import N_CELL_IDS
-from deepsync.sync.correlation import correlate, frame_spectra, template_spectra, unit_frame_parts
+from deepsync.sync.correlation import correlate, frame_spectra, parabolic_peak, template_spectra, unit_frame_parts
 from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
 
 PHASES = np.array([0.0, 0.5])  # sub-sample delays at which every timing template is tried
@@ -240,8 +244,8 @@ class CellSearch:
                 every = self.sites.every_pair
                 if site_z is None:
                     correlations = self.sites.correlations(scipy.fft.rfft(residual), period, every)
-                    site_z = self.sites.statistic(correlations, site_noise.covariances(every, correlations))
-                best = np.where(given_up[1], -np.inf, site_z.max(axis=0))
+                    site_z = self.sites.statistic(correlations, site_noise.covariances(every, correlations)).max(axis=0)
+                best = np.where(given_up[1], -np.inf, site_z)
                 peak = int(np.argmax(best))
                 if best[peak] < threshold:
                     break
@@ -402,7 +406,7 @@ class CellSearch:
             Candidate(int(self.allowed[i]), float(per_pci[i]), int(lags[rho[:, i].max(axis=0).argmax()]))
             for i in ranked
         )
-        fraction = _parabolic_peak(rho[order, best], lag_i) if 0 < lag_i < len(lags) - 1 else 0.0
+        fraction = parabolic_peak(rho[order, best], lag_i) if 0 < lag_i < len(lags) - 1 else 0.0
         dot = dots[order, best, lag_i]
         amplitude = dot / template_energy[best]
         explained = amplitude * dot
@@ -418,13 +422,6 @@ class CellSearch:
             snr_db=snr_db,
             amplitude=float(amplitude),
         )
-
-
-def _parabolic_peak(values: np.ndarray, i: int) -> float:
-    """Sub-sample position of a peak at index i relative to i, from a parabola through 3 points."""
-    a, b, c = values[i - 1], values[i], values[i + 1]
-    denominator = a - 2 * b + c
-    return float(0.5 * (a - c) / denominator) if denominator < 0 else 0.0
 
 
 def _normalised(c: np.ndarray, spreads: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

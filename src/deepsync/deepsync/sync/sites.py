@@ -14,10 +14,13 @@ So the pair's code is sought in the 4-dimensional span of those four shapes, coe
 unknown. At every lag the four correlations c, whose noise covariance S is measured from the
 stack itself (robustly, as the single templates' spreads are), give c' S^-1 c: chi-square with 4
 degrees of freedom on noise alone. It enters the CFAR as the Gaussian z of the same tail
-probability, beside the single templates' z. A site peak counts as a pair only if the pair
-explains significantly more than its better sector alone (the excess is chi-square with 3
-degrees of freedom when one sector is all there is: a generalised likelihood-ratio test);
-otherwise the single-cell search takes the peak.
+probability, beside the single templates' z. A peak counts as a pair only if the pair
+explains significantly more than its better sector alone: one sector means E[c] = amplitude x
+that sector's column g of the templates' Gram matrix, whose GLR statistic is
+(g' S^-1 c)^2 / (g' S^-1 g); the pair's excess over it is chi-square with 3 degrees of freedom
+(a generalised likelihood-ratio test), and must also be a fair share of it, since a lone
+sector's template mismatch at high SNR leaks into the other shapes. Otherwise the single-cell
+search keeps the peak. ``deepsync.sync.detection`` decides when pairs are tried.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import scipy.special
 import scipy.stats
 
 from deepsync.frontend.templates import SyncTemplates
-from deepsync.sync.correlation import correlate, frame_spectra, unit_frame_parts
+from deepsync.sync.correlation import correlate, frame_spectra, parabolic_peak, unit_frame_parts
 
 COMPONENTS = 4  # |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*)
 _EXACT_FROM_Z = 2.9
@@ -151,8 +154,7 @@ class SiteSearch:
         c = np.einsum("kpcsl,nsl->kpcn", self._parts[pairs], windows)  # (pairs, phases, 4, lags)
         precisions = np.linalg.inv(covariances)
         full = np.einsum("kpin,kpij,kpjn->kpn", c, precisions, c)
-        # one sector alone: E[c] = amplitude x its column of the templates' Gram matrix g, so
-        # its GLR statistic is (g' S^-1 c)^2 / (g' S^-1 g), and what the pair adds is chi2(3)
+        # one sector alone (module docstring): (g' S^-1 c)^2 / (g' S^-1 g), the better of the two
         gram = self._gram[pairs][..., :2]  # (pairs, phases, 4, sector)
         weights = np.einsum("kpij,kpjm->kpim", precisions, gram)
         alone = (np.einsum("kpim,kpin->kpmn", weights, c) ** 2
@@ -168,9 +170,7 @@ class SiteSearch:
         best = int(np.argmax(values))
         refined = float(positions[order][best])
         if 0 < best < len(values) - 1:
-            a, b, c_ = values[best - 1], values[best], values[best + 1]
-            if a - 2 * b + c_ < 0:
-                refined += 0.5 * 0.5 * (a - c_) / (a - 2 * b + c_)
+            refined += 0.5 * parabolic_peak(values, best)  # grid step: half a sample
         whole = round(refined)
         offset, fraction = int((code_start + whole) % frame), refined - whole
         fit, snr_db = self._fit(centred, self.pairs[pairs[k]], offset, fraction)
