@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 from deepsync.bag.msgdefs import MSG_NAMES, load_typestore, msgtype
+from system_python import missing, run_python
 
 REPO = Path(__file__).resolve().parents[1]
 MSGS_PKG = REPO / "src" / "deepsync_msgs"
-SYSTEM_PYTHON = "/usr/bin/python3"
 
 # Parses every <pkg_dir>/msg/*.msg like rosidl_generate_interfaces: rosidl_adapter's .msg parser,
 # then .msg -> .idl conversion and rosidl_parser on the .idl. Prints one JSON document; any
@@ -60,36 +60,12 @@ sys.exit(1 if failed else 0)
 """
 
 
-def _rosidl_available() -> str | None:
-    """None if Debian's rosidl toolchain is usable, else the reason to skip."""
-    if not Path(SYSTEM_PYTHON).exists():
-        return f"{SYSTEM_PYTHON} not found (Debian python3-rosidl / rosidl-tools needed)"
-    probe = subprocess.run(
-        [SYSTEM_PYTHON, "-c", "import rosidl_adapter.msg, rosidl_parser.parser, em"],
-        check=False,
-        capture_output=True,
-        text=True,
-    )
-    if probe.returncode != 0:
-        return (
-            f"{SYSTEM_PYTHON} cannot import rosidl_adapter/rosidl_parser "
-            f"(apt install python3-rosidl rosidl-tools): {probe.stderr.strip().splitlines()[-1:]}"
-        )
-    return None
-
-
-_SKIP = _rosidl_available()
+_SKIP = missing("import rosidl_adapter.msg, rosidl_parser.parser, em", "python3-rosidl rosidl-tools")
 pytestmark = pytest.mark.skipif(_SKIP is not None, reason=_SKIP or "")
 
 
 def run_rosidl(pkg_dir: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [SYSTEM_PYTHON, "-c", PARSE_SCRIPT, str(pkg_dir)],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    return run_python(PARSE_SCRIPT, str(pkg_dir))
 
 
 @pytest.fixture(scope="module")

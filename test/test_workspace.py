@@ -15,9 +15,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from system_python import missing, run_python
 
 REPO = Path(__file__).resolve().parents[1]
-SYSTEM_PYTHON = "/usr/bin/python3"
 EXPECTED = {
     "deepsync": ("src/deepsync", "ros.ament_python"),
     "deepsync_msgs": ("src/deepsync_msgs", "ros.ament_cmake"),
@@ -29,41 +29,21 @@ PYTHON_PACKAGES = ("deepsync", "deepsync_ros")
 def _colcon_skip_reason() -> str | None:
     if shutil.which("colcon") is None:
         return "colcon not on PATH (apt install colcon python3-colcon-ros)"
-    probe = subprocess.run(
-        [SYSTEM_PYTHON, "-c", "import colcon_ros"],
-        check=False,
-        capture_output=True,
-        text=True,
-    )
-    if probe.returncode != 0:
-        return "colcon-ros missing (apt install python3-colcon-ros)"
-    return None
+    return missing("import colcon_ros", "python3-colcon-ros")
 
 
-def _catkin_skip_reason() -> str | None:
-    if not Path(SYSTEM_PYTHON).exists():
-        return f"{SYSTEM_PYTHON} not found (Debian python3-catkin-pkg needed)"
-    probe = subprocess.run(
-        [SYSTEM_PYTHON, "-c", "import catkin_pkg.package"],
-        check=False,
-        capture_output=True,
-        text=True,
-    )
-    if probe.returncode != 0:
-        return f"{SYSTEM_PYTHON} cannot import catkin_pkg (apt install python3-catkin-pkg)"
-    return None
+_CATKIN_SKIP = missing("import catkin_pkg.package", "python3-catkin-pkg")
 
 
 needs_colcon = pytest.mark.skipif(
     _colcon_skip_reason() is not None, reason=_colcon_skip_reason() or ""
 )
-needs_catkin = pytest.mark.skipif(
-    _catkin_skip_reason() is not None, reason=_catkin_skip_reason() or ""
-)
+needs_catkin = pytest.mark.skipif(_CATKIN_SKIP is not None, reason=_CATKIN_SKIP or "")
 
 
-def colcon_list(tmp_path: Path, *args: str) -> dict[str, tuple[str, str]]:
-    """``colcon list`` from the repo root, isolated from user config, writing no log files."""
+def run_colcon(tmp_path: Path, *args: str) -> str:
+    """``colcon list ...`` from the repo root, isolated from user config, writing no log files;
+    its standard output."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("COLCON_")}
     env["COLCON_HOME"] = str(tmp_path / "colcon_home")  # no user defaults / mixins
     had_log = (REPO / "log").exists()
@@ -78,8 +58,13 @@ def colcon_list(tmp_path: Path, *args: str) -> dict[str, tuple[str, str]]:
     )
     assert proc.returncode == 0, proc.stderr
     assert had_log or not (REPO / "log").exists(), "colcon list wrote a log/ directory"
+    return proc.stdout
+
+
+def colcon_list(tmp_path: Path, *args: str) -> dict[str, tuple[str, str]]:
+    """Packages ``colcon list`` finds: name -> (path, build type)."""
     packages = {}
-    for line in proc.stdout.splitlines():
+    for line in run_colcon(tmp_path, *args).splitlines():
         name, path, kind = line.split("\t")
         packages[name] = (path, kind.strip("()"))
     return packages
@@ -102,28 +87,7 @@ def test_colcon_from_root_finds_nothing_else(tmp_path: Path) -> None:
 @needs_colcon
 def test_colcon_build_order(tmp_path: Path) -> None:
     """``deepsync_ros`` comes after the packages it depends on."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("COLCON_")}
-    env["COLCON_HOME"] = str(tmp_path / "colcon_home")
-    proc = subprocess.run(
-        [
-            "colcon",
-            "--log-base",
-            os.devnull,
-            "list",
-            "--base-paths",
-            "src",
-            "--topological-order",
-            "--names-only",
-        ],
-        cwd=REPO,
-        env=env,
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert proc.returncode == 0, proc.stderr
-    order = proc.stdout.split()
+    order = run_colcon(tmp_path, "--base-paths", "src", "--topological-order", "--names-only").split()
     assert order.index("deepsync_ros") > order.index("deepsync_msgs")
     assert order.index("deepsync_ros") > order.index("deepsync")
 
@@ -146,13 +110,7 @@ print(json.dumps({
 
 
 def catkin_parse(pkg_dir: Path) -> dict:
-    proc = subprocess.run(
-        [SYSTEM_PYTHON, "-c", CATKIN_SCRIPT, str(pkg_dir)],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = run_python(CATKIN_SCRIPT, str(pkg_dir), timeout=60)
     assert proc.returncode == 0, f"{pkg_dir}/package.xml is invalid:\n{proc.stderr}"
     return json.loads(proc.stdout)
 
