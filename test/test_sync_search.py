@@ -132,11 +132,16 @@ def test_flags_for_clipping_and_silence():
     stacker = FrameStacker(StackConfig(n_frames=1))
     codes = np.zeros(FRAME, dtype=np.int16)
     (silent,) = stacker.push(EnvelopeChunk(0, 1.92e6, 0, 12, 1e-3, codes))
-    assert any("no signal" in f for f in silent.flags)
+    assert any("no signal: 100.0 %" in f for f in silent.flags)
+    codes = np.full(FRAME, 300, dtype=np.int16)
+    codes[5000:5200] = np.random.default_rng(4).integers(-1000, 1000, 200)
+    (stuck,) = stacker.push(EnvelopeChunk(0, 1.92e6, FRAME, 12, 1e-3, codes))
+    assert any("no signal: 99.0 %" in f for f in stuck.flags)  # stuck ADC with a burst
     codes = np.random.default_rng(3).integers(-1000, 1000, FRAME).astype(np.int16)
     codes[:100] = 2047
-    (clipped,) = stacker.push(EnvelopeChunk(0, 1.92e6, FRAME, 12, 1e-3, codes))
+    (clipped,) = stacker.push(EnvelopeChunk(0, 1.92e6, 2 * FRAME, 12, 1e-3, codes))
     assert any("clipped: 0.52 %" in f for f in clipped.flags)
+    assert not any("no signal" in f for f in clipped.flags)
 
 
 def test_clock_offset_is_compensated_to_the_sub_sample(templates):
@@ -250,6 +255,13 @@ def test_bad_stacked_frames(templates):
     with pytest.raises(ValueError, match="NaN"):
         search.search(np.full(FRAME, np.nan))
     assert search.search(np.full(FRAME, 3.0)) == []
+    # a short burst on a stuck input: the correlations vanish at most lags, so no noise level
+    # exists to measure; without this guard the burst passed for cells at 1e8 sigma
+    burst = np.zeros(FRAME)
+    burst[5000:5050] = np.random.default_rng(9).standard_normal(50)
+    db = load_tower_database(CAMPUS_TOWERS)
+    for stuck in (CellSearch(templates), CellSearch(templates, allowed_pcis=db.pcis, cosited_pairs=db.cosited_pairs())):
+        assert stuck.search(burst) == []
     with pytest.raises(ValueError, match="allowed_pcis"):
         CellSearch(templates, allowed_pcis=[600])
 

@@ -46,6 +46,7 @@ from deepsync.frontend.templates import SyncTemplates
 from deepsync.lte.cell import N_CELL_IDS
 from deepsync.sync.correlation import correlate, frame_spectra, parabolic_peak, template_spectra, unit_frame_parts
 from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
+from deepsync.sync.stacking import HELD_FRACTION, held_fraction
 
 PHASES = np.array([0.0, 0.5])  # sub-sample delays at which every timing template is tried
 
@@ -219,8 +220,8 @@ class CellSearch:
         if not np.all(np.isfinite(stacked)):
             raise ValueError("stacked frame contains NaN or inf")
         centred = stacked - stacked.mean()
-        if not np.any(centred):
-            return []  # constant input: nothing to correlate
+        if held_fraction(centred) > HELD_FRACTION:
+            return []  # (mostly) constant input: no noise level to set a threshold by
         residual = centred
         z, spreads, period = self.timing_statistic(residual)
         pss_z, pss_spreads = self.pss_statistic(centred) if self.full_code_timing else (z, spreads)

@@ -11,7 +11,8 @@ wrong and reports it as a :class:`StreamEvent` instead of stacking garbage:
   span it are dropped and stacking restarts after it; stacks before it are unaffected;
 * a chunk that goes back in time (index below what was already seen): dropped;
 * a change of sample rate: everything pending is dropped and stacking restarts at the new rate;
-* clipped or all-zero frames: stacked, but the stack carries a flag.
+* clipped frames, and silent or stuck ones (most of the stack holding one value): stacked,
+  but the stack carries a flag.
 
 Receiver clock offset: frame f of a stack starts ``f * frame * (1 + clock_ppm)`` samples after
 frame 0, rounded; the sub-sample remainder of each row is kept in ``Stack.row_shifts`` so
@@ -35,6 +36,7 @@ from deepsync.frontend.chunk import EnvelopeChunk
 from deepsync.lte.numerology import FRAME_SECONDS
 
 MAX_CLOCK_PPM = 200.0  # a receiver crystal further off than this is not believed
+HELD_FRACTION = 0.5  # a stacked frame holding one value over more of it than this has no noise to measure
 DRIFT_SMOOTHING = 0.3  # weight of each stack's drift measurement in the running estimate
 
 
@@ -196,8 +198,10 @@ class FrameStacker:
             clipped_fraction = float(self._clipped[index].mean())
             if clipped_fraction > self.config.clip_fraction:
                 flags.append(f"clipped: {100 * clipped_fraction:.2f} % of samples at the ADC rails")
-            if not np.any(rows):
-                flags.append("no signal: every sample is zero")
+            held = held_fraction(rows.mean(axis=0))
+            if held > HELD_FRACTION:
+                flags.append(f"no signal: {100 * held:.1f} % of the stacked frame holds one value "
+                             "(silent or stuck input)")
             residual = measure_drift(rows)
             drift = None if residual is None else self.clock_ppm + residual
             aligned = residual is None or abs(residual) * 1e-6 * frame * (n - 1) <= self.config.max_drift_samples
@@ -214,6 +218,13 @@ class FrameStacker:
                 self.measured_drift_ppm = drift if previous is None else previous + DRIFT_SMOOTHING * (drift - previous)
                 if self.config.track_clock:
                     self.clock_ppm = self.measured_drift_ppm
+
+
+def held_fraction(frame: np.ndarray) -> float:
+    """Share of a frame's samples equal to its median: 1 for silent or stuck input, a little
+    above 0 for anything with noise in it. Where most of a frame holds one value, correlations
+    are exactly zero at most lags and no noise level can be measured from them."""
+    return float(np.mean(frame == np.median(frame)))
 
 
 def measure_drift(rows: np.ndarray, max_ppm: float = MAX_CLOCK_PPM, min_z: float = 5.0) -> float | None:
