@@ -328,6 +328,22 @@ def test_detect_command_reports_cells_and_refuses_ambiguous_input(capsys):
     assert "either --bag or --iq" in capsys.readouterr().err
 
 
+def test_detect_command_on_an_iq_recording_without_truth(tmp_path, capsys, templates):
+    """An RTL-SDR file (8-bit I/Q) holding one cell's codes: found, summarised, no truth claimed."""
+    from deepsync.cli import main
+
+    rng = np.random.default_rng(11)
+    frames = 40
+    envelope = np.tile(frame_with_codes(templates, [(88, 4321.0, 1.0)]), frames) + 0.3 * rng.standard_normal(frames * FRAME)
+    amplitude = np.sqrt(np.clip(envelope + 3.0, 0, None))  # |x|^2 = envelope + a pedestal
+    iq = np.stack([amplitude, np.zeros_like(amplitude)], axis=1) * 30 + 127.5  # real-valued I/Q
+    path = tmp_path / "cell88.bin"
+    np.clip(np.round(iq), 0, 255).astype(np.uint8).tofile(path)
+    assert main(["detect", "--iq", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "PCI  88  reported in" in out and "truth" not in out
+
+
 def test_stage_survives_every_kind_of_bad_input_and_says_what_happened(templates):
     """NaN, a gap, going back in time, a rate change, silence and clipping, in one stream."""
     stage = SyncStage(CONFIG, SyncConfig(stack=StackConfig(n_frames=2), confirm_stacks=1))

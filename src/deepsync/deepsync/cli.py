@@ -180,8 +180,12 @@ def _median(values: list[float]) -> float:
 def _print_summary(summary: dict) -> None:
     print(f"  {summary['stacks']} stacks:")
     for pci, cell in summary["cells"].items():
-        truth = {None: "", False: "  not in the truth"}.get(
-            cell["in_truth"], f"  RMS error vs truth {cell['rms_truth_error']:.3f} samples")
+        if cell["in_truth"] is None:
+            truth = ""
+        elif not cell["in_truth"]:
+            truth = "  not in the truth"
+        else:
+            truth = f"  RMS error vs truth {cell['rms_truth_error']:.3f} samples"
         print(f"    PCI {pci:3d}  reported in {cell['stacks_reported']:3d} stacks  SNR {cell['median_snr_db']:5.1f} dB  "
               f"claimed std {cell['median_claimed_std']:.3f} samples{truth}")
     if summary["missed"]:
