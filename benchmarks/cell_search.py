@@ -35,7 +35,7 @@ from deepsync.frontend.config import FrontendConfig  # noqa: E402
 from deepsync.frontend.simulator import EnvelopeSimulator  # noqa: E402
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds  # noqa: E402
 from deepsync.lte.cell import CellConfig  # noqa: E402
-from deepsync.sync.detection import CellSearch, SearchConfig  # noqa: E402
+from deepsync.sync.search import CellSearch, SearchConfig  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results"
 FRAME = 19200

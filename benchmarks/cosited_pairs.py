@@ -35,9 +35,9 @@ from tqdm import tqdm  # noqa: E402
 
 from deepsync.frontend.config import FrontendConfig  # noqa: E402
 from deepsync.frontend.templates import SyncTemplates  # noqa: E402
-from deepsync.sync.detection import CellSearch  # noqa: E402
+from deepsync.sync.search import CellSearch  # noqa: E402
 from deepsync.sync.sites import SiteFit  # noqa: E402
-from deepsync.sync.towers import parse_tower_database  # noqa: E402
+from deepsync.towers import parse_tower_database  # noqa: E402
 
 SNR_GRID = np.arange(-30.0, -11.9, 2.0)
 RATIOS = {"equal": 1.0, "-6 dB": 0.5, "lone": 0.0}

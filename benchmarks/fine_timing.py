@@ -44,8 +44,9 @@ from deepsync.frontend.config import FrontendConfig  # noqa: E402
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats  # noqa: E402
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds  # noqa: E402
 from deepsync.lte.cell import CellConfig  # noqa: E402
-from deepsync.sync.crlb import SPEED_OF_LIGHT_M_S, delay_crlb  # noqa: E402
-from deepsync.sync.estimators import (  # noqa: E402
+from deepsync.timing.crlb import delay_crlb  # noqa: E402
+from deepsync.timing.estimators import (  # noqa: E402
+from deepsync.types import FRAME_SECONDS, HALF_FRAME_SECONDS, SPEED_OF_LIGHT_M_S  # noqa: E402
     estimate_fft_upsampled,
     estimate_ml,
     estimate_parabolic,
@@ -93,9 +94,9 @@ def interference_pool(seconds: float, margin: int, config: FrontendConfig) -> tu
     longer = wide_templates(config, length)
     scale = 10 ** ((RE_POWER_DBM - 30) / 10) * 10 ** (stats.gain_db / 20)
     pool, signal_energy, noise_energy = [], 0.0, 0.0
-    for frame in range(1, int(seconds / 0.01)):
-        for subframe, half in ((0, 0.0), (5, 0.005)):
-            arrival = float(sim.sample_index(frame * 0.01 + half + sync_code_offset_seconds() + DELAY_S))
+    for frame in range(1, round(seconds / FRAME_SECONDS)):
+        for subframe, half in ((0, 0.0), (5, HALF_FRAME_SECONDS)):
+            arrival = float(sim.sample_index(frame * FRAME_SECONDS + half + sync_code_offset_seconds() + DELAY_S))
             start = int(np.floor(arrival)) - margin
             expected = longer.template(PCI, subframe, arrival - start) * scale
             residual = volts[start : start + length] - expected

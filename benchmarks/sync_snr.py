@@ -29,6 +29,7 @@ from deepsync.frontend.config import FrontendConfig  # noqa: E402
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats  # noqa: E402
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds  # noqa: E402
 from deepsync.lte.cell import CellConfig  # noqa: E402
+from deepsync.types import FRAME_SECONDS  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results"
 PCI = 301
@@ -50,13 +51,13 @@ def measure(bandwidth: float, load: float, re_power_dbm: float, frames: int, con
     emitter = Emitter(CellConfig(pci=PCI, bandwidth_mhz=bandwidth, load=load), 2115e6, EIRP_PER_RE_W, 0.0, 0.0, "A")
     sim = EnvelopeSimulator([emitter], LineOfSight(gain), config, seed=11)
     stats = SimulationStats()
-    seconds = (frames + 2) * 0.01
+    seconds = (frames + 2) * FRAME_SECONDS
     codes = np.concatenate([c.samples for c in sim.stream(seconds, stats=stats)])
     volts = codes * config.volts_per_code
     templates = SyncTemplates(config)
     signal_energy = noise_energy = 0.0
     for k in range(1, frames + 1):
-        arrival = float(sim.sample_index(k * 0.01 + sync_code_offset_seconds() + DELAY_S))
+        arrival = float(sim.sample_index(k * FRAME_SECONDS + sync_code_offset_seconds() + DELAY_S))
         start = int(np.floor(arrival))
         window = volts[start : start + templates.length]
         expected = templates.template(PCI, 0, arrival - start) * 10 ** ((re_power_dbm - 30) / 10)

@@ -23,9 +23,9 @@ from threadpoolctl import threadpool_limits
 
 from deepsync.bag import read_envelope
 from deepsync.recording import recorded_frontend
-from deepsync.sync.detection import SearchConfig
+from deepsync.sync.search import SearchConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
-from deepsync.sync.towers import load_tower_database
+from deepsync.towers import load_tower_database
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "campus"

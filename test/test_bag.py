@@ -21,7 +21,6 @@ from deepsync.bag import (
     BagExistsError,
     BagReader,
     BagWriter,
-    CellTimingRecord,
     MsgDefsNotFoundError,
     cell_timing_array_from_msg,
     envelope_from_msg,
@@ -34,7 +33,7 @@ from deepsync.bag import (
     read_messages,
     stamp_to_ns,
 )
-from deepsync.frontend.chunk import EnvelopeChunk
+from deepsync.types import CellTiming, EnvelopeChunk
 from mcap.reader import make_reader
 from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 from rosbags.rosbag2 import Reader
@@ -63,8 +62,8 @@ def make_chunks(seed: int = 7) -> list[EnvelopeChunk]:
 
 
 TRUTH_CELLS = [
-    CellTimingRecord(pci=142, toa=1234.5678901234, toa_std=0.0, snr_db=-3.25, estimator="truth"),
-    CellTimingRecord(pci=86, toa=98765.4321, toa_std=0.0, snr_db=7.5, estimator="truth"),
+    CellTiming(pci=142, toa=1234.5678901234, toa_std=0.0, snr_db=-3.25, estimator="truth"),
+    CellTiming(pci=86, toa=98765.4321, toa_std=0.0, snr_db=7.5, estimator="truth"),
 ]
 
 
@@ -439,8 +438,8 @@ def test_envelope_to_msg_dtype_and_values(chunks: list[EnvelopeChunk]) -> None:
 
 def test_cell_timing_record_validation() -> None:
     with pytest.raises(ValueError, match="pci"):
-        CellTimingRecord(pci=504, toa=1.0, toa_std=0.1, snr_db=0.0, estimator="x")
+        CellTiming(pci=504, toa=1.0, toa_std=0.1, snr_db=0.0, estimator="x")
     with pytest.raises(ValueError, match="toa_std"):
-        CellTimingRecord(pci=1, toa=1.0, toa_std=-0.1, snr_db=0.0, estimator="x")
+        CellTiming(pci=1, toa=1.0, toa_std=-0.1, snr_db=0.0, estimator="x")
     with pytest.raises(ValueError, match="toa"):
-        CellTimingRecord(pci=1, toa=float("nan"), toa_std=0.1, snr_db=0.0, estimator="x")
+        CellTiming(pci=1, toa=float("nan"), toa_std=0.1, snr_db=0.0, estimator="x")

@@ -10,8 +10,8 @@ from deepsync.lte.frame import FrameGenerator
 from deepsync.lte.numerology import Numerology, sync_code_start_base
 from deepsync.lte.ofdm import modulate
 from deepsync.lte.sequences import crs
-from deepsync.sync import coherent as C
-from deepsync.sync.iq import envelope_chunks, envelope_codes, load_rtlsdr_u8
+from deepsync.iq import coherent as C
+from deepsync.sources.iq import envelope_chunks, envelope_codes, load_rtlsdr_u8
 
 FS = 1.92e6
 FRAME = 19200

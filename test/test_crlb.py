@@ -7,14 +7,14 @@ import pytest
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
-from deepsync.sync.crlb import (
-    SPEED_OF_LIGHT_M_S,
+from deepsync.timing.crlb import (
     delay_crlb,
     delay_crlb_white,
     fisher_information,
     fit_amplitude,
     snr_db,
 )
+from deepsync.types import SPEED_OF_LIGHT_M_S
 
 MARGIN = 10
 

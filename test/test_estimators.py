@@ -13,8 +13,8 @@ import pytest
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
-from deepsync.sync.crlb import delay_crlb
-from deepsync.sync.estimators import (
+from deepsync.timing.crlb import delay_crlb
+from deepsync.timing.estimators import (
     MODEL_FLOOR_SAMPLES,
     TimingEstimate,
     estimate_fft_upsampled,

@@ -10,7 +10,7 @@ import scipy.signal
 from deepsync.frontend.adc import ReceiverClock, cubic_sample
 from deepsync.frontend.channel import Emitter, Paths
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.detector import output_noise_density
+from deepsync.frontend.square_law import output_noise_density
 from deepsync.frontend.plan import plan_clusters
 from deepsync.frontend.render import emitter_seed
 from deepsync.frontend.simulator import EnvelopeSimulator
@@ -20,6 +20,7 @@ from deepsync.lte.cell import CellConfig
 from deepsync.lte.frame import FrameGenerator
 from deepsync.lte.numerology import Numerology
 from deepsync.lte.ofdm import modulate
+from deepsync.types import FRAME_SECONDS
 
 # noise off, and DC-coupled so the diode-output volts of ``analog`` and the templates are
 # the same quantity (AC coupling is applied later, in the ADC stage)
@@ -52,7 +53,7 @@ def reference_detector_output(emitters, paths, seed, fft_size, frames, center_hz
     their carrier offset, summed, squared, and filtered in one long FFT with the video H(f).
     ``indices`` are the emitters' positions in the simulated list (they pick the content)."""
     rate = fft_size * 15e3
-    length = frames * int(rate * 0.01)
+    length = frames * round(rate * FRAME_SECONDS)
     total = np.zeros(length, dtype=np.complex128)
     for i, e, p in zip(indices or range(len(emitters)), emitters, paths):
         num = Numerology.for_bandwidth(e.cell.bandwidth_mhz, fft_size=fft_size)
@@ -123,7 +124,7 @@ def test_far_carriers_are_separate_clusters_and_their_cross_term_is_out_of_band(
     # and what reaches the ADC of it is negligible next to each carrier's own envelope.
     rate, frames = 69.12e6, 2
     num = Numerology.for_bandwidth(10)
-    n = np.arange(int(rate * 0.01 * frames))
+    n = np.arange(round(rate * FRAME_SECONDS * frames))
     carriers = []
     for i, e in enumerate(far):
         generator = FrameGenerator(e.cell, emitter_seed(1, i))
@@ -186,7 +187,7 @@ def test_sync_code_lands_where_ground_truth_says(clock_ppm, drift):
     sim = EnvelopeSimulator([e], FixedPaths([single_path(delay, gain)]), config, seed=2)
     templates = SyncTemplates(config)
     frames = range(1, 30)
-    arrivals = [sim.sample_index(timing + k * 0.01 + sync_code_offset_seconds() + delay) for k in frames]
+    arrivals = [sim.sample_index(timing + k * FRAME_SECONDS + sync_code_offset_seconds() + delay) for k in frames]
     analog = sim.analog(0, int(max(arrivals)) + 400)
     for arrival in arrivals[::7]:
         start = int(np.floor(arrival))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from pyproj import Geod
 
-from deepsync.fusion.geodesy import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
+from deepsync.geo import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 
 GEOD = Geod(ellps="WGS84")
 FRAME = LocalFrame(38.98690, -76.94260, 10.0)

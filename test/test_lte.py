@@ -15,6 +15,7 @@ from deepsync.lte.numerology import (
 )
 from deepsync.lte.ofdm import demodulate, modulate
 from deepsync.lte.sequences import crs, gold_sequence, pss, sss, sss_indices
+from deepsync.types import FRAME_SECONDS
 
 
 def test_numerology_matches_36_101_and_36_211():
@@ -24,7 +25,7 @@ def test_numerology_matches_36_101_and_36_211():
         assert (num.n_rb, num.fft_size) == (n_rb, fft)
         assert num.sample_rate_hz == fft * 15e3
         # 20 slots of 7 symbols fill exactly 10 ms; CP 160/144 Ts scaled to the FFT size
-        assert num.samples_per_frame == int(num.sample_rate_hz * 0.01)
+        assert num.samples_per_frame == round(num.sample_rate_hz * FRAME_SECONDS)
         assert (num.cp_lengths + fft).sum() == num.samples_per_frame
         assert num.cp_lengths[0] * 2048 == 160 * fft and num.cp_lengths[1] * 2048 == 144 * fft
     assert sync_code_start_base() == 686 and SYNC_CODE_BASE_SAMPLES == 274

@@ -2,7 +2,7 @@
 
 |x|^2 of the RTL-SDR's complex baseband is the envelope a square-law detector would give for this
 one carrier (real multipath, load and receiver clock). The coherent (complex-domain) PSS/SSS
-search of ``deepsync.sync.coherent`` on the same samples is the reference.
+search of ``deepsync.iq.coherent`` on the same samples is the reference.
 """
 
 from pathlib import Path
@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from deepsync.frontend.templates import SyncTemplates
-from deepsync.sync.coherent import search_cells
-from deepsync.sync.detection import CellSearch
-from deepsync.sync.iq import envelope_chunks, load_rtlsdr_u8, recording_frontend
+from deepsync.iq.coherent import search_cells
+from deepsync.sync.search import CellSearch
+from deepsync.sources.iq import envelope_chunks, load_rtlsdr_u8, recording_frontend
 from deepsync.sync.stacking import FrameStacker, StackConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
-from deepsync.sync.towers import load_tower_database
+from deepsync.towers import load_tower_database
 
 REPO = Path(__file__).resolve().parents[1]
 RECORDING = REPO.parent / "shared" / "data" / "real_lte" / "f1860_s1.92_g0_1s_strong_rtlsdr.bin"

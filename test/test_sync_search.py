@@ -7,16 +7,16 @@ import pytest
 import scipy.fft
 
 from deepsync.bag import read_envelope
-from deepsync.frontend.chunk import EnvelopeChunk
+from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.frontend.video import VideoFilter
 from deepsync.recording import recorded_frontend
-from deepsync.sync.detection import CellSearch, SearchConfig
+from deepsync.sync.search import CellSearch, SearchConfig
 from deepsync.sync.sites import SiteFit
 from deepsync.sync.stacking import FrameStacker, StackConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
-from deepsync.sync.towers import load_tower_database, parse_tower_database
+from deepsync.towers import load_tower_database, parse_tower_database
 from deepsync.sync.windows import extract_windows
 from deepsync.configio import ConfigError
 
@@ -351,7 +351,7 @@ def test_stage_survives_every_kind_of_bad_input_and_says_what_happened(templates
     code = frame_with_codes(templates, [(301, 5000.2, 1.0)])
 
     def frames(n, rate=1.92e6):
-        length = int(round(rate * 0.01))
+        length = round(rate * FRAME_SECONDS)
         return np.tile(code[:length] if length <= FRAME else np.resize(code, length), n) + 0.05 * rng.standard_normal(n * length)
 
     good = frames(2)

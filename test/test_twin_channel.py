@@ -8,7 +8,8 @@ from pyproj import Geod
 
 from deepsync.frontend.channel import ChannelProvider, Paths
 from deepsync.twin import build_twin
-from deepsync.twin.propagation import SPEED_OF_LIGHT, path_loss_db
+from deepsync.twin.propagation import path_loss_db
+from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S
 from deepsync.twin.scenario import parse_scenario
 from deepsync.twin.tdl import TDL_PROFILES
 
@@ -87,7 +88,7 @@ def test_first_path_is_the_geometric_delay(los):
 def test_geometric_delay_is_the_3d_distance():
     twin = build_twin(_scenario(distance=300.0))
     # 300 m on the ground, antenna 28.5 m above the receiver
-    assert twin.geometric_delay_s(0, 0.0) * SPEED_OF_LIGHT == pytest.approx(
+    assert twin.geometric_delay_s(0, 0.0) * SPEED_OF_LIGHT_M_S == pytest.approx(
         np.hypot(300.0, SITE_HEIGHT - RX_HEIGHT), abs=0.01)
 
 
@@ -110,8 +111,8 @@ def test_tap_structure_and_powers_los():
     carrier = twin.emitters[0].carrier_hz
 
     def chain_phase(t):
-        d = twin.geometric_delay_s(0, t) * SPEED_OF_LIGHT
-        return np.angle(twin.channel.paths(0, t).gains[0] * np.exp(2j * np.pi * carrier * d / SPEED_OF_LIGHT))
+        d = twin.geometric_delay_s(0, t) * SPEED_OF_LIGHT_M_S
+        return np.angle(twin.channel.paths(0, t).gains[0] * np.exp(2j * np.pi * carrier * d / SPEED_OF_LIGHT_M_S))
 
     assert chain_phase(0.0) == pytest.approx(chain_phase(0.5), abs=1e-6)
     link = twin.channel.link_parameters(0)
@@ -199,12 +200,12 @@ def test_moving_receiver_delay_and_doppler_follow_the_radial_speed():
         radial_speed = np.dot(twin.receiver.velocity_enu(t), offset) / np.linalg.norm(offset)
         h = 1e-3
         rate = (twin.geometric_delay_s(0, t + h) - twin.geometric_delay_s(0, t - h)) / (2 * h)
-        assert rate == pytest.approx(radial_speed / SPEED_OF_LIGHT, rel=1e-6, abs=1e-14)
+        assert rate == pytest.approx(radial_speed / SPEED_OF_LIGHT_M_S, rel=1e-6, abs=1e-14)
         paths = twin.channel.paths(0, t)
-        assert paths.doppler_hz[0] == pytest.approx(-radial_speed * carrier / SPEED_OF_LIGHT)
+        assert paths.doppler_hz[0] == pytest.approx(-radial_speed * carrier / SPEED_OF_LIGHT_M_S)
     # approaching the site: positive Doppler, the delay shrinks at ~1.4 m/s / c
     assert twin.channel.paths(0, 10.0).doppler_hz[0] == pytest.approx(
-        1.4 * carrier / SPEED_OF_LIGHT, rel=0.01)
+        1.4 * carrier / SPEED_OF_LIGHT_M_S, rel=0.01)
 
 
 def test_gains_rotate_at_their_reported_doppler():
@@ -217,7 +218,7 @@ def test_gains_rotate_at_their_reported_doppler():
 
 def test_doppler_spread_of_the_scattered_paths():
     twin = _walk_twin(los="nlos", environment_doppler_hz=1.0)
-    wavelength = SPEED_OF_LIGHT / twin.emitters[0].carrier_hz
+    wavelength = SPEED_OF_LIGHT_M_S / twin.emitters[0].carrier_hz
     f_max = 1.4 / wavelength + 1.0
     assert twin.channel.link_parameters(0).max_doppler_hz == pytest.approx(f_max)
     doppler = twin.channel.paths(0, 3.0).doppler_hz
@@ -242,7 +243,7 @@ def test_paths_is_cheap():
     twin = build_twin(_scenario(los="los"))
     start = time.perf_counter()
     for k in range(1000):
-        twin.channel.paths(k % 2, k * 0.01)
+        twin.channel.paths(k % 2, k * FRAME_SECONDS)
     assert time.perf_counter() - start < 1.0  # ~ tens of microseconds per call
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from deepsync.fusion.geodesy import LocalFrame
+from deepsync.geo import LocalFrame
 from deepsync.twin.route import Trajectory
 
 FRAME = LocalFrame(38.9869, -76.9426, 10.0)

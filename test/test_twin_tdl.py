@@ -6,6 +6,7 @@ import pytest
 from deepsync.twin.antenna import SectorAntenna, SectorPattern
 from deepsync.twin.fading import SumOfSinusoids
 from deepsync.twin.tdl import TDL_PROFILES
+from deepsync.types import FRAME_SECONDS
 
 
 @pytest.mark.parametrize(
@@ -46,7 +47,7 @@ def test_sum_of_sinusoids_unit_mean_power_and_doppler_range():
     parts = fading.components(0.25, f_max)
     np.testing.assert_allclose(parts.sum(axis=-1), fading.gain(0.25, f_max))
     np.testing.assert_allclose(fading.components(0.26, f_max) / parts,
-                               np.exp(2j * np.pi * doppler * 0.01))
+                               np.exp(2j * np.pi * doppler * FRAME_SECONDS))
 
 
 def test_sum_of_sinusoids_time_autocorrelation_is_clarke():

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from deepsync.frontend.config import FrontendConfig
-from deepsync.fusion.geodesy import geodetic_to_ecef
+from deepsync.geo import geodetic_to_ecef
 from deepsync.twin import build_twin, load_scenario
-from deepsync.twin.propagation import SPEED_OF_LIGHT
+from deepsync.types import SPEED_OF_LIGHT_M_S
 from deepsync.twin.scenario import parse_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "config" / "scenarios"
@@ -56,7 +56,7 @@ def test_geometry_matches_an_independent_ecef_computation(campus):
         spec = next(s for s in scenario.sites if s.name == emitter.site)
         site_ecef = geodetic_to_ecef(spec.latitude_deg, spec.longitude_deg, ground + spec.height_m)
         distance = np.linalg.norm(site_ecef - rx_ecef)
-        assert campus.geometric_delay_s(index, 5.0) * SPEED_OF_LIGHT == pytest.approx(
+        assert campus.geometric_delay_s(index, 5.0) * SPEED_OF_LIGHT_M_S == pytest.approx(
             distance, abs=1e-3)
         np.testing.assert_allclose(campus.site(emitter.site).position_enu,
                                    campus.frame.ecef_to_enu(site_ecef), atol=1e-6)

@@ -104,10 +104,10 @@ def run_detection(chunks, frontend, towers_path: Path | None, frames: int, truth
     """Run the cell-search stage over a stream; print each stack's confirmed cells (if verbose) with
     their maximum-likelihood sub-sample arrival and the error against ground truth, if known.
     Returns one record per stack: its start time and its confirmed cells."""
-    from deepsync.sync.estimators import estimate_ml, noise_psd
+    from deepsync.timing.estimators import estimate_ml, noise_psd
     from deepsync.sync.stacking import StackConfig
     from deepsync.sync.stage import SyncConfig, SyncStage
-    from deepsync.sync.towers import load_tower_database
+    from deepsync.towers import load_tower_database
 
     towers = None if towers_path is None else load_tower_database(towers_path)
     stage = SyncStage(frontend, SyncConfig(stack=StackConfig(n_frames=frames)), towers)
@@ -204,7 +204,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         truth = _truth_phases(bag)
         stacks = run_detection(read_envelope(bag), recorded_frontend(bag), towers, args.frames, truth, str(bag))
     else:
-        from deepsync.sync.iq import envelope_chunks, load_rtlsdr_u8, recording_frontend
+        from deepsync.sources.iq import envelope_chunks, load_rtlsdr_u8, recording_frontend
 
         iq = load_rtlsdr_u8(args.iq)
         chunks = envelope_chunks(iq, args.iq_rate, volts_per_code=0.5)

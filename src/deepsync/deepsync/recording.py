@@ -20,16 +20,15 @@ import numpy as np
 from tqdm import tqdm
 
 import deepsync
-from deepsync.bag import PROVENANCE_KEY, BagError, BagReader, BagWriter, CellTimingRecord
+from deepsync.bag import PROVENANCE_KEY, BagError, BagReader, BagWriter
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
-from deepsync.lte.numerology import FRAME_SECONDS
 from deepsync.twin import Twin, build_twin
 from deepsync.twin.scenario import load_scenario
+from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming
 
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: receiver clock at sample 0
-CHUNK_SECONDS = 0.01
 POSE_PERIOD_SECONDS = 0.1
 TRUTH_ESTIMATOR = "truth"
 
@@ -76,7 +75,7 @@ def cell_summaries(twin: Twin) -> list[CellSummary]:
                 site=cell.site,
                 carrier_mhz=cell.carrier_hz / 1e6,
                 bandwidth_mhz=cell.bandwidth_mhz,
-                distance_m=twin.geometric_delay_s(i, 0.0) * 299_792_458.0,
+                distance_m=twin.geometric_delay_s(i, 0.0) * SPEED_OF_LIGHT_M_S,
                 los=twin.channel.link_parameters(i).los,
                 re_power_dbm=10 * math.log10(power_w * 1e3),
             )
@@ -137,7 +136,7 @@ def record_scenario(
     simulator = EnvelopeSimulator(twin.emitters, twin.channel, twin.frontend, seed, epoch_ns=EPOCH_NS)
     rate = twin.frontend.adc_rate_hz
     n_samples = int(round(seconds * rate))
-    chunk = max(1, round(CHUNK_SECONDS * rate))
+    chunk = max(1, round(FRAME_SECONDS * rate))
 
     codes = truth_timing(twin, simulator, n_samples)
     pose_every = max(1, round(POSE_PERIOD_SECONDS * rate))
@@ -156,7 +155,7 @@ def record_scenario(
             records = []
             while next_code < len(codes) and codes[next_code][1] < end:
                 pci, toa, _ = codes[next_code]
-                records.append(CellTimingRecord(pci, toa, 0.0, float("nan"), TRUTH_ESTIMATOR))
+                records.append(CellTiming(pci, toa, 0.0, float("nan"), TRUTH_ESTIMATOR))
                 next_code += 1
             if records:
                 bag.write_truth_cell_timing(envelope.stamp_ns, records)

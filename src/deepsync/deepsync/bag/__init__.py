@@ -8,7 +8,6 @@ uses (``deepsync_msgs`` parsed from its ``.msg`` files), so a bag written here p
 from .convert import (
     ENVELOPE_FRAME_ID,
     MAP_FRAME_ID,
-    CellTimingRecord,
     cell_timing_array_from_msg,
     cell_timing_array_to_msg,
     envelope_from_msg,
@@ -48,7 +47,6 @@ __all__ = [
     "BagMessage",
     "BagReader",
     "BagWriter",
-    "CellTimingRecord",
     "MsgDefsNotFoundError",
     "cell_timing_array_from_msg",
     "cell_timing_array_to_msg",

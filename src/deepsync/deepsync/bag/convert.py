@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from rosbags.typesys.store import Typestore
 
-from ..frontend.chunk import EnvelopeChunk
+from ..types import CellTiming, EnvelopeChunk
 from .msgdefs import msgtype, typestore
 
 ENVELOPE_FRAME_ID = "envelope_adc"
@@ -86,32 +85,9 @@ def envelope_from_msg(msg: Any) -> EnvelopeChunk:
     )
 
 
-@dataclass(frozen=True)
-class CellTimingRecord:
-    """One cell's time of arrival in stream samples (ground truth or an estimate).
-
-    ``toa`` is the fractional stream sample index of the sync-code start, ``toa_std`` its 1-sigma
-    uncertainty in samples (0 for ground truth), ``estimator`` names who produced it.
-    """
-
-    pci: int
-    toa: float
-    toa_std: float
-    snr_db: float
-    estimator: str
-
-    def __post_init__(self) -> None:
-        if not 0 <= int(self.pci) <= 503:
-            raise ValueError(f"CellTimingRecord.pci {self.pci!r} must be 0..503")
-        if not math.isfinite(self.toa):
-            raise ValueError(f"CellTimingRecord.toa {self.toa!r} must be finite")
-        if not (math.isfinite(self.toa_std) and self.toa_std >= 0):
-            raise ValueError(f"CellTimingRecord.toa_std {self.toa_std!r} must be finite and >= 0")
-
-
 def cell_timing_array_to_msg(
     stamp_ns: int,
-    records: Iterable[CellTimingRecord],
+    records: Iterable[CellTiming],
     *,
     frame_id: str = ENVELOPE_FRAME_ID,
     store: Typestore | None = None,
@@ -132,10 +108,10 @@ def cell_timing_array_to_msg(
     return types[CELL_TIMING_ARRAY](header=make_header(stamp_ns, frame_id, store), cells=cells)
 
 
-def cell_timing_array_from_msg(msg: Any) -> list[CellTimingRecord]:
+def cell_timing_array_from_msg(msg: Any) -> list[CellTiming]:
     """``deepsync_msgs/msg/CellTimingArray`` -> per-cell records (stamp: ``msg.header.stamp``)."""
     return [
-        CellTimingRecord(
+        CellTiming(
             pci=int(c.pci),
             toa=float(c.toa),
             toa_std=float(c.toa_std),

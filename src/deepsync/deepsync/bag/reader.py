@@ -18,7 +18,7 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import TypesysError, get_types_from_msg
 from rosbags.typesys.store import Typestore
 
-from ..frontend.chunk import EnvelopeChunk
+from ..types import EnvelopeChunk
 from .convert import envelope_from_msg
 from .errors import BagError
 from .msgdefs import PACKAGE, typestore

@@ -19,9 +19,8 @@ from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys.store import Typestore
 
-from ..frontend.chunk import EnvelopeChunk
+from ..types import CellTiming, EnvelopeChunk
 from .convert import (
-    CellTimingRecord,
     cell_timing_array_to_msg,
     envelope_to_msg,
     pose_to_msg,
@@ -229,7 +228,7 @@ class BagWriter:
     def write_truth_cell_timing(
         self,
         stamp_ns: int,
-        records: Iterable[CellTimingRecord],
+        records: Iterable[CellTiming],
         *,
         topic: str = TRUTH_CELL_TIMING_TOPIC,
     ) -> None:

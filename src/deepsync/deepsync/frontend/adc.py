@@ -10,6 +10,7 @@ import scipy.signal
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.video import highpass_sos
 from deepsync.rng import ADC_NOISE, indexed_rng
+from deepsync.types import FRAME_SECONDS
 
 
 class ReceiverClock:
@@ -61,7 +62,7 @@ class AdcStage:
     def __init__(self, config: FrontendConfig, seed: int) -> None:
         self.config = config
         self.seed = seed
-        self.noise_block = max(1, round(config.adc_rate_hz * 0.01))
+        self.noise_block = max(1, round(config.adc_rate_hz * FRAME_SECONDS))
         self.settling = self.noise_block
         self._sos = highpass_sos(config, config.adc_rate_hz)
         self._zi: np.ndarray | None = None

@@ -32,8 +32,9 @@ import scipy.fft
 from deepsync.frontend.channel import ChannelProvider, Emitter, Paths
 from deepsync.frontend.plan import Cluster
 from deepsync.lte.frame import FrameGenerator
-from deepsync.lte.numerology import FRAME_SECONDS, SLOTS_PER_FRAME, SUBCARRIER_SPACING_HZ, Numerology
+from deepsync.lte.numerology import SLOTS_PER_FRAME, SUBCARRIER_SPACING_HZ, Numerology
 from deepsync.lte.ofdm import symbol_index_map
+from deepsync.types import FRAME_SECONDS
 
 STATIC_DOPPLER_CYCLES = 1e-4  # below this many cycles per frame, gains are held constant
 SLOT_DOPPLER_CYCLES = 0.01  # below this many cycles per slot (20 Hz), gains change per slot

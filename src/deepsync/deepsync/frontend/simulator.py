@@ -32,9 +32,9 @@ from threadpoolctl import threadpool_limits
 
 from deepsync.frontend.adc import AdcStage, ReceiverClock, cubic_sample
 from deepsync.frontend.channel import ChannelProvider, Emitter
-from deepsync.frontend.chunk import EnvelopeChunk
+from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.detector import Detector
+from deepsync.frontend.square_law import Detector
 from deepsync.lte.numerology import BASE_RATE_HZ
 
 WORK_UNIT_SECONDS = 1.0
@@ -135,7 +135,7 @@ class EnvelopeSimulator:
             raise ValueError(f"seconds must be a positive number, got {seconds!r}")
         rate = self.config.adc_rate_hz
         total = int(round(seconds * rate))
-        chunk = chunk_samples or max(1, round(rate * 0.01))
+        chunk = chunk_samples or max(1, round(rate * FRAME_SECONDS))
         unit = max(chunk, round(WORK_UNIT_SECONDS * rate) // chunk * chunk)
         ranges = [(n, min(n + unit, total)) for n in range(0, total, unit)]
         adc = AdcStage(self.config, self.seed)

@@ -1,7 +1,7 @@
 """The analog video path after the diode: low-pass (anti-alias) filter and AC coupling.
 
 The low-pass filter is an analog Butterworth applied through its exact frequency response
-H(f) (see ``deepsync.frontend.detector``), so the result does not depend on any simulation
+H(f) (see ``deepsync.frontend.square_law``), so the result does not depend on any simulation
 rate: the simulated stream and the sync templates see the same filter to numerical precision.
 """
 

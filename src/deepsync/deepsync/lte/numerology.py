@@ -11,9 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deepsync.types import FRAME_SECONDS
+
 SUBCARRIER_SPACING_HZ = 15_000.0
 BASE_RATE_HZ = 1.92e6  # 128 subcarrier-spacings; the 1.4 MHz carrier's sample rate
-FRAME_SECONDS = 10e-3
 SUBFRAMES_PER_FRAME = 10
 SLOTS_PER_FRAME = 20
 SYMBOLS_PER_SLOT = 7  # normal cyclic prefix

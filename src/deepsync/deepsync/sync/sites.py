@@ -20,7 +20,7 @@ that sector's column g of the templates' Gram matrix, whose GLR statistic is
 (g' S^-1 c)^2 / (g' S^-1 g); the pair's excess over it is chi-square with 3 degrees of freedom
 (a generalised likelihood-ratio test), and must also be a fair share of it, since a lone
 sector's template mismatch at high SNR leaks into the other shapes. Otherwise the single-cell
-search keeps the peak. ``deepsync.sync.detection`` decides when pairs are tried.
+search keeps the peak. ``deepsync.sync.search`` decides when pairs are tried.
 """
 
 from __future__ import annotations

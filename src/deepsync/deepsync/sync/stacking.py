@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.fft
 
-from deepsync.frontend.chunk import EnvelopeChunk
-from deepsync.lte.numerology import FRAME_SECONDS
+from deepsync.types import FRAME_SECONDS
+from deepsync.types import EnvelopeChunk
 
 MAX_CLOCK_PPM = 200.0  # a receiver crystal further off than this is not believed
 HELD_FRACTION = 0.5  # a stacked frame holding one value over more of it than this has no noise to measure

@@ -17,12 +17,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deepsync.frontend.chunk import EnvelopeChunk
+from deepsync.types import EnvelopeChunk
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
-from deepsync.sync.detection import CellSearch, SearchConfig
+from deepsync.sync.search import CellSearch, SearchConfig
 from deepsync.sync.stacking import FrameStacker, Stack, StackConfig, StreamEvent
-from deepsync.sync.towers import TowerDatabase
+from deepsync.towers import TowerDatabase
 from deepsync.lte.earfcn import downlink_frequency_hz
 from deepsync.sync.windows import CellWindows, extract_windows
 

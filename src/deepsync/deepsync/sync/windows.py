@@ -19,7 +19,7 @@ import numpy as np
 import scipy.fft
 import scipy.signal
 
-from deepsync.sync.detection import CellDetection
+from deepsync.sync.search import CellDetection
 from deepsync.sync.stacking import Stack
 
 _PAD = 64  # samples either side, tapered, so the circular FFT shift does not wrap an edge

@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-SPEED_OF_LIGHT = 299_792_458.0
+from deepsync.types import SPEED_OF_LIGHT_M_S
+
 MODELS = ("UMa", "UMi")
 
 # Shadow-fading standard deviation (dB), Table 7.4.1-1: (model, los) -> sigma_SF.
@@ -32,7 +33,7 @@ def _check_model(model: str) -> None:
 
 def breakpoint_distance_m(h_bs: float, h_ut: float, carrier_hz: float) -> float:
     """d'_BP = 4 h'_BS h'_UT f_c / c with effective heights h' = h - 1 m (Table 7.4.1-1 note 1)."""
-    return 4.0 * (h_bs - 1.0) * (h_ut - 1.0) * carrier_hz / SPEED_OF_LIGHT
+    return 4.0 * (h_bs - 1.0) * (h_ut - 1.0) * carrier_hz / SPEED_OF_LIGHT_M_S
 
 
 def path_loss_los_db(model: str, d2d: ArrayLike, d3d: ArrayLike, h_bs: float, h_ut: float,

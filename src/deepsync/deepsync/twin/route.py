@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from deepsync.fusion.geodesy import LocalFrame
+from deepsync.geo import LocalFrame
 
 
 class Trajectory:

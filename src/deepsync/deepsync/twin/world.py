@@ -14,10 +14,10 @@ from numpy.typing import ArrayLike
 
 from deepsync.frontend.channel import Emitter
 from deepsync.frontend.config import FrontendConfig
-from deepsync.fusion.geodesy import LocalFrame
+from deepsync.geo import LocalFrame
 from deepsync.lte.numerology import SUBCARRIERS_PER_RB, Numerology
 from deepsync.twin.antenna import SectorAntenna
-from deepsync.twin.channel import StatisticalChannel, Transmitter
+from deepsync.twin.statistical_channel import StatisticalChannel, Transmitter
 from deepsync.twin.route import Trajectory
 from deepsync.twin.scenario import (
     AUTO_FREQUENCY_ERROR_PPB,

@@ -51,8 +51,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SPEED_OF_LIGHT_M_S = 299_792_458.0
-DEFAULT_SAMPLE_RATE_HZ = 1.92e6
+from deepsync.lte.numerology import BASE_RATE_HZ
+from deepsync.types import SPEED_OF_LIGHT_M_S
+
 
 
 @dataclass(frozen=True)
@@ -137,7 +138,7 @@ def delay_crlb(
     amplitude: float,
     noise_psd: float | np.ndarray,
     n_frames: int = 1,
-    sample_rate: float = DEFAULT_SAMPLE_RATE_HZ,
+    sample_rate: float = BASE_RATE_HZ,
     window_length: int | None = None,
 ) -> Bound:
     """CRLB of the delay of ``amplitude * template(t - tau)`` in Gaussian noise of ``noise_psd``.
@@ -158,7 +159,7 @@ def delay_crlb_white(
     amplitude: float,
     sigma: float,
     n_frames: int = 1,
-    sample_rate: float = DEFAULT_SAMPLE_RATE_HZ,
+    sample_rate: float = BASE_RATE_HZ,
 ) -> Bound:
     """Time-domain bound for white noise: var >= sigma^2 / (n_frames A^2 sum_n s'[n]^2).
 

@@ -49,7 +49,6 @@ from deepsync.frontend.channel import Paths
 from deepsync.twin.antenna import SectorAntenna
 from deepsync.twin.fading import SumOfSinusoids
 from deepsync.twin.propagation import (
-    SPEED_OF_LIGHT,
     delay_spread_lognormal,
     los_probability,
     path_loss_db,
@@ -59,6 +58,7 @@ from deepsync.twin.route import Trajectory
 from deepsync.twin.scenario import ChannelSettings, Environment
 from deepsync.twin.seeding import site_rng
 from deepsync.twin.tdl import TDL_PROFILES, TdlProfile
+from deepsync.types import SPEED_OF_LIGHT_M_S
 
 N_SINUSOIDS = 16
 
@@ -169,7 +169,7 @@ class StatisticalChannel:
         else:
             mu, sigma = delay_spread_lognormal(self.environment.model, site.los, tx.carrier_hz)
             delay_spread = 10.0 ** (mu + sigma * site.delay_spread_normal)
-        wavelength = SPEED_OF_LIGHT / tx.carrier_hz
+        wavelength = SPEED_OF_LIGHT_M_S / tx.carrier_hz
         max_doppler = self.receiver.speed_mps / wavelength + self.settings.environment_doppler_hz
         scattered, specular = profile.normalized_powers()
         n = fading.n_sinusoids
@@ -198,7 +198,7 @@ class StatisticalChannel:
         """Straight-line propagation delay d(t)/c from the cell's antenna to the receiver (s)."""
         tx = self._links[emitter_index].transmitter
         return float(np.linalg.norm(self.receiver.position_enu(t) - tx.position_enu)
-                     / SPEED_OF_LIGHT)
+                     / SPEED_OF_LIGHT_M_S)
 
     def paths(self, emitter_index: int, t: float) -> Paths:
         """Paths from emitter ``emitter_index`` to the receiver at true time ``t`` (s)."""
@@ -215,10 +215,10 @@ class StatisticalChannel:
         doppler = link.doppler_hz.copy()  # the Paths must not alias the link's constants
         if link.has_specular:
             radial_speed = float(np.dot(self.receiver.velocity_enu(t), offset)) / d3d
-            doppler[0] = -radial_speed * tx.carrier_hz / SPEED_OF_LIGHT
-            phase[0] = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT
+            doppler[0] = -radial_speed * tx.carrier_hz / SPEED_OF_LIGHT_M_S
+            phase[0] = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT_M_S
         return Paths(
-            delays_s=d3d / SPEED_OF_LIGHT + link.excess_delay_s,
+            delays_s=d3d / SPEED_OF_LIGHT_M_S + link.excess_delay_s,
             gains=scale * link.amplitude * np.exp(1j * (phase + link.chain_phase)),
             doppler_hz=doppler,
         )

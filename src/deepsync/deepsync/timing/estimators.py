@@ -77,7 +77,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 import scipy.optimize
 
-from deepsync.sync.crlb import check_template, psd_bins
+from deepsync.timing.crlb import check_template, psd_bins
 
 MODEL_FLOOR_SAMPLES = 0.003
 MAX_JACKKNIFE_GROUPS = 20

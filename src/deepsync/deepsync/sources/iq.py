@@ -24,7 +24,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from deepsync.frontend.chunk import EnvelopeChunk
+from deepsync.types import EnvelopeChunk
 from deepsync.frontend.config import FrontendConfig
 
 RTLSDR_ZERO = 127.5

@@ -1,1 +1,0 @@
-"""Position fusion: geodesy, TDOA solving, covariance and tracking."""

@@ -1,0 +1,226 @@
+"""What the stages hand each other, their health reports, and the physical constants they share.
+
+The pipeline runs in one direction (DESIGN.md): a *source* yields :class:`EnvelopeChunk` s, the
+sync stage turns them into one :class:`SyncWindow` per detected cell, the timing stage into one
+:class:`CellTiming` per cell, and fusion into a :class:`Fix` or a :class:`NoFix`. Each type
+mirrors a message of ``deepsync_msgs`` (or a standard one), so a ROS node converts it field by
+field and a stage fed from a message sees exactly what it would have seen in process.
+
+Nothing here imports the rest of the project: every module may import this one.
+
+What goes wrong is reported, never raised, as :class:`Health`: a closed set of kinds
+(:class:`HealthKind`), each with the :class:`Severity` a ``diagnostic_msgs/DiagnosticStatus``
+level maps to, plus a message for people.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SPEED_OF_LIGHT_M_S = 299_792_458.0
+FRAME_SECONDS = 10e-3  # an LTE radio frame; every cell repeats its sync codes once per frame
+HALF_FRAME_SECONDS = FRAME_SECONDS / 2  # the PSS repeats every half-frame (subframes 0 and 5)
+MAX_PCI = 503
+
+
+class Severity(enum.IntEnum):
+    """How bad a health report is; the values are ``diagnostic_msgs/DiagnosticStatus`` levels."""
+
+    OK = 0
+    WARN = 1
+    ERROR = 2
+
+
+class HealthKind(enum.Enum):
+    """Everything a stage reports about its input or its output, as a closed set.
+
+    Stream events (something happened at a sample index; data around it was dropped):
+    ``GAP``, ``NOT_FINITE``, ``BACKWARDS``, ``RATE_MISMATCH``. Stack flags (a stack was searched,
+    but its result deserves less trust, or none): ``CLIPPED``, ``NO_SIGNAL``, ``MISALIGNED``.
+    Timing: ``UNTIMEABLE`` (a cell's windows could not be timed at all).
+    """
+
+    GAP = "gap"  # samples missing from the stream: the stack spanning them is dropped
+    NOT_FINITE = "not_finite"  # NaN or inf samples: the stack spanning them is dropped
+    BACKWARDS = "backwards"  # a chunk from before what was already received: dropped
+    RATE_MISMATCH = "rate_mismatch"  # a chunk at another rate than the templates': dropped
+    CLIPPED = "clipped"  # too many samples at the ADC rails (or the recording's)
+    NO_SIGNAL = "no_signal"  # silent or stuck input: nothing is searched
+    MISALIGNED = "misaligned"  # receiver clock drift smeared the stack's frames
+    UNTIMEABLE = "untimeable"  # a detected cell's windows carry nothing to time
+
+    @property
+    def severity(self) -> Severity:
+        return _SEVERITY[self]
+
+
+_SEVERITY = {
+    HealthKind.GAP: Severity.WARN,
+    HealthKind.NOT_FINITE: Severity.WARN,
+    HealthKind.BACKWARDS: Severity.WARN,
+    HealthKind.RATE_MISMATCH: Severity.ERROR,
+    HealthKind.CLIPPED: Severity.WARN,
+    HealthKind.NO_SIGNAL: Severity.ERROR,
+    HealthKind.MISALIGNED: Severity.WARN,
+    HealthKind.UNTIMEABLE: Severity.WARN,
+}
+
+
+@dataclass(frozen=True)
+class Health:
+    """One report: its kind, what happened in words, and where in the stream (if at a point)."""
+
+    kind: HealthKind
+    message: str
+    sample_index: int | None = None
+
+    @property
+    def severity(self) -> Severity:
+        return self.kind.severity
+
+    def __str__(self) -> str:
+        return f"{self.kind.value}: {self.message}"
+
+
+@dataclass(frozen=True)
+class EnvelopeChunk:
+    """A contiguous run of raw ADC codes (``deepsync_msgs/EnvelopeSamples``).
+
+    ``first_sample_index`` counts samples since the stream began and is monotonic across
+    chunks, so a gap shows up as a jump; ``stamp_ns`` is the receiver-clock time of the first
+    sample (ns). ``samples`` are the raw int16 codes; volts = code * ``volts_per_code``.
+    """
+
+    stamp_ns: int
+    sample_rate: float
+    first_sample_index: int
+    adc_bits: int
+    volts_per_code: float
+    samples: np.ndarray
+
+    def __post_init__(self) -> None:
+        samples = np.ascontiguousarray(self.samples, dtype="<i2")
+        if samples.ndim != 1:
+            raise ValueError(f"EnvelopeChunk.samples must be 1-D, got shape {samples.shape}")
+        if not (np.isfinite(self.sample_rate) and self.sample_rate > 0):
+            raise ValueError(f"EnvelopeChunk.sample_rate {self.sample_rate!r} must be > 0")
+        if self.first_sample_index < 0:
+            raise ValueError("EnvelopeChunk.first_sample_index must be >= 0")
+        if not 1 <= self.adc_bits <= 16:
+            raise ValueError(f"EnvelopeChunk.adc_bits {self.adc_bits!r} must be 1..16")
+        if not (np.isfinite(self.volts_per_code) and self.volts_per_code > 0):
+            raise ValueError(f"EnvelopeChunk.volts_per_code {self.volts_per_code!r} must be > 0")
+        object.__setattr__(self, "samples", samples)
+
+    @property
+    def end_sample_index(self) -> int:
+        """Index one past the last sample: the next chunk's ``first_sample_index`` if no gap."""
+        return self.first_sample_index + len(self.samples)
+
+
+@dataclass(frozen=True)
+class SyncWindow:
+    """One detected cell, ready for a timing estimator (``deepsync_msgs/SyncWindow``).
+
+    ``windows`` has one row per stacked frame: the envelope (volts) from a margin before the
+    coarse code start to the same margin after the code's template ends, so the margin is
+    ``(window_length - template length) / 2``. ``coarse_index`` is the stream sample index of
+    the subframe-0 code start in the stack's first frame, to a whole sample; the timing stage
+    refines it. A co-sited sector found together with this one (``cosited_pci``) shares the
+    windows, and ``site_coefficients`` then give the pair's fitted code model (scales of
+    |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*), a the lower PCI of the two).
+    """
+
+    stamp_ns: int  # receiver time of the stack's first sample
+    pci: int
+    coarse_index: int
+    windows: np.ndarray  # (n_frames, window_length) float32, volts
+    peak_metric: float  # detection statistic, in sigmas of its noise
+    snr_db: float  # code energy over residual energy in the stacked code windows
+    earfcn: int | None = None
+    carrier_hz: float | None = None
+    cosited_pci: int | None = None
+    site_coefficients: tuple[float, float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.pci <= MAX_PCI:
+            raise ValueError(f"SyncWindow.pci {self.pci!r} must be 0..{MAX_PCI}")
+        windows = np.ascontiguousarray(self.windows, dtype=np.float32)
+        if windows.ndim != 2 or 0 in windows.shape:
+            raise ValueError(f"SyncWindow.windows must be (n_frames, window_length), got shape {windows.shape}")
+        if (self.cosited_pci is None) != (self.site_coefficients is None):
+            raise ValueError("SyncWindow: cosited_pci and site_coefficients come together or not at all")
+        if self.cosited_pci is not None and not (0 <= self.cosited_pci <= MAX_PCI and self.cosited_pci != self.pci):
+            raise ValueError(f"SyncWindow.cosited_pci {self.cosited_pci!r} must be another PCI in 0..{MAX_PCI}")
+        if self.site_coefficients is not None and len(self.site_coefficients) != 4:
+            raise ValueError("SyncWindow.site_coefficients must hold 4 values")
+        object.__setattr__(self, "windows", windows)
+
+    @property
+    def n_frames(self) -> int:
+        return self.windows.shape[0]
+
+    @property
+    def window_length(self) -> int:
+        return self.windows.shape[1]
+
+
+@dataclass(frozen=True)
+class CellTiming:
+    """One cell's time of arrival in stream samples (``deepsync_msgs/CellTiming``): an estimate,
+    or the ground truth of a simulated recording.
+
+    ``toa`` is the fractional stream sample index of the subframe-0 sync-code start, ``toa_std``
+    its honest 1-sigma in samples (0 for ground truth), ``crlb_std`` the Cramer-Rao bound of
+    that estimate at its measured amplitude and noise (NaN where not computed), ``estimator``
+    names who produced it, ``flags`` what deserves attention about it.
+    """
+
+    pci: int
+    toa: float
+    toa_std: float
+    snr_db: float
+    estimator: str
+    crlb_std: float = math.nan
+    flags: tuple[Health, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        if not 0 <= int(self.pci) <= MAX_PCI:
+            raise ValueError(f"CellTiming.pci {self.pci!r} must be 0..{MAX_PCI}")
+        if not math.isfinite(self.toa):
+            raise ValueError(f"CellTiming.toa {self.toa!r} must be finite")
+        if not (math.isfinite(self.toa_std) and self.toa_std >= 0):
+            raise ValueError(f"CellTiming.toa_std {self.toa_std!r} must be finite and >= 0")
+
+
+class NoFixReason(enum.Enum):
+    """Why fusion produced no position (a closed set, like :class:`HealthKind`)."""
+
+    TOO_FEW_SITES = "too_few_sites"  # fewer sites heard than unknowns
+    UNKNOWN_SITES = "unknown_sites"  # heard cells lack a database position or timing
+    NOT_CONVERGED = "not_converged"  # the solver did not converge
+    INCONSISTENT = "inconsistent"  # the arrivals contradict each other beyond their sigmas
+
+
+@dataclass(frozen=True)
+class Fix:
+    """A position in the ``map`` frame (ENU metres at the configured origin, REP-105) with its
+    covariance, from the arrivals of the named sites."""
+
+    stamp_ns: int
+    position_enu: tuple[float, float, float]
+    covariance: np.ndarray  # (3, 3) m^2, ENU
+    sites: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class NoFix:
+    """No position for the data stamped ``stamp_ns``, and why."""
+
+    stamp_ns: int
+    reason: NoFixReason
+    message: str
