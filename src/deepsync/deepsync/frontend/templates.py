@@ -68,12 +68,29 @@ def pss_waveform(n_id_2: int, oversampling: int = _OVERSAMPLING) -> np.ndarray:
     return _sync_symbols([pss(n_id_2)], oversampling)
 
 
+def check_template_rate(sample_rate: float) -> float:
+    """``sample_rate`` (Hz), or ValueError naming the rates templates can be built for.
+
+    Templates are computed on a 30.72 MHz waveform (16 x 1.92 MHz) and sampled at the ADC
+    rate, which must therefore divide it: 0.96, 1.92, 3.84, 7.68, 15.36 MHz and a few others
+    (2.048, 2.56, 3.072, 6.144, ... MHz), but not, e.g., 2.4 or 2.5 MHz.
+    """
+    ratio = _WAVEFORM_RATE / sample_rate if math.isfinite(sample_rate) and sample_rate > 0 else math.nan
+    if not (ratio >= 1 and abs(ratio - round(ratio)) <= 1e-9 * ratio):
+        raise ValueError(
+            f"sample rate {sample_rate:g} Hz: sync templates need a rate that divides "
+            f"{_WAVEFORM_RATE / 1e6:g} MHz by a whole factor (e.g. 1.92e6, 2.048e6, 3.84e6, 7.68e6)"
+        )
+    return float(sample_rate)
+
+
 class SyncTemplates:
     """Templates of all 504 PCIs for subframes 0 and 5, for one front-end configuration."""
 
     def __init__(self, config: FrontendConfig, length: int | None = None) -> None:
         """``length`` (ADC samples) defaults to the code plus its filter tail; longer windows
         show what follows the code too (the filter's and the AC coupling's tails)."""
+        check_template_rate(config.adc_rate_hz)
         self.config = config
         self.sample_rate = config.adc_rate_hz
         default = int(round(TEMPLATE_LENGTH * config.adc_rate_hz / BASE_RATE_HZ))
