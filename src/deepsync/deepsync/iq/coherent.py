@@ -65,6 +65,7 @@ from deepsync.lte.numerology import (
 )
 from deepsync.lte.ofdm import subcarrier_bins
 from deepsync.lte.sequences import N_ID1_COUNT, pss, sss
+from deepsync.numeric import mad_spread, parabolic_peak
 
 NUM = Numerology.for_bandwidth(1.4)
 FRAME = BASE_SAMPLES_PER_FRAME  # 19200
@@ -225,13 +226,6 @@ def _fold(power: np.ndarray, starts: np.ndarray) -> np.ndarray:
     return out
 
 
-def _parabolic(values: np.ndarray, i: int) -> float:
-    """Sub-sample position of the peak at i (circular neighbours)."""
-    a, b, c = values[i - 1], values[i], values[(i + 1) % values.size]
-    denom = a - 2 * b + c
-    return float(i) if denom >= 0 else i + 0.5 * (a - c) / denom
-
-
 def _estimate_half_period(power: np.ndarray) -> float:
     """Half-frame length in recording samples (9600 x (1 + clock error)) from the PSS track.
 
@@ -246,7 +240,7 @@ def _estimate_half_period(power: np.ndarray) -> float:
     blocks = power[: n_blocks * _BLOCK_HALF_FRAMES * HALF].reshape(
         n_blocks, _BLOCK_HALF_FRAMES, HALF
     ).sum(axis=1)
-    peaks = np.array([_parabolic(b, int(np.argmax(b))) for b in blocks])
+    peaks = np.array([int(np.argmax(b)) + parabolic_peak(b, int(np.argmax(b))) for b in blocks])
     track = np.unwrap(peaks * (2 * np.pi / HALF)) * (HALF / (2 * np.pi))
     t = np.arange(n_blocks, dtype=np.float64)
     keep = np.ones(n_blocks, dtype=bool)
@@ -369,7 +363,7 @@ def _test_sss(
     best = int(np.argmax(flat))
     parity, n_id_1 = divmod(best, N_ID1_COUNT)
     centre = float(np.median(flat))
-    spread = 1.4826 * float(np.median(np.abs(flat - centre))) + 1e-12
+    spread = float(mad_spread(flat)) + 1e-12
     sss_z = (float(flat[best]) - centre) / spread
     runner_up = float(np.delete(flat, best).max())
     accepted = bool(sss_z >= min_sss_z and flat[best] >= min_sss_ratio * runner_up)
@@ -528,9 +522,7 @@ def _pss_power_cfo(x: np.ndarray, hyp: _Hypothesis, cand: _Candidate) -> float:
         [np.sum(np.abs(_mix(x, hyp.cfo_hz + d, index) @ wave) ** 2) for d in deltas]
     )
     i = int(np.clip(np.argmax(power), 1, deltas.size - 2))
-    a, b, c = power[i - 1 : i + 2]
-    denom = a - 2 * b + c
-    shift = 0.5 * (a - c) / denom if denom < 0 else 0.0
+    shift = parabolic_peak(power, i)
     return hyp.cfo_hz + deltas[i] + float(np.clip(shift, -1, 1)) * (deltas[1] - deltas[0])
 
 

@@ -41,10 +41,3 @@ def correlate(spectrum: np.ndarray, spectra: np.ndarray, n: int) -> np.ndarray:
     conjugate spectra."""
     return scipy.fft.irfft(spectrum.astype(np.complex64) * spectra, n=n, axis=-1)
 
-
-def parabolic_peak(values: np.ndarray, i: int) -> float:
-    """Sub-sample position of a peak at index i relative to i, from a parabola through 3 points
-    (0 if they do not curve downwards)."""
-    a, b, c = values[i - 1], values[i], values[i + 1]
-    denominator = a - 2 * b + c
-    return float(0.5 * (a - c) / denominator) if denominator < 0 else 0.0

@@ -44,7 +44,8 @@ import scipy.stats
 
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.lte.cell import N_CELL_IDS
-from deepsync.sync.correlation import correlate, frame_spectra, parabolic_peak, template_spectra, unit_frame_parts
+from deepsync.numeric import mad_spread, parabolic_peak
+from deepsync.sync.correlation import correlate, frame_spectra, template_spectra, unit_frame_parts
 from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
 from deepsync.sync.stacking import HELD_FRACTION, held_fraction
 
@@ -430,7 +431,6 @@ def _normalised(c: np.ndarray, spreads: np.ndarray | None) -> tuple[np.ndarray, 
     here unless given: later passes keep the first pass's spread), and the spreads. Every
     fourth lag is enough for the median (thousands of lags), at a quarter of the cost."""
     if spreads is None:
-        sample = c[:, ::4]
-        spreads = 1.4826 * np.median(np.abs(sample - np.median(sample, axis=1, keepdims=True)), axis=1)
+        spreads = mad_spread(c[:, ::4], axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0), spreads

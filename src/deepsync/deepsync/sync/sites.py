@@ -33,7 +33,8 @@ import scipy.special
 import scipy.stats
 
 from deepsync.frontend.templates import SyncTemplates
-from deepsync.sync.correlation import correlate, frame_spectra, parabolic_peak, unit_frame_parts
+from deepsync.numeric import mad_spread, parabolic_peak
+from deepsync.sync.correlation import correlate, frame_spectra, unit_frame_parts
 
 COMPONENTS = 4  # |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*)
 _EXACT_FROM_Z = 2.9
@@ -230,7 +231,7 @@ def _covariances(correlations: np.ndarray) -> np.ndarray:
     (5 robust sigmas): codes occupy a few lags of thousands. Every 32nd lag is enough."""
     sample = correlations[..., ::32].astype(np.float64)
     median = np.median(sample, axis=-1, keepdims=True)
-    spread = 1.4826 * np.median(np.abs(sample - median), axis=-1, keepdims=True)
+    spread = mad_spread(sample, axis=-1, keepdims=True)
     quiet = np.all(np.abs(sample - median) < 5 * spread, axis=-2, keepdims=True)  # (..., 1, lags)
     count = quiet.sum(axis=-1, keepdims=True)
     mean = np.sum(sample * quiet, axis=-1, keepdims=True) / count

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.fft
 
+from deepsync.numeric import mad_spread, parabolic_peak
 from deepsync.types import FRAME_SECONDS
 from deepsync.types import EnvelopeChunk
 
@@ -244,10 +245,7 @@ def measure_drift(rows: np.ndarray, max_ppm: float = MAX_CLOCK_PPM, min_z: float
     reach = int(np.ceil(max_ppm * 1e-6 * frame * (n // 2))) + 1
     lags = np.arange(-reach, reach + 1)
     lag = int(lags[np.argmax(c[lags % frame])])
-    spread = 1.4826 * np.median(np.abs(c - np.median(c)))
+    spread = mad_spread(c)
     if spread <= 0 or (c[lag % frame] - np.median(c)) / spread < min_z:
         return None
-    y0, y1, y2 = c[(lag - 1) % frame], c[lag % frame], c[(lag + 1) % frame]
-    curvature = y0 - 2 * y1 + y2
-    fraction = 0.5 * (y0 - y2) / curvature if curvature < 0 else 0.0
-    return (lag + fraction) / ((n // 2) * frame) * 1e6
+    return (lag + parabolic_peak(c, lag % frame)) / ((n // 2) * frame) * 1e6

@@ -77,6 +77,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 import scipy.optimize
 
+from deepsync.numeric import parabolic_offset
 from deepsync.timing.crlb import check_template, psd_bins
 
 MODEL_FLOOR_SAMPLES = 0.003
@@ -352,10 +353,7 @@ def _parabola(values: np.ndarray, near: float | None = None, reach: float = 0.0)
         searched = np.where(np.abs(index - near) <= reach, values, -np.inf)
     peak = np.clip(np.argmax(searched, axis=1), 1, n - 2)
     rows = np.arange(values.shape[0])
-    left, centre, right = values[rows, peak - 1], values[rows, peak], values[rows, peak + 1]
-    denominator = left - 2 * centre + right
-    with np.errstate(divide="ignore", invalid="ignore"):
-        step = np.where(denominator < 0, 0.5 * (left - right) / denominator, 0.0)
+    step = parabolic_offset(values[rows, peak - 1], values[rows, peak], values[rows, peak + 1])
     return np.clip(peak + np.clip(step, -1.0, 1.0), 0, n - 1)
 
 
@@ -374,10 +372,7 @@ def _parabolic_bias(problem: _Problem, offset: float) -> float:
     lag = problem.margin + offset
     centre = math.floor(lag + 0.5)
     delays = np.array([centre - 1, centre, centre + 1]) - lag
-    left, mid, right = _autocorrelation(problem, delays)
-    denominator = left - 2 * mid + right
-    step = 0.5 * (left - right) / denominator if denominator < 0 else 0.0
-    return float(centre + step - lag)
+    return float(centre + parabolic_offset(*_autocorrelation(problem, delays)) - lag)
 
 
 def parabolic_bias(template: np.ndarray, offset: float, margin: int = 10) -> float:

@@ -1,0 +1,36 @@
+"""Two numerical helpers every stage uses: the parabolic peak and the robust noise spread.
+
+Both are used where a correlation is examined: a peak on a grid of lags is refined by the
+parabola through it and its two neighbours, and the noise of a correlation that holds a few
+peaks among thousands of lags is measured by the median absolute deviation, which the peaks
+do not move.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+MAD_TO_SIGMA = 1.4826  # the median absolute deviation of a Gaussian is 0.6745 sigma
+
+
+def parabolic_offset(left: ArrayLike, centre: ArrayLike, right: ArrayLike) -> np.ndarray:
+    """Vertex of the parabola through three equally spaced values, in steps from the middle
+    one (elementwise); 0 where they do not curve downwards, i.e. where there is no maximum."""
+    left, centre, right = np.asarray(left), np.asarray(centre), np.asarray(right)
+    curvature = left - 2 * centre + right
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(curvature < 0, 0.5 * (left - right) / curvature, 0.0)
+
+
+def parabolic_peak(values: np.ndarray, i: int) -> float:
+    """Sub-sample position of a peak at index ``i`` of ``values``, relative to ``i``; the
+    neighbours are taken circularly (correlations over a period wrap around)."""
+    return float(parabolic_offset(values[i - 1], values[i], values[(i + 1) % len(values)]))
+
+
+def mad_spread(values: ArrayLike, axis: int | None = None, keepdims: bool = False) -> np.ndarray:
+    """Robust standard deviation: 1.4826 x the median absolute deviation from the median."""
+    values = np.asarray(values)
+    deviation = np.abs(values - np.median(values, axis=axis, keepdims=True))
+    return MAD_TO_SIGMA * np.median(deviation, axis=axis, keepdims=keepdims)
