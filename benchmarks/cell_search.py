@@ -30,7 +30,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from deepsync.frontend.channel import Emitter, Paths  # noqa: E402
+from deepsync.frontend.channel import Emitter, FixedChannel, Paths  # noqa: E402
 from deepsync.frontend.config import FrontendConfig  # noqa: E402
 from deepsync.frontend.simulator import EnvelopeSimulator  # noqa: E402
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds  # noqa: E402
@@ -45,15 +45,10 @@ SNR_GRID = {1: np.arange(-10.0, 8.1, 1.5), 5: np.arange(-18.0, 0.1, 1.5),
             10: np.arange(-21.0, -2.9, 1.5), 20: np.arange(-24.0, -5.9, 1.5)}
 
 
-class LineOfSight:
-    def paths(self, emitter_index: int, t: float) -> Paths:
-        return Paths([1e-6], [3e-5], [0.0])
-
-
 def interference(seconds: float, config: FrontendConfig) -> tuple[np.ndarray, float]:
     """(frames, 19200) envelope of a loaded 10 MHz cell, and where its own codes sit."""
     cell = Emitter(CellConfig(pci=RESIDENT_PCI, bandwidth_mhz=10, load=1.0), 2115e6, 2e-3, 0.0, 0.0, "R")
-    sim = EnvelopeSimulator([cell], LineOfSight(), config, seed=21)
+    sim = EnvelopeSimulator([cell], FixedChannel(Paths([1e-6], [3e-5], [0.0])), config, seed=21)
     volts = np.concatenate([c.samples for c in sim.stream(seconds, workers=2)]).astype(np.float64)
     frames = volts[: len(volts) // FRAME * FRAME].reshape(-1, FRAME)
     resident = float(sim.sample_index(sync_code_offset_seconds() + 1e-6)) % FRAME

@@ -39,19 +39,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from deepsync.frontend.channel import Emitter, Paths  # noqa: E402
+from deepsync.frontend.channel import Emitter, FixedChannel, Paths  # noqa: E402
 from deepsync.frontend.config import FrontendConfig  # noqa: E402
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats  # noqa: E402
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds  # noqa: E402
 from deepsync.lte.cell import CellConfig  # noqa: E402
 from deepsync.timing.crlb import delay_crlb  # noqa: E402
 from deepsync.timing.estimators import (  # noqa: E402
-from deepsync.types import FRAME_SECONDS, HALF_FRAME_SECONDS, SPEED_OF_LIGHT_M_S  # noqa: E402
     estimate_fft_upsampled,
     estimate_ml,
     estimate_parabolic,
     noise_psd,
 )
+from deepsync.types import FRAME_SECONDS, HALF_FRAME_SECONDS, SPEED_OF_LIGHT_M_S  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results"
 PCI = 301
@@ -68,14 +68,6 @@ ESTIMATORS = {
 }
 
 
-class LineOfSight:
-    def __init__(self, gain: float) -> None:
-        self._paths = Paths([DELAY_S], [gain], [0.0])
-
-    def paths(self, emitter_index: int, t: float) -> Paths:
-        return self._paths
-
-
 def wide_templates(config: FrontendConfig, length: int) -> SyncTemplates:
     """Templates over the whole window: the code at any delay with its filter/coupling tails."""
     return SyncTemplates(config, length=length)
@@ -85,7 +77,7 @@ def interference_pool(seconds: float, margin: int, config: FrontendConfig) -> tu
     """(windows, stats): simulated windows at every true code arrival, the code subtracted."""
     gain = math.sqrt(10 ** ((RE_POWER_DBM - 30) / 10) / EIRP_PER_RE_W)
     emitter = Emitter(CellConfig(pci=PCI, bandwidth_mhz=10, load=1.0), 2115e6, EIRP_PER_RE_W, 0.0, 0.0, "A")
-    sim = EnvelopeSimulator([emitter], LineOfSight(gain), config, seed=23)
+    sim = EnvelopeSimulator([emitter], FixedChannel(Paths([DELAY_S], [gain], [0.0])), config, seed=23)
     stats = SimulationStats()
     codes = np.concatenate([c.samples for c in sim.stream(seconds + 0.02, stats=stats, workers=2)])
     volts = codes.astype(np.float64) * config.volts_per_code

@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from deepsync.frontend.channel import Emitter, Paths  # noqa: E402
+from deepsync.frontend.channel import Emitter, FixedChannel, Paths  # noqa: E402
 from deepsync.frontend.config import FrontendConfig  # noqa: E402
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats  # noqa: E402
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds  # noqa: E402
@@ -37,19 +37,11 @@ DELAY_S = 1.5e-6  # 450 m
 EIRP_PER_RE_W = 10 ** ((61 - 30) / 10) / 600  # a 61 dBm, 10 MHz macro sector, per RE
 
 
-class LineOfSight:
-    def __init__(self, gain: float) -> None:
-        self._paths = Paths([DELAY_S], [gain], [0.0])
-
-    def paths(self, emitter_index: int, t: float) -> Paths:
-        return self._paths
-
-
 def measure(bandwidth: float, load: float, re_power_dbm: float, frames: int, config: FrontendConfig) -> dict:
     """SNR of one configuration; ``re_power_dbm`` is the received power per RE at the antenna."""
     gain = math.sqrt(10 ** ((re_power_dbm - 30) / 10) / EIRP_PER_RE_W)
     emitter = Emitter(CellConfig(pci=PCI, bandwidth_mhz=bandwidth, load=load), 2115e6, EIRP_PER_RE_W, 0.0, 0.0, "A")
-    sim = EnvelopeSimulator([emitter], LineOfSight(gain), config, seed=11)
+    sim = EnvelopeSimulator([emitter], FixedChannel(Paths([DELAY_S], [gain], [0.0])), config, seed=11)
     stats = SimulationStats()
     seconds = (frames + 2) * FRAME_SECONDS
     codes = np.concatenate([c.samples for c in sim.stream(seconds, stats=stats)])

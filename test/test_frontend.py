@@ -8,7 +8,7 @@ import scipy.fft
 import scipy.signal
 
 from deepsync.frontend.adc import ReceiverClock, cubic_sample
-from deepsync.frontend.channel import Emitter, Paths
+from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.square_law import output_noise_density
 from deepsync.frontend.plan import plan_clusters
@@ -28,16 +28,6 @@ NOISELESS = FrontendConfig(
     detector_nep_w_per_sqrt_hz=0.0, noise_temperature_k=0.0, adc_noise_lsb=0.0, video_highpass_hz=0.0
 )
 ADC_RATE = NOISELESS.adc_rate_hz
-
-
-class FixedPaths:
-    """A channel with fixed paths per emitter (what a static scene gives)."""
-
-    def __init__(self, paths: list[Paths]) -> None:
-        self._paths = paths
-
-    def paths(self, emitter_index: int, t: float) -> Paths:
-        return self._paths[emitter_index]
 
 
 def single_path(delay_s: float, gain: complex = 1e-4) -> Paths:
@@ -76,7 +66,7 @@ def reference_detector_output(emitters, paths, seed, fft_size, frames, center_hz
 def test_single_carrier_noiseless_equals_lowpassed_square():
     emitters = [emitter()]
     paths = [single_path(37 / 15.36e6, 2e-4 * np.exp(0.3j))]
-    sim = EnvelopeSimulator(emitters, FixedPaths(paths), NOISELESS, seed=4)
+    sim = EnvelopeSimulator(emitters, FixedChannel(paths), NOISELESS, seed=4)
     cluster = sim.detector.clusters[0].cluster
     assert cluster.fft_size == 1024  # 10 MHz + the video stop band fits the standard rate
     reference = reference_detector_output(emitters, paths, 4, cluster.fft_size, 6, cluster.center_hz)
@@ -96,11 +86,11 @@ def test_adjacent_carriers_and_shared_carrier_intermodulate_exactly():
         emitter(pci=121, site="A"),
         emitter(pci=56, carrier=2125e6, site="C", timing=2e-3),
     ]
-    sim = EnvelopeSimulator(emitters, FixedPaths([single_path(0), single_path(0), single_path(0)]), NOISELESS, 9)
+    sim = EnvelopeSimulator(emitters, FixedChannel([single_path(0), single_path(0), single_path(0)]), NOISELESS, 9)
     (cluster,) = [c.cluster for c in sim.detector.clusters]
     rate_guess = cluster.sample_rate_hz
     paths = [single_path(11 / rate_guess, 2e-4), single_path(11 / rate_guess, 1.5e-4j), single_path(5 / rate_guess, 1e-4)]
-    sim = EnvelopeSimulator(emitters, FixedPaths(paths), NOISELESS, 9)
+    sim = EnvelopeSimulator(emitters, FixedChannel(paths), NOISELESS, 9)
     assert len(sim.detector.clusters) == 1
     reference = reference_detector_output(emitters, paths, 9, cluster.fft_size, 5, cluster.center_hz)
     n0, n1 = 2 * 19200, 3 * 19200
@@ -184,7 +174,7 @@ def test_sync_code_lands_where_ground_truth_says(clock_ppm, drift):
     timing = 2.1e-3
     gain = 3e-5
     e = emitter(pci=301, load=0.0, timing=timing, re_power=2e-3)
-    sim = EnvelopeSimulator([e], FixedPaths([single_path(delay, gain)]), config, seed=2)
+    sim = EnvelopeSimulator([e], FixedChannel([single_path(delay, gain)]), config, seed=2)
     templates = SyncTemplates(config)
     frames = range(1, 30)
     arrivals = [sim.sample_index(timing + k * FRAME_SECONDS + sync_code_offset_seconds() + delay) for k in frames]
@@ -202,7 +192,7 @@ def test_loaded_cell_sync_code_is_where_ground_truth_says_on_average():
     config = NOISELESS
     delay = 4.2e-6
     e = emitter(pci=88, load=1.0, re_power=2e-3)
-    sim = EnvelopeSimulator([e], FixedPaths([single_path(delay, 3e-5)]), config, seed=6)
+    sim = EnvelopeSimulator([e], FixedChannel([single_path(delay, 3e-5)]), config, seed=6)
     templates = SyncTemplates(config)
     arrival0 = sim.sample_index(sync_code_offset_seconds() + delay)
     analog = sim.analog(0, 60 * 19200)

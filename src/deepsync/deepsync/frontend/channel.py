@@ -7,6 +7,7 @@ and Doppler, so a statistical 3GPP channel and a ray-traced one are interchangea
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -83,3 +84,16 @@ class ChannelProvider(Protocol):
         frame the front end holds delays fixed and rotates each gain by its Doppler.
         """
         ...
+
+
+class FixedChannel:
+    """A :class:`ChannelProvider` whose paths never change: a static scene, a test, a benchmark.
+
+    ``paths`` is one :class:`Paths` for every emitter, or one per emitter (by index).
+    """
+
+    def __init__(self, paths: Paths | Sequence[Paths]) -> None:
+        self._paths = paths
+
+    def paths(self, emitter_index: int, t: float) -> Paths:
+        return self._paths if isinstance(self._paths, Paths) else self._paths[emitter_index]
