@@ -22,7 +22,7 @@ from pathlib import Path
 from threadpoolctl import threadpool_limits
 
 from deepsync.bag import read_envelope
-from deepsync.recording import recorded_frontend
+from deepsync.sources import bag_frontend
 from deepsync.sync.search import SearchConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
 from deepsync.towers import load_tower_database
@@ -34,7 +34,7 @@ TOWERS = REPO / "config" / "towers" / "campus.yaml"
 
 def time_mode(chunks, towers, repeats: int, config: SyncConfig) -> tuple[float, float]:
     """Median and 90th percentile (ms) of processing one 10-frame stack."""
-    frontend = recorded_frontend(BAG)
+    frontend = bag_frontend(BAG)
     warm = SyncStage(frontend, config, towers)
     for chunk in chunks[:10]:
         warm.process(chunk)  # builds and caches templates (start-up cost, not per stack)

@@ -1,4 +1,4 @@
-"""Coherent (complex-domain) reference cell search and the I/Q helpers around it."""
+"""Coherent (complex-domain) reference cell search (its I/Q reading is tested in test_sources)."""
 
 from pathlib import Path
 
@@ -11,7 +11,7 @@ from deepsync.lte.numerology import Numerology, sync_code_start_base
 from deepsync.lte.ofdm import modulate
 from deepsync.lte.sequences import crs
 from deepsync.iq import coherent as C
-from deepsync.sources.iq import envelope_chunks, envelope_codes, load_rtlsdr_u8
+from deepsync.sources import read_iq
 
 FS = 1.92e6
 FRAME = 19200
@@ -34,57 +34,6 @@ def add_noise(x: np.ndarray, snr_db: float, rng: np.random.Generator) -> np.ndar
 
 def with_cfo(x: np.ndarray, cfo_hz: float, phase: float = 0.3) -> np.ndarray:
     return x * np.exp(2j * np.pi * (cfo_hz * np.arange(x.size) / FS + phase))
-
-
-# --------------------------------------------------------------------------- I/Q helpers
-
-
-def test_load_rtlsdr_u8_reads_interleaved_unsigned_iq(tmp_path):
-    path = tmp_path / "capture.bin"
-    path.write_bytes(bytes([0, 255, 127, 128, 200, 10]))
-    x = load_rtlsdr_u8(path)
-    assert x.dtype == np.complex64
-    np.testing.assert_array_equal(x, [-127.5 + 127.5j, -0.5 + 0.5j, 72.5 - 117.5j])
-
-
-def test_load_rtlsdr_u8_rejects_odd_length_and_missing_file(tmp_path):
-    odd = tmp_path / "odd.bin"
-    odd.write_bytes(bytes(7))
-    with pytest.raises(ValueError, match="odd.bin.*7 bytes"):
-        load_rtlsdr_u8(odd)
-    with pytest.raises(ValueError, match="nothere.bin"):
-        load_rtlsdr_u8(tmp_path / "nothere.bin")
-
-
-def test_envelope_chunks_round_trip_squared_magnitude_with_contiguous_indices():
-    rng = np.random.default_rng(4)
-    raw = rng.integers(0, 256, size=2 * 50_000).astype(np.float32) - 127.5
-    iq = (raw[0::2] + 1j * raw[1::2]).astype(np.complex64)
-    chunks = list(envelope_chunks(iq, FS, chunk_samples=19200, stamp_ns=1_000))
-    assert [c.first_sample_index for c in chunks] == [0, 19200, 38400]
-    assert [len(c.samples) for c in chunks] == [19200, 19200, 11600]
-    for previous, chunk in zip(chunks, chunks[1:]):
-        assert chunk.first_sample_index == previous.end_sample_index
-    assert chunks[1].stamp_ns == 1_000 + 10_000_000  # 19200 samples = 10 ms
-    for chunk in chunks:
-        assert chunk.samples.dtype == np.int16 and chunk.adc_bits == 16
-        assert chunk.volts_per_code == 2.0 and chunk.sample_rate == FS
-    codes = np.concatenate([c.samples for c in chunks]).astype(np.float64)
-    power = np.abs(iq.astype(np.complex128)) ** 2
-    assert np.max(np.abs(codes * 2.0 - power)) <= 1.0  # round(|x|^2 / 2): within one half code
-    # the largest 8-bit sample fits int16
-    assert envelope_codes(np.array([-127.5 - 127.5j]))[0] == 16256
-
-
-def test_envelope_is_blind_to_carrier_frequency_offset():
-    x = cell_baseband(7, 1, seed=1)[:5000]
-    x *= 20 / np.sqrt(np.mean(np.abs(x) ** 2))  # 20 rms, like a strong 8-bit capture
-    np.testing.assert_array_equal(envelope_codes(x), envelope_codes(with_cfo(x, 41_777.0, 1.0)))
-
-
-def test_envelope_codes_refuses_overflow():
-    with pytest.raises(ValueError, match="int16"):
-        envelope_codes(np.array([300.0 + 0j]))
 
 
 # --------------------------------------------------------------------------- synthetic search
@@ -179,7 +128,7 @@ def test_search_rejects_other_sample_rates_and_short_input():
 def real_cells():
     if not REAL.is_file():
         pytest.skip(f"real RTL-SDR recording not present at {REAL.resolve()} (test data)")
-    iq = load_rtlsdr_u8(REAL)
+    iq = read_iq(REAL, "cu8")
     return iq, C.search_cells(iq, carrier_hz=1860e6)
 
 

@@ -7,11 +7,11 @@ import pytest
 import scipy.fft
 
 from deepsync.bag import read_envelope
-from deepsync.types import FRAME_SECONDS, EnvelopeChunk
+from deepsync.types import FRAME_SECONDS, EnvelopeChunk, HealthKind, Severity
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.frontend.video import VideoFilter
-from deepsync.recording import recorded_frontend
+from deepsync.sources import BagSource
 from deepsync.sync.search import CellSearch, SearchConfig
 from deepsync.sync.sites import SiteFit
 from deepsync.sync.stacking import FrameStacker, StackConfig
@@ -86,7 +86,7 @@ def chunked(samples, sizes, first=0, rate=1.92e6):
 def test_stacks_do_not_depend_on_chunking():
     rng = np.random.default_rng(1)
     codes = rng.integers(-2000, 2000, size=3 * 10 * FRAME + 777).astype(np.int16)
-    a, b = FrameStacker(), FrameStacker()
+    a, b = FrameStacker(1.92e6), FrameStacker(1.92e6)
     whole = [s for c in chunked(codes, [len(codes)]) for s in a.push(c)]
     sizes = rng.integers(1, 50_000, size=2000)
     sizes = sizes[np.cumsum(sizes) <= len(codes)]
@@ -99,15 +99,15 @@ def test_stacks_do_not_depend_on_chunking():
     assert not a.events
 
 
-def test_gap_nan_backwards_and_rate_change_are_reported_not_stacked():
-    stacker = FrameStacker(StackConfig(n_frames=2))
+def test_gap_nan_backwards_and_rate_mismatch_are_reported_not_stacked():
+    stacker = FrameStacker(1.92e6, StackConfig(n_frames=2))
     rng = np.random.default_rng(2)
     good = rng.standard_normal(5 * FRAME)
     stacks = stacker.push_samples(good[: 3 * FRAME], 0, 1.92e6)
     assert [s.first_sample_index for s in stacks] == [0]
     # gap of 1000 samples: the half-filled second stack is dropped, stacking restarts after it
     stacks = stacker.push_samples(good[: 2 * FRAME], 3 * FRAME + 1000, 1.92e6)
-    assert [e.kind for e in stacker.events] == ["gap"]
+    assert [e.kind for e in stacker.events] == [HealthKind.GAP]
     assert "gap of 1000 samples" in stacker.events[0].message
     assert [s.first_sample_index for s in stacks] == [3 * FRAME + 1000]
     # non-finite samples: frames spanning them are dropped
@@ -116,32 +116,41 @@ def test_gap_nan_backwards_and_rate_change_are_reported_not_stacked():
     bad[200] = np.inf
     start = 5 * FRAME + 1000
     stacks = stacker.push_samples(bad, start, 1.92e6)
-    assert stacker.events[-1].kind == "not_finite" and stacker.events[-1].index == start + 100
+    assert stacker.events[-1].kind is HealthKind.NOT_FINITE and stacker.events[-1].sample_index == start + 100
     assert all(np.all(np.isfinite(s.rows)) for s in stacks)
     assert [s.first_sample_index for s in stacks] == [start + 201, start + 201 + 2 * FRAME]
     # a chunk from the past is dropped
     assert stacker.push_samples(good[:10], 0, 1.92e6) == []
-    assert stacker.events[-1].kind == "backwards"
-    # a new sample rate restarts everything with the new frame length
-    stacks = stacker.push_samples(np.ones(4 * 10000), 10 * FRAME, 1.0e6)
-    assert stacker.events[-1].kind == "rate_change"
-    assert stacks[0].frame_samples == 10000
+    assert stacker.events[-1].kind is HealthKind.BACKWARDS
+    # samples at another rate than the templates': dropped, said once for the whole run
+    assert stacker.push_samples(good[: FRAME + 5], start + 5 * FRAME, 1.92e6) == []  # 2 frames minus 196 pending
+    assert stacker.push_samples(np.ones(4 * 10000), start + 6 * FRAME + 5, 1.0e6) == []
+    assert stacker.push_samples(np.ones(4 * 10000), start + 6 * FRAME + 40005, 1.0e6) == []
+    mismatch = stacker.events[-1]
+    assert mismatch.kind is HealthKind.RATE_MISMATCH and mismatch.severity is Severity.ERROR
+    assert "1e+06 Hz" in mismatch.message and "1.92e+06 Hz" in mismatch.message
+    assert f"{2 * FRAME - 196} pending samples" in mismatch.message
+    assert sum(e.kind is HealthKind.RATE_MISMATCH for e in stacker.events) == 1
+    # back at the right rate, stacking starts afresh there (no gap reported on top)
+    events = len(stacker.events)
+    stacks = stacker.push_samples(good[: 2 * FRAME], 30 * FRAME, 1.92e6)
+    assert [s.first_sample_index for s in stacks] == [30 * FRAME] and len(stacker.events) == events
 
 
 def test_flags_for_clipping_and_silence():
-    stacker = FrameStacker(StackConfig(n_frames=1))
+    stacker = FrameStacker(1.92e6, StackConfig(n_frames=1))
     codes = np.zeros(FRAME, dtype=np.int16)
     (silent,) = stacker.push(EnvelopeChunk(0, 1.92e6, 0, 12, 1e-3, codes))
-    assert any("no signal: 100.0 %" in f for f in silent.flags)
+    assert [(f.kind, f.severity) for f in silent.flags] == [(HealthKind.NO_SIGNAL, Severity.ERROR)]
+    assert "100.0 %" in silent.flags[0].message
     codes = np.full(FRAME, 300, dtype=np.int16)
     codes[5000:5200] = np.random.default_rng(4).integers(-1000, 1000, 200)
     (stuck,) = stacker.push(EnvelopeChunk(0, 1.92e6, FRAME, 12, 1e-3, codes))
-    assert any("no signal: 99.0 %" in f for f in stuck.flags)  # stuck ADC with a burst
+    assert [f.kind for f in stuck.flags] == [HealthKind.NO_SIGNAL] and "99.0 %" in str(stuck.flags[0])  # stuck ADC, a burst
     codes = np.random.default_rng(3).integers(-1000, 1000, FRAME).astype(np.int16)
     codes[:100] = 2047
     (clipped,) = stacker.push(EnvelopeChunk(0, 1.92e6, 2 * FRAME, 12, 1e-3, codes))
-    assert any("clipped: 0.52 %" in f for f in clipped.flags)
-    assert not any("no signal" in f for f in clipped.flags)
+    assert [f.kind for f in clipped.flags] == [HealthKind.CLIPPED] and "0.52 %" in str(clipped.flags[0])
 
 
 def test_clock_offset_is_compensated_to_the_sub_sample(templates):
@@ -154,17 +163,17 @@ def test_clock_offset_is_compensated_to_the_sub_sample(templates):
         whole = int(np.floor(at))
         code = templates.template(120, 0, at - whole)
         stream[whole : whole + len(code)] += code
-    (stack,) = FrameStacker(StackConfig(n_frames=n, clock_ppm=ppm)).push_samples(stream, 0, 1.92e6)
+    (stack,) = FrameStacker(1.92e6, StackConfig(n_frames=n, clock_ppm=ppm)).push_samples(stream, 0, 1.92e6)
     assert stack.aligned
-    detection = type("D", (), {"frame_offset": 5000})()
-    windows = extract_windows(stack, detection, templates.length, margin=10)
+    windows = extract_windows(stack, 5000, templates.length, margin=10)
     expected = templates.template(120, 0, 10.3)[: windows.shape[1]]
     for row in windows:
         np.testing.assert_allclose(row[:276], expected[:276], atol=1e-2 * np.abs(expected).max())
     assert stack.drift_ppm == pytest.approx(ppm, abs=1.0)  # measured from the stream itself
     # without compensation the last frame's code has moved 7 samples: measured and flagged
-    (drifted,) = FrameStacker(StackConfig(n_frames=n)).push_samples(stream, 0, 1.92e6)
-    assert not drifted.aligned and any("misaligned: +37" in f for f in drifted.flags)
+    (drifted,) = FrameStacker(1.92e6, StackConfig(n_frames=n)).push_samples(stream, 0, 1.92e6)
+    assert not drifted.aligned
+    assert [f.message[:3] for f in drifted.flags if f.kind is HealthKind.MISALIGNED] == ["+37"]
     assert drifted.drift_ppm == pytest.approx(ppm, abs=1.0)
 
 
@@ -292,7 +301,7 @@ def test_tower_database_validation(tmp_path):
 
 def test_stage_on_the_campus_bag_finds_every_cell_and_no_others():
     bag = REPO / "bags" / "campus"
-    stage = SyncStage(recorded_frontend(bag), SyncConfig(), load_tower_database(CAMPUS_TOWERS))
+    stage = SyncStage(BagSource(bag).frontend, SyncConfig(), load_tower_database(CAMPUS_TOWERS))
     truth = {56: 1672.06, 301: 14938.01, 120: 6680.06, 121: 6680.06}  # code phase, from the bag's truth
     results = [r for chunk in read_envelope(bag) for r in stage.process(chunk)]
     assert len(results) == 30
@@ -303,11 +312,11 @@ def test_stage_on_the_campus_bag_finds_every_cell_and_no_others():
         for cell in result.cells + result.tentative:
             if cell.pci not in truth:
                 continue  # a tentative false detection: what confirmation is for
-            error = (cell.coarse_index + cell.detection.fraction - truth[cell.pci] + FRAME / 2) % FRAME - FRAME / 2
+            error = (cell.code_position - truth[cell.pci] + FRAME / 2) % FRAME - FRAME / 2
             assert abs(error) <= 1.0
-            assert cell.windows.shape == (10, 276 + 20)
+            assert cell.window.windows.shape == (10, 276 + 20)
             # the co-sited sectors of site A (equal power, same timing) are found as a pair
-            assert cell.cosited_pci == {120: 121, 121: 120}.get(cell.pci)
+            assert cell.window.cosited_pci == {120: 121, 121: 120}.get(cell.pci)
             seen[cell.pci] += 1
     assert min(seen.values()) >= 27, seen
     assert {c.pci for c in results[-1].cells} == set(truth)  # confirmed: three stacks in a row
@@ -322,10 +331,10 @@ def test_detect_command_reports_cells_and_refuses_ambiguous_input(capsys):
     towers = REPO / "config" / "towers" / "campus.yaml"
     assert main(["detect", "--bag", str(bag), "--towers", str(towers)]) == 0
     out = capsys.readouterr().out
-    assert all(f"PCI {pci:3d}" in out for pci in (56, 120, 121, 301)) and "(ML)" in out and "truth" in out
+    assert all(f"PCI {pci:3d}" in out for pci in (56, 120, 121, 301)) and "(ml, bound" in out and "truth" in out
     assert "no such cell" not in out
     assert main(["detect", "--towers", str(towers)]) == 2
-    assert "either --bag or --iq" in capsys.readouterr().err
+    assert "give one recording: --bag BAG or --input FILE" in capsys.readouterr().err
 
 
 def test_detect_command_on_an_iq_recording_without_truth(tmp_path, capsys, templates):
@@ -339,13 +348,13 @@ def test_detect_command_on_an_iq_recording_without_truth(tmp_path, capsys, templ
     iq = np.stack([amplitude, np.zeros_like(amplitude)], axis=1) * 30 + 127.5  # real-valued I/Q
     path = tmp_path / "cell88.bin"
     np.clip(np.round(iq), 0, 255).astype(np.uint8).tofile(path)
-    assert main(["detect", "--iq", str(path)]) == 0
+    assert main(["detect", "--input", str(path), "--format", "cu8", "--rate", "1.92e6"]) == 0
     out = capsys.readouterr().out
     assert "PCI  88  reported in" in out and "truth" not in out
 
 
 def test_stage_survives_every_kind_of_bad_input_and_says_what_happened(templates):
-    """NaN, a gap, going back in time, a rate change, silence and clipping, in one stream."""
+    """NaN, a gap, going back in time, another sample rate, silence and clipping, in one stream."""
     stage = SyncStage(CONFIG, SyncConfig(stack=StackConfig(n_frames=2), confirm_stacks=1))
     rng = np.random.default_rng(9)
     code = frame_with_codes(templates, [(301, 5000.2, 1.0)])
@@ -367,11 +376,11 @@ def test_stage_survives_every_kind_of_bad_input_and_says_what_happened(templates
     chunk = EnvelopeChunk(0, 1.92e6, 10**7, 12, 1e-3, np.full(2 * FRAME, 2047, dtype=np.int16))
     results += stage.process(chunk)  # clipped throughout (after another gap)
     events = [e.kind for r in results for e in r.events]
-    flags = [f for r in results for f in r.flags]
-    assert {"not_finite", "gap", "backwards", "rate_change"} <= set(events)
-    assert any(f.startswith("no signal") for f in flags) and any(f.startswith("clipped") for f in flags)
+    flags = [f.kind for r in results for f in r.flags]
+    assert {HealthKind.NOT_FINITE, HealthKind.GAP, HealthKind.BACKWARDS, HealthKind.RATE_MISMATCH} <= set(events)
+    assert {HealthKind.NO_SIGNAL, HealthKind.CLIPPED} <= set(flags)
     assert results[0].pcis == [301]
-    assert all(r.cells == () for r in results if any(f.startswith("no signal") for f in r.flags))
+    assert all(r.cells == () for r in results if any(f.kind is HealthKind.NO_SIGNAL for f in r.flags))
 
 
 def test_demo_reports_every_cell_of_the_bundled_bag_against_its_truth(tmp_path, capsys):

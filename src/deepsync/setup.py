@@ -21,6 +21,7 @@ setup(
         "tqdm>=4.60",
         "threadpoolctl>=3.1",
         "matplotlib>=3.7",
+        "sigmf>=1.14",
     ],
     zip_safe=True,
     maintainer="DeepSync",

@@ -1,4 +1,7 @@
-"""The ``deepsync`` command: simulate recordings, inspect bags, run the demo."""
+"""The ``deepsync`` command: simulate recordings, inspect bags, detect cells, run the demo.
+
+Argument parsing and printing only: the work is done by the pipeline (``deepsync.pipeline``)
+over a source (``deepsync.sources``), and reported by ``deepsync.eval``."""
 
 from __future__ import annotations
 
@@ -13,6 +16,12 @@ from pathlib import Path
 from deepsync.bag import TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg
 from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
+from deepsync.eval.cell_search import stack_record, summarize
+from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
+from deepsync.sources import BagSource, SampleFormat, Source, open_source
+from deepsync.sync.stacking import StackConfig
+from deepsync.sync.stage import SyncConfig
+from deepsync.towers import load_tower_database
 
 REPO = Path(__file__).resolve().parents[3]
 DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus.yaml"
@@ -83,98 +92,41 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _truth_phases(bag_path: Path) -> dict[int, float]:
-    """PCI -> true subframe-0 code position modulo the frame, from a bag's ground truth."""
-    phases: dict[int, float] = {}
-    with BagReader(bag_path) as bag:
-        if TRUTH_CELL_TIMING_TOPIC not in bag.topics:
-            return phases
-        for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
-            for record in cell_timing_array_from_msg(item.message):
-                phases.setdefault(record.pci, record.toa)
-    return phases
-
-
-def _frame_error(toa: float, truth: float, frame: int) -> float:
-    return (toa - truth + frame / 2) % frame - frame / 2
-
-
-def run_detection(chunks, frontend, towers_path: Path | None, frames: int, truth: dict[int, float], label: str,
-                  verbose: bool = True) -> list[dict]:
-    """Run the cell-search stage over a stream; print each stack's confirmed cells (if verbose) with
-    their maximum-likelihood sub-sample arrival and the error against ground truth, if known.
-    Returns one record per stack: its start time and its confirmed cells."""
-    from deepsync.timing.estimators import estimate_ml, noise_psd
-    from deepsync.sync.stacking import StackConfig
-    from deepsync.sync.stage import SyncConfig, SyncStage
-    from deepsync.towers import load_tower_database
-
+def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth: dict[int, float],
+                    verbose: bool = True) -> list[dict]:
+    """Run the pipeline (cell search and classical timing) over a source; print each stack's
+    confirmed cells (if verbose) with their arrival and the error against ground truth, if known.
+    Returns one record per stack (``deepsync.eval.cell_search.stack_record``)."""
     towers = None if towers_path is None else load_tower_database(towers_path)
-    stage = SyncStage(frontend, SyncConfig(stack=StackConfig(n_frames=frames)), towers)
+    config = PipelineConfig(sync=SyncConfig(stack=StackConfig(n_frames=frames)))
+    pipeline = Pipeline(source.frontend, config, towers)
     mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
-    print(f"cell search over {label}: {frames}-frame stacks, {mode}; a cell is reported once found in "
-          f"{stage.config.confirm_stacks} stacks in a row")
+    print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
+          f"found in {config.sync.confirm_stacks} stacks in a row; timing: {config.timing.estimator.value}")
     stacks = []
-    for chunk in chunks:
-        frame = round(chunk.sample_rate * 0.01)
-        for result in stage.process(chunk):
-            cells = []
-            for cell in result.cells:
-                d = cell.detection
-                fine = estimate_ml(cell.windows, stage.search.code_template(d), cell.margin, noise_psd(cell.windows))
-                toa = cell.coarse_index + fine.offset
-                error = _frame_error(toa, truth[d.pci], frame) if d.pci in truth else None
-                cells.append({"pci": d.pci, "toa": toa, "std": fine.std, "snr_db": fine.snr_db,
-                              "peak_sigma": d.peak_metric, "truth_error": error,
-                              "runners_up": [c.pci for c in d.candidates[1:4]]})
-            stacks.append({"time_s": result.first_sample_index / chunk.sample_rate,
-                           "clock_drift_ppm": result.clock_drift_ppm, "flags": list(result.flags), "cells": cells})
-            if verbose:
-                _print_stack(result, stacks[-1], truth)
+    for result in pipeline.run(source.chunks()):
+        stacks.append(stack_record(result, truth, source.frontend.adc_rate_hz))
+        if verbose:
+            _print_stack(result, stacks[-1], truth)
     return stacks
 
 
-def _print_stack(result, record: dict, truth: dict[int, float]) -> None:
-    clock = "" if result.clock_drift_ppm is None else f", receiver clock {result.clock_drift_ppm:+.1f} ppm"
-    print(f"  stack at {record['time_s']:7.3f} s{clock}: {len(result.cells)} cell(s), {len(result.tentative)} "
-          "tentative" + "".join(f"; {f}" for f in result.flags))
-    for event in result.events:
-        print(f"    input: {event.message}")
+def _print_stack(result: StackResult, record: dict, truth: dict[int, float]) -> None:
+    sync = result.sync
+    clock = "" if sync.clock_drift_ppm is None else f", receiver clock {sync.clock_drift_ppm:+.1f} ppm"
+    print(f"  stack at {record['time_s']:7.3f} s{clock}: {len(sync.cells)} cell(s), {len(sync.tentative)} "
+          "tentative" + "".join(f"; {flag}" for flag in record["flags"]))
+    for event in record["events"]:
+        print(f"    input: {event}")
     for cell in record["cells"]:
-        line = (f"    PCI {cell['pci']:3d}  code at {cell['toa']:12.2f} +- {cell['std']:.3f} samples (ML)  peak "
-                f"{cell['peak_sigma']:5.1f} sigma  SNR {cell['snr_db']:5.1f} dB  runners-up "
-                + ", ".join(map(str, cell["runners_up"])))
+        line = (f"    PCI {cell['pci']:3d}  code at {cell['toa']:12.2f} +- {cell['std']:.3f} samples "
+                f"({cell['estimator']}, bound {cell['crlb_std']:.3f})  peak {cell['peak_sigma']:5.1f} sigma  "
+                f"SNR {cell['snr_db']:5.1f} dB  runners-up " + ", ".join(map(str, cell["runners_up"])))
         if cell["truth_error"] is not None:
             line += f"  (truth {cell['truth_error']:+.3f} samples)"
         elif truth:
             line += "  (no such cell in the truth)"
         print(line)
-
-
-def summarize_detection(stacks: list[dict], truth: dict[int, float]) -> dict:
-    """Per cell: in how many stacks it was reported, its timing error against the truth, its claimed
-    std; and the truth cells never reported."""
-    by_pci: dict[int, list[dict]] = {}
-    for stack in stacks:
-        for cell in stack["cells"]:
-            by_pci.setdefault(cell["pci"], []).append(cell)
-    cells = {}
-    for pci, found in sorted(by_pci.items()):
-        errors = [c["truth_error"] for c in found if c["truth_error"] is not None]
-        cells[pci] = {
-            "stacks_reported": len(found),
-            "in_truth": (pci in truth) if truth else None,  # None: no ground truth to compare with
-            "median_snr_db": _median([c["snr_db"] for c in found]),
-            "median_claimed_std": _median([c["std"] for c in found]),
-            "rms_truth_error": math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else None,
-        }
-    return {"stacks": len(stacks), "cells": cells, "missed": sorted(set(truth) - set(by_pci))}
-
-
-def _median(values: list[float]) -> float:
-    ordered = sorted(values)
-    middle = len(ordered) // 2
-    return ordered[middle] if len(ordered) % 2 else (ordered[middle - 1] + ordered[middle]) / 2
 
 
 def _print_summary(summary: dict) -> None:
@@ -193,39 +145,27 @@ def _print_summary(summary: dict) -> None:
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
-    towers = None if args.towers is None else Path(args.towers)
-    if (args.bag is None) == (args.iq is None):
-        raise ValueError("give either --bag or --iq")
+    if (args.bag is None) == (args.input is None):
+        raise ValueError("give one recording: --bag BAG or --input FILE")
     if args.bag is not None:
-        from deepsync.bag import read_envelope
-        from deepsync.recording import recorded_frontend
-
-        bag = Path(args.bag)
-        truth = _truth_phases(bag)
-        stacks = run_detection(read_envelope(bag), recorded_frontend(bag), towers, args.frames, truth, str(bag))
+        source = BagSource(args.bag)
     else:
-        from deepsync.sources.iq import envelope_chunks, load_rtlsdr_u8, recording_frontend
-
-        iq = load_rtlsdr_u8(args.iq)
-        chunks = envelope_chunks(iq, args.iq_rate, volts_per_code=0.5)
-        truth = {}
-        stacks = run_detection(chunks, recording_frontend(args.iq_rate), towers, args.frames, truth, f"|x|^2 of {args.iq}")
-    _print_summary(summarize_detection(stacks, truth))
+        source = open_source(args.input, args.format, args.rate, args.scale)
+    truth = source.truth_arrivals() if isinstance(source, BagSource) else {}
+    towers = None if args.towers is None else Path(args.towers)
+    _print_summary(summarize(run_cell_search(source, towers, args.frames, truth), truth))
     return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from deepsync.bag import read_envelope
-    from deepsync.recording import recorded_frontend
-
     out = Path(args.out)
     print(f"== the bundled recording {DEMO_BAG.relative_to(REPO)}")
     describe_bag(DEMO_BAG)
     print("\n== cell search and classical sub-sample timing")
-    truth = _truth_phases(DEMO_BAG)
-    stacks = run_detection(read_envelope(DEMO_BAG), recorded_frontend(DEMO_BAG), DEMO_TOWERS, 10, truth,
-                           str(DEMO_BAG.relative_to(REPO)), verbose=args.verbose)
-    summary = summarize_detection(stacks, truth)
+    source = BagSource(DEMO_BAG)
+    truth = source.truth_arrivals()
+    stacks = run_cell_search(source, DEMO_TOWERS, 10, truth, verbose=args.verbose)
+    summary = summarize(stacks, truth)
     _print_summary(summary)
     out.mkdir(parents=True, exist_ok=True)
     report = out / "cell_search.json"
@@ -257,10 +197,17 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--quiet", action="store_true", help="no progress bar")
     sim.set_defaults(run=_cmd_simulate)
 
-    detect = commands.add_parser("detect", help="cell search over an envelope stream (bag or I/Q recording)")
-    detect.add_argument("--bag", help="rosbag2 bag with /deepsync/envelope")
-    detect.add_argument("--iq", help="RTL-SDR recording (8-bit I/Q): its |x|^2 is the envelope")
-    detect.add_argument("--iq-rate", type=_positive_float, default=1.92e6, help="sample rate of --iq (Hz)")
+    detect = commands.add_parser("detect", help="cell search and timing over a recording (bag, I/Q or envelope file)")
+    detect.add_argument("--bag", help="rosbag2 bag (directory or .mcap) with /deepsync/envelope")
+    detect.add_argument("--input", metavar="FILE",
+                        help="a recording: raw I/Q or envelope file, SigMF (.sigmf-meta/-data, .sigmf) or a bag; "
+                             "complex I/Q becomes the envelope |x|^2")
+    detect.add_argument("--format", choices=[f.value for f in SampleFormat],
+                        help="sample format of a raw --input (SigMF datatype names: cu8 RTL-SDR, ci8 HackRF, ...); "
+                             "guessed from the extension where it is unambiguous")
+    detect.add_argument("--rate", type=_positive_float, help="sample rate of a raw --input (Hz), e.g. 1.92e6")
+    detect.add_argument("--scale", type=_positive_float,
+                        help="envelope units per ADC code for --input (default: the recording's peak maps to 32766)")
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
     detect.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
     detect.set_defaults(run=_cmd_detect)

@@ -20,8 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 import deepsync
-from deepsync.bag import PROVENANCE_KEY, BagError, BagReader, BagWriter
-from deepsync.frontend.config import FrontendConfig
+from deepsync.bag import PROVENANCE_KEY, BagWriter
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
 from deepsync.twin import Twin, build_twin
@@ -180,19 +179,3 @@ def record_scenario(
         stats=stats,
         cells=cell_summaries(twin),
     )
-
-
-def recorded_frontend(bag_dir: str | Path) -> FrontendConfig:
-    """The front end a bag was recorded with (from its provenance), or the defaults.
-
-    Templates must match the chain that made the stream; a bag from ``deepsync simulate``
-    says which one that was, a bag recorded elsewhere gets the default front end.
-    """
-    with BagReader(bag_dir) as bag:
-        provenance = bag.custom_data.get(PROVENANCE_KEY)
-    if not provenance:
-        return FrontendConfig()
-    try:
-        return FrontendConfig(**json.loads(provenance)["frontend"])
-    except (ValueError, KeyError, TypeError) as error:
-        raise BagError(f"{bag_dir}: unreadable front-end provenance ({error})") from None

@@ -41,7 +41,8 @@ class HealthKind(enum.Enum):
     Stream events (something happened at a sample index; data around it was dropped):
     ``GAP``, ``NOT_FINITE``, ``BACKWARDS``, ``RATE_MISMATCH``. Stack flags (a stack was searched,
     but its result deserves less trust, or none): ``CLIPPED``, ``NO_SIGNAL``, ``MISALIGNED``.
-    Timing: ``UNTIMEABLE`` (a cell's windows could not be timed at all).
+    Timing: ``UNTIMEABLE`` (a cell's windows could not be timed at all), ``WEAK_TIMING`` (an
+    arrival whose 1-sigma says it may be far off).
     """
 
     GAP = "gap"  # samples missing from the stream: the stack spanning them is dropped
@@ -52,6 +53,7 @@ class HealthKind(enum.Enum):
     NO_SIGNAL = "no_signal"  # silent or stuck input: nothing is searched
     MISALIGNED = "misaligned"  # receiver clock drift smeared the stack's frames
     UNTIMEABLE = "untimeable"  # a detected cell's windows carry nothing to time
+    WEAK_TIMING = "weak_timing"  # an arrival beyond the estimator's threshold: its 1-sigma is large
 
     @property
     def severity(self) -> Severity:
@@ -67,6 +69,7 @@ _SEVERITY = {
     HealthKind.NO_SIGNAL: Severity.ERROR,
     HealthKind.MISALIGNED: Severity.WARN,
     HealthKind.UNTIMEABLE: Severity.WARN,
+    HealthKind.WEAK_TIMING: Severity.WARN,
 }
 
 

@@ -17,6 +17,8 @@ from .convert import (
     pose_to_msg,
     position_from_pose_msg,
     stamp_to_ns,
+    sync_window_array_from_msg,
+    sync_window_array_to_msg,
 )
 from .errors import BagError, BagExistsError, MsgDefsNotFoundError
 from .msgdefs import MSG_NAMES, find_msg_dir, load_typestore, msgtype, typestore
@@ -62,5 +64,7 @@ __all__ = [
     "read_envelope",
     "read_messages",
     "stamp_to_ns",
+    "sync_window_array_from_msg",
+    "sync_window_array_to_msg",
     "typestore",
 ]

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys.store import Typestore
 
-from ..types import CellTiming, EnvelopeChunk
+from ..types import CellTiming, EnvelopeChunk, SyncWindow
 from .msgdefs import msgtype, typestore
 
 ENVELOPE_FRAME_ID = "envelope_adc"
@@ -120,6 +120,60 @@ def cell_timing_array_from_msg(msg: Any) -> list[CellTiming]:
         )
         for c in msg.cells
     ]
+
+
+def sync_window_array_to_msg(
+    stamp_ns: int,
+    windows: Iterable[SyncWindow],
+    *,
+    frame_id: str = ENVELOPE_FRAME_ID,
+    store: Typestore | None = None,
+) -> Any:
+    """One stack's cells -> ``deepsync_msgs/msg/SyncWindowArray`` (0 / -1 / empty for unknowns)."""
+    types = _store(store).types
+    cells = [
+        types[SYNC_WINDOW](
+            header=make_header(w.stamp_ns, frame_id, store),
+            pci=int(w.pci),
+            earfcn=0 if w.earfcn is None else int(w.earfcn),
+            carrier_frequency=0.0 if w.carrier_hz is None else float(w.carrier_hz),
+            coarse_index=int(w.coarse_index),
+            peak_metric=float(w.peak_metric),
+            snr_db=float(w.snr_db),
+            n_frames=int(w.n_frames),
+            window_length=int(w.window_length),
+            windows=np.ascontiguousarray(w.windows, dtype="<f4").ravel(),
+            cosited_pci=-1 if w.cosited_pci is None else int(w.cosited_pci),
+            site_coefficients=np.asarray(w.site_coefficients or (), dtype="<f4"),
+        )
+        for w in windows
+    ]
+    return types[SYNC_WINDOW_ARRAY](header=make_header(stamp_ns, frame_id, store), cells=cells)
+
+
+def sync_window_array_from_msg(msg: Any) -> list[SyncWindow]:
+    """``deepsync_msgs/msg/SyncWindowArray`` -> one :class:`SyncWindow` per cell; ValueError if
+    a cell's window array does not hold n_frames x window_length values."""
+    out = []
+    for c in msg.cells:
+        values = np.array(c.windows, dtype=np.float32)
+        if values.size != int(c.n_frames) * int(c.window_length):
+            raise ValueError(f"SyncWindow of PCI {c.pci}: {values.size} window values, but n_frames x "
+                             f"window_length = {c.n_frames} x {c.window_length}")
+        coefficients = tuple(float(x) for x in c.site_coefficients)
+        out.append(SyncWindow(
+            stamp_ns=stamp_to_ns(c.header.stamp),
+            pci=int(c.pci),
+            coarse_index=int(c.coarse_index),
+            windows=values.reshape(int(c.n_frames), int(c.window_length)),
+            peak_metric=float(c.peak_metric),
+            snr_db=float(c.snr_db),
+            earfcn=int(c.earfcn) or None,
+            carrier_hz=float(c.carrier_frequency) or None,
+            cosited_pci=None if c.cosited_pci < 0 else int(c.cosited_pci),
+            site_coefficients=coefficients or None,
+        ))
+    return out
 
 
 def pose_to_msg(

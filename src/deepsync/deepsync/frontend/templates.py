@@ -16,6 +16,7 @@ video filter delays the envelope by about one sample at 1.92 MHz).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
@@ -170,6 +171,13 @@ class SyncTemplates:
             self._grid[key] = np.swapaxes(grid, 0, 1)  # (fractions, 2, length)
         return _from_grid(self._grid[key], delay_samples)
 
+    def pair_shapes(self, pcis: tuple[int, int], subframe: int, delay_samples: float) -> np.ndarray:
+        """(4, length) the component shapes of two co-sited sectors' coinciding codes, both
+        starting at ``delay_samples``: |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*)."""
+        a, b = pcis
+        own = [self.shifted(pci, subframe, delay_samples) for pci in pcis]
+        return np.stack([*own, *self.shifted_cross_terms(a, b, subframe, delay_samples)])
+
     def pss(self, n_id_2: int, delay_samples: np.ndarray | float = 0.0) -> np.ndarray:
         """Template of the PSS symbol alone (its CP start at t = delay), ``pss_length`` long;
         one row per delay if ``delay_samples`` is an array."""
@@ -186,6 +194,27 @@ class SyncTemplates:
     def pss_offset(self) -> int:
         """Samples from the code start (SSS CP) to the PSS symbol's CP start."""
         return int(round(PSS_OFFSET_BASE * self.sample_rate / BASE_RATE_HZ))
+
+
+def code_template(
+    templates: SyncTemplates,
+    pci: int,
+    cosited_pci: int | None = None,
+    site_coefficients: Sequence[float] | None = None,
+    subframe: int = 0,
+    delay_samples: float = 0.0,
+) -> np.ndarray:
+    """What a detected cell's sync code looks like in the envelope, code start at
+    ``delay_samples``: its PCI's template, or, for two co-sited sectors found together, the
+    pair's fitted model (``site_coefficients`` scale |s_a|^2, |s_b|^2, 2Re(s_a s_b*) and
+    2Im(s_a s_b*), a the lower PCI). Everything it needs is in a ``SyncWindow`` message, so a
+    timing stage fed from one rebuilds the very template the sync stage saw."""
+    if cosited_pci is None:
+        return templates.template(pci, subframe, delay_samples)
+    if site_coefficients is None or len(site_coefficients) != 4:
+        raise ValueError(f"PCI {pci} with co-sited PCI {cosited_pci}: the pair's 4 site coefficients are needed")
+    pair = (min(pci, cosited_pci), max(pci, cosited_pci))
+    return np.asarray(site_coefficients, dtype=np.float64) @ templates.pair_shapes(pair, subframe, delay_samples)
 
 
 def _cross_envelopes(pci_a: int, pci_b: int, subframe: int, step: int) -> tuple[np.ndarray, int]:

@@ -35,7 +35,7 @@ candidates with scores and a tower database decides which may be reported.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -102,6 +102,27 @@ class CellDetection:
         if len(self.candidates) < 2:
             return math.inf
         return self.candidates[0].score - self.candidates[1].score
+
+
+_SINGLE, _SITE = 0, 1  # rows of _SearchState.given_up
+
+
+@dataclass
+class _SearchState:
+    """One stack's search in progress."""
+
+    centred: np.ndarray  # the stacked frame, zero-mean
+    residual: np.ndarray  # what remains once the detections so far are cancelled
+    period: int  # of the timing statistic's lag axis (a frame, or a half-frame blind)
+    z: np.ndarray  # single-template timing z-scores of the residual
+    spreads: np.ndarray  # their noise spreads, measured on the first pass
+    pss_z: np.ndarray  # PSS z-scores of the residual (plausibility check)
+    pss_spreads: np.ndarray
+    threshold: float  # CFAR threshold, in sigmas
+    given_up: np.ndarray  # (2, period): lags whose single / site peak could not be explained
+    site_noise: SiteNoise | None
+    site_z: np.ndarray | None = None  # the pairs' statistic, once the single peaks are exhausted
+    detections: list[CellDetection] = field(default_factory=list)
 
 
 def cfar_threshold(false_alarm_rate: float, tests: int) -> float:
@@ -215,68 +236,93 @@ class CellSearch:
         """Cells in one stacked frame (the mean of a stack's rows), strongest first.
 
         Peaks of the single templates are examined first, strongest first, each found cell
-        cancelled before the next; when none is left above the threshold, the co-sited pairs'
-        statistic (if any) is computed on what remains, and a pair found there goes through
-        the same loop. The threshold counts both kinds of test."""
+        cancelled before the next (:meth:`_single_pass`); when none is left above the
+        threshold, the co-sited pairs' statistic (if any) is computed on what remains, and a
+        pair found there is cancelled the same way (:meth:`_site_pass`), after which single
+        peaks are looked at again. The threshold counts both kinds of test."""
         if not np.all(np.isfinite(stacked)):
             raise ValueError("stacked frame contains NaN or inf")
         centred = stacked - stacked.mean()
         if held_fraction(centred) > HELD_FRACTION:
             return []  # (mostly) constant input: no noise level to set a threshold by
-        residual = centred
-        z, spreads, period = self.timing_statistic(residual)
+        state = self._start(centred)
+        for _ in range(self.config.max_examined):
+            if len(state.detections) >= self.config.max_cells:
+                break
+            before = len(state.detections)
+            kind, examined = _SINGLE, self._single_pass(state)
+            if examined is None:
+                kind, examined = _SITE, self._site_pass(state)
+                if examined is None:
+                    break
+            peak, added = examined
+            if not added:
+                state.given_up[kind, (peak + np.arange(-2, 3)) % state.period] = True
+                continue
+            self._cancel(state, state.detections[before:])
+        return state.detections
+
+    def _start(self, centred: np.ndarray) -> _SearchState:
+        """The first pass's statistics, noise spreads and CFAR threshold of a stack."""
+        z, spreads, period = self.timing_statistic(centred)
         pss_z, pss_spreads = self.pss_statistic(centred) if self.full_code_timing else (z, spreads)
         tests = z.size + (0 if self.sites is None else self.sites.rows * period)
-        threshold = cfar_threshold(self.config.false_alarm_rate, tests)
-        half = len(stacked) // 2
-        given_up = np.zeros((2, period), dtype=bool)  # lags whose single / site peak could not be explained
-        site_noise = None if self.sites is None else SiteNoise(self.sites, scipy.fft.rfft(centred), period)
-        site_z = None  # computed once the single peaks are exhausted
-        detections: list[CellDetection] = []
-        for _ in range(self.config.max_examined):
-            if len(detections) >= self.config.max_cells:
-                break
-            before = len(detections)
-            best = np.where(given_up[0], -np.inf, z.max(axis=0))
-            peak = int(np.argmax(best))
-            site = best[peak] < threshold
-            if site:
-                if self.sites is None:
-                    break
-                every = self.sites.every_pair
-                if site_z is None:
-                    correlations = self.sites.correlations(scipy.fft.rfft(residual), period, every)
-                    site_z = self.sites.statistic(correlations, site_noise.covariances(every, correlations)).max(axis=0)
-                best = np.where(given_up[1], -np.inf, site_z)
-                peak = int(np.argmax(best))
-                if best[peak] < threshold:
-                    break
-                match = self.sites.identify(residual, peak, every, site_noise.covariances(every),
-                                            self.config.pair_false_alarm, self.config.pair_min_gain)
-                added = match is not None and self._add_site(match, float(best[peak]), detections)
-            else:
-                # (a template half a sample late peaks at the same integer lag, so the lag stands)
-                code_start = (peak - (0 if self.full_code_timing else self.templates.pss_offset)) % half
-                found = self._identify(residual, code_start, float(best[peak]))
-                match = None if site_noise is None else self._pair_of(residual, found, site_noise)
-                if match is not None:  # a sector whose co-sited partner is there too
-                    added = self._add_site(match, found.peak_metric, detections)
-                else:
-                    added = self._plausible(residual, found, detections, pss_z)
-                    if added:
-                        detections.append(found)
-            if not added:
-                given_up[int(site), (peak + np.arange(-2, 3)) % period] = True
-                continue
-            residual = centred - self._fit(centred, detections)
-            z, _, _ = self.timing_statistic(residual, spreads)
-            pss_z = self.pss_statistic(residual, pss_spreads)[0] if self.full_code_timing else z
-            if site_z is not None:
-                # cancelling changes the residual only around the new codes: the site rows stay
-                # valid elsewhere and are not recomputed (the costliest part of the search)
-                for d in detections[before:]:
-                    given_up[1, self._overlapping_lags(d.frame_offset, period)] = True
-        return detections
+        return _SearchState(
+            centred=centred, residual=centred, period=period, z=z, spreads=spreads, pss_z=pss_z,
+            pss_spreads=pss_spreads, threshold=cfar_threshold(self.config.false_alarm_rate, tests),
+            given_up=np.zeros((2, period), dtype=bool),
+            site_noise=None if self.sites is None else SiteNoise(self.sites, scipy.fft.rfft(centred), period),
+        )
+
+    def _single_pass(self, state: _SearchState) -> tuple[int, bool] | None:
+        """Examine the strongest single-template peak not given up: (its lag, whether a cell,
+        or the co-sited pair it belongs to, was added); None when no peak passes the threshold."""
+        best = np.where(state.given_up[_SINGLE], -np.inf, state.z.max(axis=0))
+        peak = int(np.argmax(best))
+        if best[peak] < state.threshold:
+            return None
+        # (a template half a sample late peaks at the same integer lag, so the lag stands)
+        half = len(state.centred) // 2
+        code_start = (peak - (0 if self.full_code_timing else self.templates.pss_offset)) % half
+        found = self._identify(state.residual, code_start, float(best[peak]))
+        match = None if state.site_noise is None else self._pair_of(state.residual, found, state.site_noise)
+        if match is not None:  # a sector whose co-sited partner is there too
+            return peak, self._add_site(match, found.peak_metric, state.detections)
+        if self._plausible(state.residual, found, state.detections, state.pss_z):
+            state.detections.append(found)
+            return peak, True
+        return peak, False
+
+    def _site_pass(self, state: _SearchState) -> tuple[int, bool] | None:
+        """Examine the strongest co-sited pair peak of what the single templates left: (its
+        lag, whether the pair was added); None without pairs or above-threshold peaks. The
+        pairs' statistic, the costliest part of the search, is computed once per stack."""
+        if self.sites is None:
+            return None
+        every = self.sites.every_pair
+        if state.site_z is None:
+            correlations = self.sites.correlations(scipy.fft.rfft(state.residual), state.period, every)
+            covariances = state.site_noise.covariances(every, correlations)
+            state.site_z = self.sites.statistic(correlations, covariances).max(axis=0)
+        best = np.where(state.given_up[_SITE], -np.inf, state.site_z)
+        peak = int(np.argmax(best))
+        if best[peak] < state.threshold:
+            return None
+        match = self.sites.identify(state.residual, peak, every, state.site_noise.covariances(every),
+                                    self.config.pair_false_alarm, self.config.pair_min_gain)
+        return peak, match is not None and self._add_site(match, float(best[peak]), state.detections)
+
+    def _cancel(self, state: _SearchState, new: list[CellDetection]) -> None:
+        """Cancel every detection from the stack and recompute the statistics on the residual
+        (with the first pass's noise spreads)."""
+        state.residual = state.centred - self._fit(state.centred, state.detections)
+        state.z, _, _ = self.timing_statistic(state.residual, state.spreads)
+        state.pss_z = self.pss_statistic(state.residual, state.pss_spreads)[0] if self.full_code_timing else state.z
+        if state.site_z is not None:
+            # cancelling changes the residual only around the new codes: the site rows stay
+            # valid elsewhere and are not recomputed
+            for d in new:
+                state.given_up[_SITE, self._overlapping_lags(d.frame_offset, state.period)] = True
 
     def _overlapping_lags(self, code_start: int, period: int) -> np.ndarray:
         """Lags at which a frame template overlaps either code of a cell whose subframe-0 code
@@ -315,13 +361,6 @@ class CellSearch:
                 site=match.fit,
             ))
         return True
-
-    def code_template(self, detection: CellDetection, subframe: int = 0) -> np.ndarray:
-        """What the detection's code looks like in the envelope (code start at 0): its PCI's
-        template, or for a co-sited pair found together, the pair's fitted sum."""
-        if detection.site is None:
-            return self.templates.template(detection.pci, subframe)
-        return detection.site.template(self.templates, subframe)
 
     def _fit(self, centred: np.ndarray, detections: list[CellDetection]) -> np.ndarray:
         """Joint least-squares model of every detected cell's codes, for cancelling them.

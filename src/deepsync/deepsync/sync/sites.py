@@ -32,7 +32,7 @@ import numpy as np
 import scipy.special
 import scipy.stats
 
-from deepsync.frontend.templates import SyncTemplates
+from deepsync.frontend.templates import SyncTemplates, code_template
 from deepsync.numeric import mad_spread, parabolic_peak
 from deepsync.sync.correlation import correlate, frame_spectra, unit_frame_parts
 
@@ -62,14 +62,7 @@ class SiteFit:
 
     def template(self, templates: SyncTemplates, subframe: int = 0, delay: float = 0.0) -> np.ndarray:
         """What the pair's code looks like in the envelope, starting at ``delay`` samples."""
-        return np.asarray(self.coefficients) @ pair_shapes(templates, self.pcis, subframe, delay)
-
-
-def pair_shapes(templates: SyncTemplates, pcis: tuple[int, int], subframe: int, delay: float) -> np.ndarray:
-    """(4, L) the pair's component shapes with both codes starting at ``delay`` samples."""
-    a, b = pcis
-    own = [templates.shifted(pci, subframe, delay) for pci in pcis]
-    return np.stack([*own, *templates.shifted_cross_terms(a, b, subframe, delay)])
+        return code_template(templates, *self.pcis, self.coefficients, subframe, delay)
 
 
 @dataclass(frozen=True)
@@ -191,7 +184,7 @@ class SiteSearch:
         """Least squares of the pair's four shapes (one set of coefficients for both codes)
         plus a pedestal under each code, on the two code windows."""
         frame, half, length = len(centred), len(centred) // 2, self.templates.length
-        shapes = np.concatenate([pair_shapes(self.templates, pair, sf, fraction) for sf in (0, 5)], axis=1)
+        shapes = np.concatenate([self.templates.pair_shapes(pair, sf, fraction) for sf in (0, 5)], axis=1)
         pedestals = np.kron(np.eye(2), np.ones(length))
         basis = np.vstack([shapes, pedestals]).T  # (2L, 6)
         index = (offset + np.array([0, half])[:, None] + np.arange(length)) % frame

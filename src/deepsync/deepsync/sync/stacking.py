@@ -5,12 +5,14 @@ amplitude while data averages out. The stacker knows nothing of the network's fr
 "frame" is just 10 ms of stream, and a cell's code sits at its own offset inside it.
 
 The stream arrives in chunks of any size. The stacker checks what a driver or bag can get
-wrong and reports it as a :class:`StreamEvent` instead of stacking garbage:
+wrong and reports it as a :class:`~deepsync.types.Health` event instead of stacking garbage:
 
 * a gap (``first_sample_index`` jumps) or samples that are not finite: the frames that would
   span it are dropped and stacking restarts after it; stacks before it are unaffected;
 * a chunk that goes back in time (index below what was already seen): dropped;
-* a change of sample rate: everything pending is dropped and stacking restarts at the new rate;
+* a chunk at another sample rate than the stacker's (the rate the templates were built for:
+  one source of the rate): dropped with everything pending, and so is every chunk after it
+  until the rate is right again, when stacking restarts;
 * clipped frames, and silent or stuck ones (most of the stack holding one value): stacked,
   but the stack carries a flag.
 
@@ -33,8 +35,7 @@ import numpy as np
 import scipy.fft
 
 from deepsync.numeric import mad_spread, parabolic_peak
-from deepsync.types import FRAME_SECONDS
-from deepsync.types import EnvelopeChunk
+from deepsync.types import FRAME_SECONDS, EnvelopeChunk, Health, HealthKind
 
 MAX_CLOCK_PPM = 200.0  # a receiver crystal further off than this is not believed
 HELD_FRACTION = 0.5  # a stacked frame holding one value over more of it than this has no noise to measure
@@ -59,15 +60,6 @@ class StackConfig:
 
 
 @dataclass(frozen=True)
-class StreamEvent:
-    """Something wrong with the input, at stream sample ``index``."""
-
-    kind: str  # "gap" | "not_finite" | "backwards" | "rate_change"
-    index: int
-    message: str
-
-
-@dataclass(frozen=True)
 class Stack:
     """N consecutive frames of the stream, one row per frame (float, volts)."""
 
@@ -77,7 +69,7 @@ class Stack:
     sample_rate: float
     stamp_ns: int  # receiver time of the first sample of row 0
     aligned: bool = True
-    flags: tuple[str, ...] = field(default=())
+    flags: tuple[Health, ...] = field(default=())
     drift_ppm: float | None = None  # receiver clock error measured on this stack (None: too weak)
 
     @property
@@ -100,13 +92,16 @@ class Stack:
 class FrameStacker:
     """Turns a chunked stream into :class:`Stack` objects (see the module docstring)."""
 
-    def __init__(self, config: StackConfig | None = None) -> None:
+    def __init__(self, sample_rate: float, config: StackConfig | None = None) -> None:
+        if not (math.isfinite(sample_rate) and sample_rate > 0):
+            raise ValueError(f"sample_rate must be a positive number, got {sample_rate!r}")
+        self.sample_rate = float(sample_rate)
         self.config = config or StackConfig()
         self.clock_ppm = self.config.clock_ppm
         self.measured_drift_ppm: float | None = None  # smoothed over stacks
-        self.sample_rate: float | None = None
-        self.events: list[StreamEvent] = []
-        self._expected: int | None = None  # next stream index expected
+        self.events: list[Health] = []
+        self._expected: int | None = None  # next stream index expected; None: (re)start at the next chunk
+        self._wrong_rate = False  # in a run of chunks at another sample rate
         self._origin = (0, 0)  # (stream index, stamp ns) the stamps are counted from
         self._buffer = np.empty(0, dtype=np.float32)
         self._clipped = np.empty(0, dtype=bool)
@@ -114,8 +109,6 @@ class FrameStacker:
 
     @property
     def frame_samples(self) -> int:
-        if self.sample_rate is None:
-            raise ValueError("frame length is unknown before the first chunk")
         return int(round(self.sample_rate * FRAME_SECONDS))
 
     def push(self, chunk: EnvelopeChunk) -> list[Stack]:
@@ -133,25 +126,35 @@ class FrameStacker:
         stamp_ns: int = 0,
         clipped: np.ndarray | None = None,
     ) -> list[Stack]:
-        """Add float samples from any source (ADC volts, a recorded |x|^2, ...)."""
+        """Add float samples from any source (ADC volts, a recorded |x|^2, ...), sampled at
+        ``sample_rate`` (Hz): at any other rate than the stacker's they are dropped (an event)."""
         samples = np.asarray(samples, dtype=np.float32)
         clipped = np.zeros(len(samples), dtype=bool) if clipped is None else np.asarray(clipped, dtype=bool)
-        if not (math.isfinite(sample_rate) and sample_rate > 0):
-            raise ValueError(f"sample_rate must be a positive number, got {sample_rate!r}")
-        if sample_rate != self.sample_rate:
-            if self.sample_rate is not None:
-                self._event("rate_change", first_sample_index,
-                            f"sample rate changed from {self.sample_rate:g} to {sample_rate:g} Hz")
-            self.sample_rate = float(sample_rate)
+        if not math.isclose(sample_rate, self.sample_rate, rel_tol=1e-9):
+            if not self._wrong_rate:  # the first chunk of a run at the wrong rate says so
+                self.events.append(Health(
+                    HealthKind.RATE_MISMATCH,
+                    f"chunk at sample {first_sample_index} comes at {sample_rate:g} Hz, but the templates are built "
+                    f"for {self.sample_rate:g} Hz: dropped with {len(self._buffer)} pending samples (an unfinished "
+                    "stack), as is every chunk until the rate is right again",
+                    first_sample_index,
+                ))
+                self._wrong_rate = True
+                self._expected = None
+                self._restart(first_sample_index, stamp_ns)
+            return []
+        self._wrong_rate = False
+        if self._expected is None:
             self._restart(first_sample_index, stamp_ns)
         elif first_sample_index < self._expected:
-            self.events.append(StreamEvent(
-                "backwards", first_sample_index,
+            self.events.append(Health(
+                HealthKind.BACKWARDS,
                 f"chunk starts at sample {first_sample_index}, before {self._expected} already received; dropped",
+                first_sample_index,
             ))
             return []
         elif first_sample_index > self._expected:
-            self._event("gap", self._expected, f"gap of {first_sample_index - self._expected} samples")
+            self._event(HealthKind.GAP, self._expected, f"gap of {first_sample_index - self._expected} samples")
             self._restart(first_sample_index, stamp_ns)
         self._expected = first_sample_index + len(samples)
 
@@ -160,16 +163,16 @@ class FrameStacker:
             return self._append(samples, clipped)
         first, last = int(np.argmax(bad)), len(bad) - 1 - int(np.argmax(bad[::-1]))
         stacks = self._append(samples[:first], clipped[:first])
-        self._event("not_finite", first_sample_index + first,
+        self._event(HealthKind.NOT_FINITE, first_sample_index + first,
                     f"{int(bad.sum())} non-finite samples up to sample {first_sample_index + last}")
         after = first_sample_index + last + 1
         self._restart(after, stamp_ns + round((last + 1) * 1e9 / sample_rate))
         return stacks + self._append(samples[last + 1 :], clipped[last + 1 :])
 
-    def _event(self, kind: str, index: int, what: str) -> None:
-        self.events.append(StreamEvent(
-            kind, index, f"{what} at sample {index}: {len(self._buffer)} pending samples (an unfinished "
-            "stack) dropped; stacking restarts after it",
+    def _event(self, kind: HealthKind, index: int, what: str) -> None:
+        self.events.append(Health(
+            kind, f"{what} at sample {index}: {len(self._buffer)} pending samples (an unfinished "
+            "stack) dropped; stacking restarts after it", index,
         ))
 
     def _restart(self, index: int, stamp_ns: int) -> None:
@@ -198,16 +201,16 @@ class FrameStacker:
             flags = []
             clipped_fraction = float(self._clipped[index].mean())
             if clipped_fraction > self.config.clip_fraction:
-                flags.append(f"clipped: {100 * clipped_fraction:.2f} % of samples at the ADC rails")
+                flags.append(Health(HealthKind.CLIPPED, f"{100 * clipped_fraction:.2f} % of samples at the ADC rails"))
             held = held_fraction(rows.mean(axis=0))
             if held > HELD_FRACTION:
-                flags.append(f"no signal: {100 * held:.1f} % of the stacked frame holds one value "
-                             "(silent or stuck input)")
+                flags.append(Health(HealthKind.NO_SIGNAL, f"{100 * held:.1f} % of the stacked frame holds one "
+                                    "value (silent or stuck input)"))
             residual = measure_drift(rows)
             drift = None if residual is None else self.clock_ppm + residual
             aligned = residual is None or abs(residual) * 1e-6 * frame * (n - 1) <= self.config.max_drift_samples
             if not aligned:
-                flags.append(f"misaligned: {residual:+.1f} ppm of clock drift was not compensated")
+                flags.append(Health(HealthKind.MISALIGNED, f"{residual:+.1f} ppm of clock drift was not compensated"))
             stacks.append(Stack(rows, self._buffer_start + starts, exact - starts, self.sample_rate,
                                 self._stamp(self._buffer_start), aligned, tuple(flags), drift))
             advance = int(round(n * period))  # where the next stack's first row starts

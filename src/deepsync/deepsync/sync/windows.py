@@ -13,55 +13,22 @@ the code's energy with the default filter) is shifted by the wrong amount.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import scipy.fft
 import scipy.signal
 
-from deepsync.sync.search import CellDetection
 from deepsync.sync.stacking import Stack
 
 _PAD = 64  # samples either side, tapered, so the circular FFT shift does not wrap an edge
 
 
-@dataclass(frozen=True)
-class CellWindows:
-    """What the timing stage needs about one detected cell (mirrors deepsync_msgs/SyncWindow)."""
-
-    detection: CellDetection
-    coarse_index: int  # stream sample index where the subframe-0 code starts, in frame 0 of the stack
-    margin: int  # the code nominally starts ``margin`` samples into each row
-    windows: np.ndarray  # (n_frames, template_length + 2 * margin) float32, volts
-    stamp_ns: int  # receiver time of the stack's first sample
-    earfcn: int | None = None
-    carrier_hz: float | None = None
-
-    @property
-    def pci(self) -> int | None:
-        return self.detection.pci
-
-    @property
-    def cosited_pci(self) -> int | None:
-        """The co-sited sector found together with this one (its code shares the windows)."""
-        site = self.detection.site
-        return None if site is None else next(pci for pci in site.pcis if pci != self.detection.pci)
-
-    @property
-    def n_frames(self) -> int:
-        return self.windows.shape[0]
-
-    @property
-    def window_length(self) -> int:
-        return self.windows.shape[1]
-
-
-def extract_windows(stack: Stack, detection: CellDetection, template_length: int, margin: int) -> np.ndarray:
-    """(n_frames, template_length + 2 margin) rows around the detection's coarse code start."""
+def extract_windows(stack: Stack, code_start: int, template_length: int, margin: int) -> np.ndarray:
+    """(n_frames, template_length + 2 margin) rows around a code starting at ``code_start``
+    samples into each frame (a detection's ``frame_offset``)."""
     if margin < 0 or 2 * margin + template_length > stack.frame_samples:
         raise ValueError(f"margin {margin} does not fit a {stack.frame_samples}-sample frame")
     length = template_length + 2 * margin
-    first = detection.frame_offset - margin
+    first = code_start - margin
     if not np.any(stack.row_shifts):
         index = (first + np.arange(length)) % stack.frame_samples
         return stack.rows[:, index].astype(np.float32)

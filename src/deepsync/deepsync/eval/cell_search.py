@@ -1,0 +1,72 @@
+"""Cell search and timing against ground truth: one record per stack, one summary per cell.
+
+The truth of a simulated recording gives each cell's sync-code arrival in stream samples; the
+code repeats every frame, so an estimate is compared with the nearest true arrival: the error
+is taken modulo a frame (one sample at 1.92 MHz is 156 m of range).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Mapping
+
+from deepsync.pipeline import StackResult
+from deepsync.types import FRAME_SECONDS
+
+
+def frame_error(toa: float, truth: float, frame_samples: int) -> float:
+    """Estimate minus truth in samples, folded into +-half a frame."""
+    return (toa - truth + frame_samples / 2) % frame_samples - frame_samples / 2
+
+
+def stack_record(result: StackResult, truth: Mapping[int, float], sample_rate: float) -> dict:
+    """A stack's confirmed cells with their arrivals (and errors against ``truth``, PCI -> a true
+    arrival, where it has the PCI), its flags and the stream events before it, as plain data."""
+    frame = round(sample_rate * FRAME_SECONDS)
+    timings = {timing.pci: timing for timing in result.timing.cells}
+    cells = []
+    for cell in result.sync.cells:
+        timing = timings.get(cell.pci)
+        if timing is None:
+            continue  # could not be timed: an event of the stack says why
+        detection = cell.detection
+        cells.append({
+            "pci": cell.pci,
+            "toa": timing.toa,
+            "std": timing.toa_std,
+            "crlb_std": timing.crlb_std,
+            "estimator": timing.estimator,
+            "snr_db": timing.snr_db,
+            "peak_sigma": detection.peak_metric,
+            "truth_error": frame_error(timing.toa, truth[cell.pci], frame) if cell.pci in truth else None,
+            "runners_up": [c.pci for c in detection.candidates[1:4]],
+        })
+    return {
+        "time_s": result.sync.first_sample_index / sample_rate,
+        "clock_drift_ppm": result.sync.clock_drift_ppm,
+        "flags": [str(flag) for flag in result.sync.flags],
+        "events": [str(event) for event in result.sync.events + result.timing.events],
+        "cells": cells,
+    }
+
+
+def summarize(stacks: list[dict], truth: Mapping[int, float]) -> dict:
+    """Per cell: in how many stacks it was reported, its median SNR and claimed std, its RMS
+    error against the truth; and the truth cells never reported. ``in_truth`` is None where
+    there is no truth to compare with."""
+    by_pci: dict[int, list[dict]] = {}
+    for stack in stacks:
+        for cell in stack["cells"]:
+            by_pci.setdefault(cell["pci"], []).append(cell)
+    cells = {}
+    for pci, found in sorted(by_pci.items()):
+        errors = [c["truth_error"] for c in found if c["truth_error"] is not None]
+        cells[pci] = {
+            "stacks_reported": len(found),
+            "in_truth": (pci in truth) if truth else None,
+            "median_snr_db": statistics.median(c["snr_db"] for c in found),
+            "median_claimed_std": statistics.median(c["std"] for c in found),
+            "rms_truth_error": math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else None,
+        }
+    return {"stacks": len(stacks), "cells": cells, "missed": sorted(set(truth) - set(by_pci))}

@@ -1,0 +1,71 @@
+"""The DeepSync chain, envelope chunks -> sync -> timing (-> fusion), built from one config.
+
+This is the only place where stages are chained: the ``deepsync`` command, bag replay and the
+ROS nodes all run the chain through :class:`Pipeline` (a node that wraps one stage uses that
+stage alone, fed with what the previous node published). Where the chunks come from is a
+source's business (``deepsync.sources``); the source also says which front end the stream went
+through, and every template is built for that front end and its sample rate.
+
+Each completed stack gives one :class:`StackResult`: the sync stage's cells, events and flags,
+and the timing stage's arrivals. Nothing in the chain raises on a bad stream; what went wrong
+is in :attr:`StackResult.health`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+
+from deepsync.frontend.config import FrontendConfig
+from deepsync.sync.stage import SyncConfig, SyncResult, SyncStage
+from deepsync.timing.stage import TimingConfig, TimingResult, TimingStage
+from deepsync.towers import TowerDatabase
+from deepsync.types import EnvelopeChunk, Health
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Every stage's settings."""
+
+    sync: SyncConfig = field(default_factory=SyncConfig)
+    timing: TimingConfig = field(default_factory=TimingConfig)
+
+
+@dataclass(frozen=True)
+class StackResult:
+    """What the chain made of one stack of frames."""
+
+    sync: SyncResult
+    timing: TimingResult
+
+    @property
+    def stamp_ns(self) -> int:
+        """Receiver time of the stack's first sample: the stamp of everything derived from it."""
+        return self.sync.stamp_ns
+
+    @property
+    def health(self) -> tuple[Health, ...]:
+        """Everything the stages reported on this stack: stream events since the previous
+        stack, the stack's flags, cells that could not be timed and weak arrivals."""
+        weak = tuple(flag for cell in self.timing.cells for flag in cell.flags)
+        return self.sync.events + self.sync.flags + self.timing.events + weak
+
+
+class Pipeline:
+    """Sync and timing stages for one front end (and one tower database, if any)."""
+
+    def __init__(self, frontend: FrontendConfig, config: PipelineConfig | None = None,
+                 towers: TowerDatabase | None = None) -> None:
+        self.config = config or PipelineConfig()
+        self.frontend = frontend
+        self.sync = SyncStage(frontend, self.config.sync, towers)
+        self.timing = TimingStage(frontend, self.config.timing)
+
+    def process(self, chunk: EnvelopeChunk) -> list[StackResult]:
+        """Feed one chunk; a result for every stack it completes."""
+        return [StackResult(result, self.timing.process(result.windows)) for result in self.sync.process(chunk)]
+
+    def run(self, chunks: Iterable[EnvelopeChunk]) -> Iterator[StackResult]:
+        """Results stack by stack as the chunks (a source's ``chunks()``, a bag) stream in."""
+        for chunk in chunks:
+            yield from self.process(chunk)

@@ -1,0 +1,120 @@
+"""rosbag2 bags: the envelope topic as recorded (by ``deepsync simulate`` or on a robot).
+
+A bag carries ADC codes already, so nothing is converted: chunks are the envelope messages,
+gaps and all (the sync stage reports them). The front end is the one the bag says it was
+recorded with (the provenance ``deepsync simulate`` writes); a bag recorded elsewhere gets the
+default envelope-detector chain at the rate of its own first envelope message.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import yaml
+
+from deepsync.bag import (
+    ENVELOPE_TOPIC,
+    PROVENANCE_KEY,
+    TRUTH_CELL_TIMING_TOPIC,
+    BagError,
+    BagReader,
+    cell_timing_array_from_msg,
+    read_envelope,
+)
+from deepsync.frontend.config import FrontendConfig
+from deepsync.types import EnvelopeChunk
+
+
+def is_bag_path(path: str | os.PathLike) -> bool:
+    """A rosbag2 directory (with ``metadata.yaml``) or an ``.mcap`` file, by its name and kind."""
+    p = Path(path)
+    return (p.is_dir() and (p / "metadata.yaml").is_file()) or p.suffix.lower() == ".mcap"
+
+
+def bag_dir(path: str | os.PathLike) -> Path:
+    """Where to open the bag ``path`` names: a bag directory as is; an ``.mcap`` file's
+    directory when that directory's ``metadata.yaml`` lists the file (the provenance lives
+    there, not in the ``.mcap``), else the file alone."""
+    p = Path(path)
+    if not p.exists():
+        raise BagError(f"{p}: no such bag (path does not exist)")
+    if p.is_dir() or p.suffix.lower() != ".mcap":
+        return p
+    metadata = p.parent / "metadata.yaml"
+    if metadata.is_file():
+        try:
+            info = yaml.safe_load(metadata.read_text()) or {}
+            files = info["rosbag2_bagfile_information"]["relative_file_paths"]
+        except (yaml.YAMLError, OSError, KeyError, TypeError, UnicodeDecodeError):
+            return p
+        if isinstance(files, list) and p.name in files:
+            return p.parent
+    return p
+
+
+def bag_frontend(path: str | os.PathLike) -> FrontendConfig:
+    """The front end a bag was recorded with (from its provenance); for a bag without one, the
+    default front end at the sample rate of its first envelope message.
+
+    Templates must match the chain that made the stream; a bag from ``deepsync simulate`` says
+    which one that was. Raises :class:`~deepsync.bag.BagError` (a ValueError) naming the bag
+    for unreadable provenance, or for a bag without provenance and without envelope messages.
+    """
+    where = bag_dir(path)
+    with BagReader(where) as bag:
+        provenance = bag.custom_data.get(PROVENANCE_KEY)
+    return _frontend(where, provenance)
+
+
+def _frontend(where: Path, provenance: str | None) -> FrontendConfig:
+    if provenance:
+        try:
+            return FrontendConfig(**json.loads(provenance)["frontend"])
+        except (ValueError, KeyError, TypeError) as error:
+            raise BagError(f"{where}: unreadable front-end provenance ({error})") from None
+    first = next(iter(read_envelope(where)), None)
+    if first is None:
+        raise BagError(f"{where}: no provenance and no {ENVELOPE_TOPIC} messages: the sample rate is unknown")
+    try:
+        return FrontendConfig(adc_rate_hz=first.sample_rate)
+    except ValueError as error:
+        raise BagError(f"{where}: no default front end at {first.sample_rate:g} Hz: {error}") from None
+
+
+class BagSource:
+    """The envelope topic of a rosbag2 bag: ``path`` is the bag directory or its ``.mcap``."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = bag_dir(path)
+        with BagReader(self.path) as bag:
+            provenance = bag.custom_data.get(PROVENANCE_KEY)
+            self.n_chunks = bag.message_counts.get(ENVELOPE_TOPIC, 0)
+            self._has_truth = TRUTH_CELL_TIMING_TOPIC in bag.topics
+        self._provenance = bool(provenance)
+        self.frontend = _frontend(self.path, provenance)
+        self.center_hz: float | None = None  # an envelope detector sees every carrier in its RF band
+
+    @property
+    def description(self) -> str:
+        chain = "recorded front end" if self._provenance else "default front end (no provenance)"
+        return (f"rosbag2 bag {self.path}: {self.n_chunks} envelope chunks at "
+                f"{self.frontend.adc_rate_hz / 1e6:g} MS/s, {chain}")
+
+    def chunks(self) -> Iterator[EnvelopeChunk]:
+        """The envelope messages in log-time order, as recorded."""
+        return read_envelope(self.path)
+
+    def truth_arrivals(self) -> dict[int, float]:
+        """PCI -> the first true sync-code arrival (``toa``, stream samples) of each cell in the
+        bag's ground truth, in log order; empty for a bag without ground truth."""
+        arrivals: dict[int, float] = {}
+        if not self._has_truth:
+            return arrivals
+        with BagReader(self.path) as bag:
+            for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
+                for record in cell_timing_array_from_msg(item.message):
+                    arrivals.setdefault(record.pci, record.toa)
+        return arrivals

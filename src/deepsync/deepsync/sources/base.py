@@ -1,0 +1,176 @@
+"""What every source is (:class:`Source`), and the streaming shared by the file sources.
+
+A source turns a recording into the stream a live receiver would publish: one
+:class:`~deepsync.types.EnvelopeChunk` per LTE frame (10 ms, ``round(rate * FRAME_SECONDS)``
+samples; the last may be shorter), ``first_sample_index`` contiguous from 0, ``stamp_ns``
+advancing at the sample rate from the stamp of sample 0. The rate has one home: the source's
+``frontend.adc_rate_hz``, the receiver chain the sync templates are built from.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from fractions import Fraction
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from deepsync.frontend.config import FrontendConfig
+from deepsync.frontend.templates import check_template_rate
+from deepsync.types import FRAME_SECONDS, EnvelopeChunk
+from .envelope import (
+    NonFiniteSample,
+    block_peak,
+    check_scale,
+    envelope_codes,
+    scale_from_peak,
+    squared_iq_frontend,
+)
+from .formats import SampleFormat
+
+PEAK_BLOCK_SAMPLES = 1 << 20  # samples per read in the scale pass: bounded memory for any file
+
+
+@runtime_checkable
+class Source(Protocol):
+    """Where envelope chunks come from: a recording of any kind, or a live receiver."""
+
+    description: str
+    """One line for people: what the stream is and where it comes from."""
+    frontend: FrontendConfig
+    """The receiver chain the stream went through; its ``adc_rate_hz`` is the stream's rate."""
+    center_hz: float | None
+    """The recording's centre (tuning) frequency, when known."""
+
+    def chunks(self) -> Iterator[EnvelopeChunk]:
+        """The stream, one LTE frame per chunk, from sample 0 (each call starts over)."""
+        ...
+
+
+def frame_samples(sample_rate: float) -> int:
+    """Samples per chunk: one LTE frame at ``sample_rate``."""
+    return max(1, round(sample_rate * FRAME_SECONDS))
+
+
+def stamp_at(stamp_ns: int, index: int, sample_rate: float) -> int:
+    """Receiver time (ns) of sample ``index``, exact in integers: a float product would drift by
+    microseconds over a long recording (1e9 * index exceeds a double's 53 bits)."""
+    return int(stamp_ns) + round(Fraction(int(index) * 10**9) / Fraction(sample_rate))
+
+
+def check_rate(sample_rate: object, where: str) -> float:
+    """``sample_rate`` as a float, or ValueError naming ``where`` (missing, or no templates)."""
+    if sample_rate is None:
+        raise ValueError(f"{where}: the sample rate must be given (the file does not say it)")
+    try:
+        rate = float(sample_rate)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: sample rate {sample_rate!r} is not a number") from None
+    try:
+        return check_template_rate(rate)
+    except ValueError as error:
+        raise ValueError(f"{where}: {error}") from None
+
+
+def centred_iq(values: np.ndarray, sample_format: SampleFormat) -> np.ndarray:
+    """Interleaved stored I/Q values as complex64 ``(I - zero) + j (Q - zero)``."""
+    comps = np.asarray(values).reshape(-1, 2)
+    out = np.empty(comps.shape[0], dtype=np.complex64)
+    zero = np.float32(sample_format.zero)
+    out.real = comps[:, 0].astype(np.float32) - zero
+    out.imag = comps[:, 1].astype(np.float32) - zero
+    return out
+
+
+BlockReader = Callable[[int, int], np.ndarray]
+"""``read(start, stop)``: the stored values of samples ``start:stop``, interleaved (I0 Q0 ...)."""
+
+
+class FileSource:
+    """A recording of stored samples (a raw file, a SigMF dataset) streamed as envelope codes.
+
+    Subclasses open the file, then call :meth:`_setup` with how to read it. The default scale
+    is found here, in one pass over the file (see :mod:`deepsync.sources.envelope`).
+    """
+
+    path: str
+    sample_format: SampleFormat
+    sample_rate: float
+    n_samples: int
+    scale: float
+    stamp_ns: int
+    center_hz: float | None
+    frontend: FrontendConfig
+
+    def _setup(self, path: str, sample_format: SampleFormat, sample_rate: float, n_samples: int,
+               read: BlockReader, scale: float | None, stamp_ns: int, center_hz: float | None) -> None:
+        self.path = path
+        self.sample_format = sample_format
+        self.sample_rate = sample_rate
+        self.n_samples = n_samples
+        self.stamp_ns = int(stamp_ns)
+        self.center_hz = center_hz
+        self._read = read
+        try:
+            given = check_scale(scale)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
+        self.scale = self._default_scale() if given is None else given
+        try:
+            if sample_format.is_complex:
+                self.frontend = squared_iq_frontend(sample_rate)
+            else:
+                self.frontend = FrontendConfig(adc_rate_hz=sample_rate)
+        except ValueError as error:
+            raise ValueError(f"{path}: no receiver chain at {sample_rate:g} Hz: {error}") from None
+
+    def _block(self, start: int, stop: int, convert: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """``convert`` of samples ``start:stop``; a non-finite sample raises with its file index."""
+        try:
+            return convert(self._read(start, stop))
+        except NonFiniteSample as error:
+            raise ValueError(
+                f"{self.path}: sample {start + error.index} is not finite ({error.value}); an "
+                "envelope code cannot carry NaN or inf (a broken recording?)"
+            ) from None
+
+    def _default_scale(self) -> float:
+        if self.sample_format is SampleFormat.RI16_LE:
+            return 1.0  # the values are ADC codes already
+        peak = 0.0
+        for start in range(0, self.n_samples, PEAK_BLOCK_SAMPLES):
+            stop = min(start + PEAK_BLOCK_SAMPLES, self.n_samples)
+            peak = max(peak, self._block(start, stop, lambda v: block_peak(v, self.sample_format)))
+        return scale_from_peak(peak)
+
+    def chunks(self) -> Iterator[EnvelopeChunk]:
+        """One chunk per LTE frame; codes per :mod:`deepsync.sources.envelope`."""
+        step = frame_samples(self.sample_rate)
+        for first in range(0, self.n_samples, step):
+            stop = min(first + step, self.n_samples)
+            codes = self._block(first, stop, lambda v: envelope_codes(v, self.sample_format, self.scale))
+            yield EnvelopeChunk(
+                stamp_ns=stamp_at(self.stamp_ns, first, self.sample_rate),
+                sample_rate=self.sample_rate,
+                first_sample_index=first,
+                adc_bits=16,
+                volts_per_code=self.scale,
+                samples=codes,
+            )
+
+    def read_iq(self) -> np.ndarray:
+        """All samples as complex64 ``(I - zero) + j (Q - zero)`` (complex formats only)."""
+        if not self.sample_format.is_complex:
+            raise ValueError(
+                f"{self.path}: {self.sample_format.value} is a real envelope format, not complex I/Q"
+            )
+        return centred_iq(self._read(0, self.n_samples), self.sample_format)
+
+    def _describe(self, kind: str) -> str:
+        seconds = self.n_samples / self.sample_rate
+        what = "I/Q, envelope |x - zero|^2" if self.sample_format.is_complex else "envelope"
+        centre = "" if self.center_hz is None else f" at {self.center_hz / 1e6:g} MHz"
+        return (f"{kind} {os.path.basename(self.path)}: {self.sample_format.value} {what}, "
+                f"{self.n_samples} samples at {self.sample_rate / 1e6:g} MS/s ({seconds:.3f} s){centre}, "
+                f"scale {self.scale:.6g} per code")

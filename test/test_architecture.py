@@ -1,0 +1,77 @@
+"""The core's shape, checked from its source: one-way imports, stages chained in one place, one
+copy of each shared helper and constant. A violation fails here, not in a later review."""
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+CORE = Path(__file__).resolve().parents[1] / "src" / "deepsync" / "deepsync"
+LAYERS = ["types", "lte", "frontend", "sync", "timing", "fusion"]  # each may import only those before it
+STAGES = ["sync", "timing", "fusion"]
+
+
+def modules() -> dict[str, Path]:
+    """Dotted name below ``deepsync`` -> file, for every module of the core."""
+    return {".".join(p.relative_to(CORE).with_suffix("").parts): p for p in sorted(CORE.rglob("*.py"))}
+
+
+def imports(path: Path) -> set[str]:
+    """Every module a file imports (absolute names; relative imports resolved)."""
+    package = ["deepsync", *path.relative_to(CORE).parent.parts]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else []
+            module = ".".join([*base, *(node.module.split(".") if node.module else [])])
+            found.add(module)
+            found |= {f"{module}.{alias.name}" for alias in node.names}
+    return found
+
+
+def top(name: str) -> str | None:
+    """The part of the core a dotted module name belongs to (``deepsync.sync.search`` -> sync)."""
+    parts = name.split(".")
+    return parts[1] if parts[0] == "deepsync" and len(parts) > 1 else None
+
+
+@pytest.mark.parametrize("name, path", sorted(modules().items()))
+def test_imports_run_one_way(name, path):
+    own = name.split(".")[0]
+    used = {top(m) for m in imports(path)} - {None, own}
+    if own in LAYERS:
+        later = set(LAYERS[LAYERS.index(own) + 1 :])
+        assert not used & later, f"{name} imports {sorted(used & later)}, which build on it"
+    if own == "types":
+        assert not used, f"types imports {sorted(used)}: it must import nothing of the project"
+    if own in STAGES:
+        forbidden = {"bag", "sources", "pipeline", "cli", "recording", "twin", "iq", "eval"}
+        assert not used & forbidden, f"stage module {name} imports {sorted(used & forbidden)}"
+    if own != "timing":
+        assert not any(m == "torch" or m.startswith("torch.") for m in imports(path)), f"{name} imports torch"
+
+
+def test_only_the_pipeline_chains_stages():
+    chaining = [name for name, path in modules().items()
+                if {"deepsync.sync.stage", "deepsync.timing.stage"} <= imports(path)]
+    assert chaining == ["pipeline"]
+
+
+def test_sync_holds_only_the_cell_search():
+    assert sorted(p.stem for p in (CORE / "sync").glob("*.py")) == [
+        "__init__", "correlation", "search", "sites", "stacking", "stage", "windows"]
+
+
+@pytest.mark.parametrize("pattern, home", [
+    (r"1\.4826", "numeric.py"),  # the MAD -> sigma factor
+    (r"299_?792_?458", "types.py"),  # light speed
+    (r"^FRAME_SECONDS\s*=", "types.py"),
+    (r"^HALF_FRAME_SECONDS\s*=", "types.py"),
+    (r"0\.5 \* \(\w+ - \w+\) / \w+", "numeric.py"),  # a parabola's vertex
+])
+def test_shared_helpers_and_constants_live_in_one_place(pattern, home):
+    where = [str(p.relative_to(CORE)) for p in CORE.rglob("*.py") if re.search(pattern, p.read_text(), re.M)]
+    assert where == [home]

@@ -1,0 +1,130 @@
+"""The pipeline: sync -> timing on the bundled bag, the timing stage fed from messages, bad input."""
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deepsync.bag import sync_window_array_from_msg, sync_window_array_to_msg
+from deepsync.pipeline import Pipeline, PipelineConfig
+from deepsync.sources import BagSource
+from deepsync.sync.stage import SyncConfig
+from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
+from deepsync.towers import load_tower_database
+from deepsync.types import HealthKind, Severity
+
+REPO = Path(__file__).resolve().parents[1]
+BAG = REPO / "bags" / "campus"
+TOWERS = REPO / "config" / "towers" / "campus.yaml"
+# Per stack, the (PCI, arrival) pairs of the campus bag as the cell search of main reported them
+# before the pipeline existed (arrivals rounded to 1e-6 samples). Regenerate, after a change
+# that is meant to move them, with: python test/test_pipeline.py > test/data/campus_arrivals.json
+EXPECTED = REPO / "test" / "data" / "campus_arrivals.json"
+
+
+def campus_arrivals() -> list[list[list[float]]]:
+    source = BagSource(BAG)
+    pipeline = Pipeline(source.frontend, towers=load_tower_database(TOWERS))
+    return [[[t.pci, round(t.toa, 6)] for t in result.timing.cells] for result in pipeline.run(source.chunks())]
+
+
+@pytest.fixture(scope="module")
+def campus():
+    source = BagSource(BAG)
+    pipeline = Pipeline(source.frontend, towers=load_tower_database(TOWERS))
+    return source, list(pipeline.run(source.chunks()))
+
+
+def test_the_pipeline_reproduces_the_cell_search_of_main_on_the_bundled_bag(campus):
+    _, results = campus
+    expected = json.loads(EXPECTED.read_text())
+    got = [[[t.pci, round(t.toa, 6)] for t in result.timing.cells] for result in results]
+    assert len(got) == len(expected) == 30
+    for stack, (mine, theirs) in enumerate(zip(got, expected)):
+        assert [pci for pci, _ in mine] == [pci for pci, _ in theirs], f"stack {stack}"
+        np.testing.assert_allclose([toa for _, toa in mine], [toa for _, toa in theirs], atol=2e-6)
+
+
+def test_every_confirmed_cell_is_timed_near_its_truth_with_an_honest_sigma(campus):
+    source, results = campus
+    truth = source.truth_arrivals()
+    frame = 19200
+    for result in results:
+        assert [t.pci for t in result.timing.cells] == result.sync.pcis
+        assert not result.health
+        for timing in result.timing.cells:
+            error = (timing.toa - truth[timing.pci] + frame / 2) % frame - frame / 2
+            assert abs(error) < 0.5
+            assert timing.estimator == "ml" and 0.02 < timing.toa_std < 0.2
+            # prewhitened ML: its sigma is the plug-in bound, a little above it in quadrature
+            assert timing.crlb_std <= timing.toa_std < 1.2 * timing.crlb_std
+
+
+def test_the_timing_stage_fed_from_a_sync_window_message_gives_the_same_arrivals(campus):
+    """What the timing node gets is a SyncWindowArray: the template (a co-sited pair's fitted
+    model included) is rebuilt from the message alone."""
+    source, results = campus
+    stage = TimingStage(source.frontend)
+    pairs = 0
+    for result in results[-5:]:
+        received = sync_window_array_from_msg(sync_window_array_to_msg(result.stamp_ns, result.sync.windows))
+        assert [w.pci for w in received] == result.sync.pcis
+        pairs += sum(w.cosited_pci is not None for w in received)
+        for direct, rebuilt in zip(result.timing.cells, stage.process(received).cells):
+            # float32 on the wire: the pair coefficients and windows round at 1e-7
+            assert rebuilt.toa == pytest.approx(direct.toa, abs=1e-4)
+            assert rebuilt.toa_std == pytest.approx(direct.toa_std, rel=1e-3)
+    assert pairs == 10  # 120 and 121 in each of the 5 stacks
+
+
+@pytest.mark.parametrize("estimator", list(Estimator))
+def test_every_classical_estimator_times_the_campus_cells(campus, estimator):
+    source, results = campus
+    stage = TimingStage(source.frontend, TimingConfig(estimator=estimator))
+    reference = {t.pci: t.toa for t in results[-1].timing.cells}
+    timed = stage.process(results[-1].sync.windows).cells
+    assert sorted(t.pci for t in timed) == sorted(reference) and all(t.estimator == estimator.value for t in timed)
+    for t in timed:
+        assert t.toa == pytest.approx(reference[t.pci], abs=0.1)
+
+
+def test_windows_that_cannot_be_timed_are_reported_not_raised(campus):
+    source, results = campus
+    stage = TimingStage(source.frontend)
+    good = results[-1].sync.windows[0]
+    flat = dataclasses.replace(good, windows=np.ones_like(good.windows))
+    short = dataclasses.replace(good, windows=good.windows[:, :-3])  # no equal margin either side
+    result = stage.process([flat, good, short])
+    assert [t.pci for t in result.cells] == [good.pci]
+    assert [e.kind for e in result.events] == [HealthKind.UNTIMEABLE] * 2
+    assert "constant" in result.events[0].message and "margin" in result.events[1].message
+    with pytest.raises(ValueError, match="estimator must be one of ml"):
+        TimingConfig(estimator="ML")
+
+
+def test_a_chunk_at_another_rate_mid_stream_is_an_event_and_never_stacked():
+    """Frames 45-46 of the bag arrive labelled 3.84 MHz: the stack that would have held them is
+    not searched, the event says why, and stacking resumes after them."""
+    source = BagSource(BAG)
+    pipeline = Pipeline(source.frontend, PipelineConfig(sync=SyncConfig(confirm_stacks=1)),
+                        load_tower_database(TOWERS))
+    results = []
+    for k, chunk in enumerate(source.chunks()):
+        if k in (45, 46):
+            chunk = dataclasses.replace(chunk, sample_rate=3.84e6)
+        results += pipeline.process(chunk)
+    starts = [r.sync.first_sample_index // 19200 for r in results]
+    assert starts == [0, 10, 20, 30, 47, 57, 67, 77, 87, 97, 107, 117, 127, 137, 147, 157, 167, 177, 187, 197,
+                      207, 217, 227, 237, 247, 257, 267, 277, 287]
+    (event,) = [e for r in results for e in r.health]
+    assert event.kind is HealthKind.RATE_MISMATCH and event.severity is Severity.ERROR
+    assert event.sample_index == 45 * 19200 and "3.84e+06 Hz" in event.message
+    assert results[4].sync.events == (event,)  # reported with the first stack after it
+    assert sorted(results[4].sync.pcis) == [56, 120, 121, 301]  # the search picks up where it resumes
+    assert sum(sorted(r.sync.pcis) == [56, 120, 121, 301] for r in results) >= 25
+
+
+if __name__ == "__main__":
+    print(json.dumps(campus_arrivals()))
