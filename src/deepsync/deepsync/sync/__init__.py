@@ -1,1 +1,1 @@
-"""Cell search and classical timing: frame stacking, PCI detection, windows, fine estimators, CRLB."""
+"""Cell search: frame stacking, PCI detection (single cells and co-sited pairs), windows for timing."""
