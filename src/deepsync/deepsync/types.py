@@ -24,7 +24,7 @@ import numpy as np
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 FRAME_SECONDS = 10e-3  # an LTE radio frame; every cell repeats its sync codes once per frame
 HALF_FRAME_SECONDS = FRAME_SECONDS / 2  # the PSS repeats every half-frame (subframes 0 and 5)
-MAX_PCI = 503
+MAX_PCI = 503  # physical cell identities are 0..503 (TS 36.211 6.11)
 
 
 class Severity(enum.IntEnum):

@@ -6,8 +6,9 @@ import math
 from dataclasses import dataclass
 
 from deepsync.lte.numerology import check_bandwidth
+from deepsync.types import MAX_PCI
 
-N_CELL_IDS = 504
+N_CELL_IDS = MAX_PCI + 1  # TS 36.211 6.11: 168 groups x 3 identities
 MODULATIONS = ("QPSK", "16QAM", "64QAM")
 
 
