@@ -74,6 +74,7 @@ class TimingStage:
         self.config = config or TimingConfig()
         self.templates = SyncTemplates(frontend)
         self.sample_rate = frontend.adc_rate_hz
+        self._single: dict[int, np.ndarray] = {}  # PCI -> template: 3 ms to compute, the same every stack
 
     def process(self, windows: Sequence[SyncWindow]) -> TimingResult:
         """Arrivals of the given cells; what cannot be timed becomes an ``UNTIMEABLE`` event."""
@@ -88,7 +89,7 @@ class TimingStage:
 
     def time_cell(self, window: SyncWindow) -> CellTiming:
         """One cell's arrival; ValueError if its windows cannot be timed."""
-        template = code_template(self.templates, window.pci, window.cosited_pci, window.site_coefficients)
+        template = self._template(window)
         spare = window.window_length - len(template)
         if spare < 2 or spare % 2:
             raise ValueError(f"windows of {window.window_length} samples do not hold the {len(template)}-sample "
@@ -111,6 +112,14 @@ class TimingStage:
             crlb_std=bound.std_samples,
             flags=flags,
         )
+
+    def _template(self, window: SyncWindow) -> np.ndarray:
+        """The cell's code template; a pair's is cheap (cached shapes), a single PCI's is kept."""
+        if window.cosited_pci is not None:
+            return code_template(self.templates, window.pci, window.cosited_pci, window.site_coefficients)
+        if window.pci not in self._single:
+            self._single[window.pci] = code_template(self.templates, window.pci)
+        return self._single[window.pci]
 
     def _estimate(self, windows: np.ndarray, template: np.ndarray, margin: int, psd: np.ndarray) -> TimingEstimate:
         estimator = self.config.estimator
