@@ -1,11 +1,12 @@
-"""Speed of the cell-search stage: one 10-frame stack (192,000 samples at 1.92 MHz).
+"""Speed of the cell-search and timing stages: one 10-frame stack (192,000 samples at 1.92 MHz).
 
 Times ``SyncStage.process`` on real stacks of the bundled campus bag (4 cells on the air):
 stacking (10 chunks of 10 ms), the search (blind: 504 PCIs; known: the campus tower database,
 timed by the PSS or by the PCIs' whole codes, with or without its co-sited sector pairs, the
 default) and window extraction, on one core (BLAS limited to one thread). Templates are built
-once, before timing, as a running node builds them at start-up. Prints the median of
---repeats runs.
+once, before timing, as a running node builds them at start-up. Then ``TimingStage.process``
+on the confirmed cells of each stack (4 cells, one co-sited pair), per classical estimator.
+Prints the median of --repeats runs.
 
 Run:  .venv/bin/python benchmarks/sync_speed.py [--repeats 30]
 Writes docs/results/sync_speed.json.
@@ -25,6 +26,7 @@ from deepsync.bag import read_envelope
 from deepsync.sources import bag_frontend
 from deepsync.sync.search import SearchConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
+from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
 from deepsync.towers import load_tower_database
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,6 +53,22 @@ def time_mode(chunks, towers, repeats: int, config: SyncConfig) -> tuple[float, 
     return statistics.median(times), times[int(0.9 * (len(times) - 1))]
 
 
+def time_timing(chunks, towers, repeats: int, estimator: Estimator) -> tuple[float, float]:
+    """Median and 90th percentile (ms) of timing one stack's confirmed cells."""
+    frontend = bag_frontend(BAG)
+    sync = SyncStage(frontend, SyncConfig(), towers)
+    results = [r for chunk in chunks for r in sync.process(chunk) if r.cells]
+    stage = TimingStage(frontend, TimingConfig(estimator=estimator))
+    stage.process(results[0].windows)  # templates, as at start-up
+    times = []
+    for r in range(repeats):
+        started = time.perf_counter()
+        stage.process(results[r % len(results)].windows)
+        times.append((time.perf_counter() - started) * 1e3)
+    times.sort()
+    return statistics.median(times), times[int(0.9 * (len(times) - 1))]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=30)
@@ -72,6 +90,11 @@ def main() -> None:
             out[mode] = {"median_ms": median, "p90_ms": p90}
             print(f"{label:40s}: {median:6.1f} ms median, {p90:6.1f} ms p90 per 10-frame stack "
                   f"(192,000 samples), one core")
+        for estimator in Estimator:
+            median, p90 = time_timing(chunks, database, args.repeats, estimator)
+            out[f"timing_{estimator.value}"] = {"median_ms": median, "p90_ms": p90}
+            print(f"{'timing, ' + estimator.value:40s}: {median:6.1f} ms median, {p90:6.1f} ms p90 per stack "
+                  "(4 cells), one core")
     path = REPO / "docs" / "results" / "sync_speed.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"stack": "10 frames x 19200 samples, campus bag", "repeats": args.repeats, **out}, indent=2))
