@@ -99,14 +99,18 @@ def test_stacks_do_not_depend_on_chunking():
     assert not a.events
 
 
-def test_gap_nan_backwards_and_rate_mismatch_are_reported_not_stacked():
+def test_gap_nan_backwards_restart_and_rate_mismatch_are_reported_not_stacked():
     stacker = FrameStacker(1.92e6, StackConfig(n_frames=2))
     rng = np.random.default_rng(2)
     good = rng.standard_normal(5 * FRAME)
-    stacks = stacker.push_samples(good[: 3 * FRAME], 0, 1.92e6)
-    assert [s.first_sample_index for s in stacks] == [0]
+
+    def push(samples, index, rate=1.92e6, stamp_index=None):  # stamps on one timeline, unless told
+        stamp = round((index if stamp_index is None else stamp_index) * 1e9 / 1.92e6)
+        return stacker.push_samples(samples, index, rate, stamp)
+
+    assert [s.first_sample_index for s in push(good[: 3 * FRAME], 0)] == [0]
     # gap of 1000 samples: the half-filled second stack is dropped, stacking restarts after it
-    stacks = stacker.push_samples(good[: 2 * FRAME], 3 * FRAME + 1000, 1.92e6)
+    stacks = push(good[: 2 * FRAME], 3 * FRAME + 1000)
     assert [e.kind for e in stacker.events] == [HealthKind.GAP]
     assert "gap of 1000 samples" in stacker.events[0].message
     assert [s.first_sample_index for s in stacks] == [3 * FRAME + 1000]
@@ -115,17 +119,17 @@ def test_gap_nan_backwards_and_rate_mismatch_are_reported_not_stacked():
     bad[100:110] = np.nan
     bad[200] = np.inf
     start = 5 * FRAME + 1000
-    stacks = stacker.push_samples(bad, start, 1.92e6)
+    stacks = push(bad, start)
     assert stacker.events[-1].kind is HealthKind.NOT_FINITE and stacker.events[-1].sample_index == start + 100
     assert all(np.all(np.isfinite(s.rows)) for s in stacks)
     assert [s.first_sample_index for s in stacks] == [start + 201, start + 201 + 2 * FRAME]
-    # a chunk from the past is dropped
-    assert stacker.push_samples(good[:10], 0, 1.92e6) == []
+    # a late (repeated) chunk, a frame back on the same timeline, is dropped
+    assert push(good[:10], start + 4 * FRAME) == []
     assert stacker.events[-1].kind is HealthKind.BACKWARDS
     # samples at another rate than the templates': dropped, said once for the whole run
-    assert stacker.push_samples(good[: FRAME + 5], start + 5 * FRAME, 1.92e6) == []  # 2 frames minus 196 pending
-    assert stacker.push_samples(np.ones(4 * 10000), start + 6 * FRAME + 5, 1.0e6) == []
-    assert stacker.push_samples(np.ones(4 * 10000), start + 6 * FRAME + 40005, 1.0e6) == []
+    assert push(good[: FRAME + 5], start + 5 * FRAME) == []  # 2 frames minus 196 pending
+    assert push(np.ones(4 * 10000), start + 6 * FRAME + 5, 1.0e6) == []
+    assert push(np.ones(4 * 10000), start + 6 * FRAME + 40005, 1.0e6) == []
     mismatch = stacker.events[-1]
     assert mismatch.kind is HealthKind.RATE_MISMATCH and mismatch.severity is Severity.ERROR
     assert "1e+06 Hz" in mismatch.message and "1.92e+06 Hz" in mismatch.message
@@ -133,8 +137,29 @@ def test_gap_nan_backwards_and_rate_mismatch_are_reported_not_stacked():
     assert sum(e.kind is HealthKind.RATE_MISMATCH for e in stacker.events) == 1
     # back at the right rate, stacking starts afresh there (no gap reported on top)
     events = len(stacker.events)
-    stacks = stacker.push_samples(good[: 2 * FRAME], 30 * FRAME, 1.92e6)
-    assert [s.first_sample_index for s in stacks] == [30 * FRAME] and len(stacker.events) == events
+    assert [s.first_sample_index for s in push(good[: 2 * FRAME], 30 * FRAME)] == [30 * FRAME]
+    assert len(stacker.events) == events
+    # the index starts over (a driver restart) while time goes on: a fresh start, not a stall
+    stacks = push(good[: 2 * FRAME], 0, stamp_index=40 * FRAME)
+    assert stacker.events[-1].kind is HealthKind.RESTART and [s.first_sample_index for s in stacks] == [0]
+    # the same stream played again (index and stamps back to the start): also a fresh start
+    push(good[: 3 * FRAME], 2 * FRAME, stamp_index=42 * FRAME)
+    stacks = push(good[: 2 * FRAME], 0, stamp_index=0)
+    assert stacker.events[-1].kind is HealthKind.RESTART and [s.first_sample_index for s in stacks] == [0]
+
+
+def test_codes_beyond_the_adc_range_are_corrupt_data_never_stacked():
+    """One flipped byte in a bag garbles thousands of codes far beyond a 12-bit ADC's range:
+    reported as corrupt (not as clipping), and no stack spans them."""
+    stacker = FrameStacker(1.92e6, StackConfig(n_frames=1))
+    codes = np.random.default_rng(3).integers(-1000, 1000, 3 * FRAME).astype(np.int16)
+    codes[FRAME + 10 : FRAME + 20] = np.array([31000, -29000] * 5, dtype=np.int16)
+    stacks = stacker.push(EnvelopeChunk(0, 1.92e6, 0, 12, 1e-3, codes))
+    (event,) = stacker.events
+    assert event.kind is HealthKind.CORRUPT and event.severity is Severity.ERROR
+    assert event.sample_index == FRAME + 10 and "10 codes beyond the 12-bit" in event.message
+    assert [s.first_sample_index for s in stacks] == [0, FRAME + 20]
+    assert all(not s.flags for s in stacks)  # not mistaken for clipping
 
 
 def test_flags_for_clipping_and_silence():
@@ -366,14 +391,17 @@ def test_stage_survives_every_kind_of_bad_input_and_says_what_happened(templates
     good = frames(2)
     nan = frames(2)
     nan[777] = np.nan
+    def feed(samples, index, rate=1.92e6):
+        return stage.process_samples(samples, index, rate, round(index * 1e9 / 1.92e6))
+
     results = []
-    results += stage.process_samples(good, 0, 1.92e6)  # a stack with the cell
-    results += stage.process_samples(nan, 2 * FRAME, 1.92e6)  # non-finite sample: stack dropped
-    results += stage.process_samples(frames(2), 5 * FRAME, 1.92e6)  # after a one-frame gap
-    results += stage.process_samples(frames(1), 3 * FRAME, 1.92e6)  # back in time: dropped
-    results += stage.process_samples(np.zeros(2 * FRAME), 7 * FRAME, 1.92e6)  # silence
-    results += stage.process_samples(frames(2, 1.0e6), 9 * FRAME, 1.0e6)  # another sample rate
-    chunk = EnvelopeChunk(0, 1.92e6, 10**7, 12, 1e-3, np.full(2 * FRAME, 2047, dtype=np.int16))
+    results += feed(good, 0)  # a stack with the cell
+    results += feed(nan, 2 * FRAME)  # non-finite sample: stack dropped
+    results += feed(frames(2), 5 * FRAME)  # after a one-frame gap
+    results += feed(frames(1), 6 * FRAME)  # back in time, a late chunk: dropped
+    results += feed(np.zeros(2 * FRAME), 7 * FRAME)  # silence
+    results += feed(frames(2, 1.0e6), 9 * FRAME, 1.0e6)  # another sample rate
+    chunk = EnvelopeChunk(round(10**7 / 1.92e-3), 1.92e6, 10**7, 12, 1e-3, np.full(2 * FRAME, 2047, dtype=np.int16))
     results += stage.process(chunk)  # clipped throughout (after another gap)
     events = [e.kind for r in results for e in r.events]
     flags = [f.kind for r in results for f in r.flags]

@@ -9,7 +9,9 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,11 +24,23 @@ from deepsync.sources import BagSource, SampleFormat, Source, open_source
 from deepsync.sync.stacking import StackConfig
 from deepsync.sync.stage import SyncConfig
 from deepsync.towers import load_tower_database
+from deepsync.types import FRAME_SECONDS
 
 REPO = Path(__file__).resolve().parents[3]
 DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus.yaml"
 DEMO_BAG = REPO / "bags" / "campus"
 DEMO_TOWERS = REPO / "config" / "towers" / "campus.yaml"
+MAX_WORKERS = 64
+
+
+def _workers(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 1 <= value <= MAX_WORKERS:
+        raise argparse.ArgumentTypeError(f"{value} workers: give 1..{MAX_WORKERS} processes")
+    return value
 
 
 def _positive_float(text: str) -> float:
@@ -103,11 +117,18 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
     print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
           f"found in {config.sync.confirm_stacks} stacks in a row; timing: {config.timing.estimator.value}")
-    stacks = []
-    for result in pipeline.run(source.chunks()):
-        stacks.append(stack_record(result, truth, source.frontend.adc_rate_hz))
-        if verbose:
-            _print_stack(result, stacks[-1], truth)
+    stacks, samples = [], 0
+    for chunk in source.chunks():
+        samples += len(chunk.samples)
+        for result in pipeline.process(chunk):
+            stacks.append(stack_record(result, truth, source.frontend.adc_rate_hz))
+            if verbose:
+                _print_stack(result, stacks[-1], truth)
+    if not stacks:
+        frame = round(source.frontend.adc_rate_hz * FRAME_SECONDS)
+        reason = (f"it holds {samples} samples ({samples / frame:.1f} frames), less than one {frames}-frame stack"
+                  if samples < frames * frame else "no stretch of it was clean for a whole stack (see the events)")
+        raise ValueError(f"no stack to search in {source.description}: {reason}")
     return stacks
 
 
@@ -192,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seconds", required=True, type=_positive_float, help="length of the recording")
     sim.add_argument("--out", required=True, help="bag directory to create")
     sim.add_argument("--seed", type=int, help="override the scenario's seed")
-    sim.add_argument("--workers", type=int, default=workers, help=f"processes (default {workers})")
+    sim.add_argument("--workers", type=_workers, default=workers, help=f"processes (default {workers})")
     sim.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     sim.add_argument("--quiet", action="store_true", help="no progress bar")
     sim.set_defaults(run=_cmd_simulate)
@@ -221,22 +242,41 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--verbose", action="store_true", help="print every stack's cells")
     demo.add_argument("--simulate", type=_positive_float, metavar="SECONDS",
                       help="also simulate a fresh recording of the demo scenario this long")
-    demo.add_argument("--workers", type=int, default=workers)
+    demo.add_argument("--workers", type=_workers, default=workers)
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(run=_cmd_demo)
     return parser
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt  # SIGTERM takes Ctrl-C's path: what was being written is removed
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _interrupt) if in_main_thread else None
     try:
         return args.run(args)
-    except (ConfigError, BagError, ValueError, FileNotFoundError) as error:
+    except (ConfigError, BagError, ValueError) as error:
         print(f"deepsync {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        # the reader went away (`deepsync info | head`): stop quietly, and keep Python from
+        # complaining again when it flushes stdout at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        print(f"deepsync {args.command}: output closed early (broken pipe); stopped", file=sys.stderr)
+        return 1
+    except OSError as error:
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"deepsync {args.command}: error: {where}{error.strerror or error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"deepsync {args.command}: interrupted; nothing was written", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

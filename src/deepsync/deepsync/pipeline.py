@@ -30,6 +30,11 @@ class PipelineConfig:
     sync: SyncConfig = field(default_factory=SyncConfig)
     timing: TimingConfig = field(default_factory=TimingConfig)
 
+    def __post_init__(self) -> None:
+        if self.sync.stack.n_frames < 2:
+            raise ValueError(f"stacks of {self.sync.stack.n_frames} frame: the timing stage measures the noise "
+                             "from how frames differ, so a stack needs at least 2 frames")
+
 
 @dataclass(frozen=True)
 class StackResult:

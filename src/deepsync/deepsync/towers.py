@@ -5,6 +5,11 @@ it scores only these PCIs (known-PCI mode) and a site, not a sector, is the TDOA
 A site's position and frame-timing offset may be unknown (null): then it still names cells
 but cannot anchor a position fix.
 
+Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
+by carrier: a cell without one would silently drop out of the pair search), a PCI appears at
+most once per carrier (two such sectors cannot be told apart), and the position is given
+whole (latitude and longitude) or not at all.
+
 ```yaml
 name: campus
 sites:
@@ -67,8 +72,9 @@ class TowerDatabase:
         return [cell for cell in self.cells if cell.pci == pci]
 
     def cosited_pairs(self) -> list[tuple[int, int]]:
-        """Pairs of PCIs on one site and one carrier (or carriers not given): sectors whose
-        sync codes arrive at the same time and add up before the square law."""
+        """Pairs of PCIs on one site and one carrier (or carriers not given, which the parser
+        allows only for a whole site): sectors whose sync codes arrive at the same time and
+        add up before the square law."""
         pairs = set()
         for site in self.sites:
             for i, a in enumerate(site.cells):
@@ -88,6 +94,35 @@ def _optional_number(site: dict, key: str, where: str, low: float, high: float) 
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
         raise ConfigError(f"{where}.{key}: expected a number in [{low:g}, {high:g}], got {value!r}")
     return float(value)
+
+
+def _check_site_cells(cells: list[TowerCell], at: str) -> None:
+    """Sectors of a site are paired by carrier (``cosited_pairs``), so either all give their
+    EARFCN or none does; and one PCI twice on one carrier of a site is one cell, listed twice
+    or mistyped."""
+    missing = [j for j, cell in enumerate(cells) if cell.earfcn is None]
+    if 0 < len(missing) < len(cells):
+        given = [j for j in range(len(cells)) if j not in missing]
+        raise ConfigError(
+            f"{at}.cells: earfcn given for {_cell_list(given)} but not for "
+            f"{_cell_list(missing)}; give it for every sector of site {cells[0].site!r} or for "
+            "none (sectors of a site are paired by carrier)"
+        )
+    first: dict[tuple[int, int | None], int] = {}
+    for j, cell in enumerate(cells):
+        key = (cell.pci, cell.earfcn)
+        if key in first:
+            carrier = "without an EARFCN" if cell.earfcn is None else f"on EARFCN {cell.earfcn}"
+            raise ConfigError(
+                f"{at}.cells[{j}].pci: PCI {cell.pci} {carrier} is already used by "
+                f"{at}.cells[{first[key]}] (two sectors of one site with the same PCI on one "
+                "carrier cannot be told apart)"
+            )
+        first[key] = j
+
+
+def _cell_list(indices: list[int]) -> str:
+    return ", ".join(f"cells[{j}]" for j in indices)
 
 
 def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
@@ -119,15 +154,22 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
                 earfcn = cell.get("earfcn")
                 if earfcn is not None:
                     downlink_frequency_hz(earfcn)  # validates it
+                    earfcn = int(earfcn)
             except ValueError as error:
                 raise ConfigError(f"{cell_at}: {error}") from None
             cells.append(TowerCell(pci, earfcn, name))
         if not cells:
             raise ConfigError(f"{at}.cells: a site needs at least one cell")
+        _check_site_cells(cells, at)
+        latitude = _optional_number(site, "latitude_deg", at, -90, 90)
+        longitude = _optional_number(site, "longitude_deg", at, -180, 180)
+        if (latitude is None) != (longitude is None):
+            raise ConfigError(f"{at}: give both latitude_deg and longitude_deg, or neither "
+                              "(half a position cannot anchor a fix)")
         sites.append(TowerSite(
             name=name,
-            latitude_deg=_optional_number(site, "latitude_deg", at, -90, 90),
-            longitude_deg=_optional_number(site, "longitude_deg", at, -180, 180),
+            latitude_deg=latitude,
+            longitude_deg=longitude,
             height_m=_optional_number(site, "height_m", at, 0, 1000),
             timing_offset_us=_optional_number(site, "timing_offset_us", at, 0, 10000),
             cells=tuple(cells),

@@ -39,7 +39,7 @@ class HealthKind(enum.Enum):
     """Everything a stage reports about its input or its output, as a closed set.
 
     Stream events (something happened at a sample index; data around it was dropped):
-    ``GAP``, ``NOT_FINITE``, ``BACKWARDS``, ``RATE_MISMATCH``. Stack flags (a stack was searched,
+    ``GAP``, ``NOT_FINITE``, ``CORRUPT``, ``BACKWARDS``, ``RESTART``, ``RATE_MISMATCH``. Stack flags (a stack was searched,
     but its result deserves less trust, or none): ``CLIPPED``, ``NO_SIGNAL``, ``MISALIGNED``.
     Timing: ``UNTIMEABLE`` (a cell's windows could not be timed at all), ``WEAK_TIMING`` (an
     arrival whose 1-sigma says it may be far off).
@@ -47,7 +47,9 @@ class HealthKind(enum.Enum):
 
     GAP = "gap"  # samples missing from the stream: the stack spanning them is dropped
     NOT_FINITE = "not_finite"  # NaN or inf samples: the stack spanning them is dropped
-    BACKWARDS = "backwards"  # a chunk from before what was already received: dropped
+    CORRUPT = "corrupt"  # codes no ADC of the stated bits makes: the stack spanning them is dropped
+    BACKWARDS = "backwards"  # a late or repeated chunk, from before what was already received: dropped
+    RESTART = "restart"  # the stream started over (index back, a driver restart): stacking starts afresh
     RATE_MISMATCH = "rate_mismatch"  # a chunk at another rate than the templates': dropped
     CLIPPED = "clipped"  # too many samples at the ADC rails (or the recording's)
     NO_SIGNAL = "no_signal"  # silent or stuck input: nothing is searched
@@ -63,7 +65,9 @@ class HealthKind(enum.Enum):
 _SEVERITY = {
     HealthKind.GAP: Severity.WARN,
     HealthKind.NOT_FINITE: Severity.WARN,
+    HealthKind.CORRUPT: Severity.ERROR,
     HealthKind.BACKWARDS: Severity.WARN,
+    HealthKind.RESTART: Severity.WARN,
     HealthKind.RATE_MISMATCH: Severity.ERROR,
     HealthKind.CLIPPED: Severity.WARN,
     HealthKind.NO_SIGNAL: Severity.ERROR,
@@ -106,9 +110,7 @@ class EnvelopeChunk:
     samples: np.ndarray
 
     def __post_init__(self) -> None:
-        samples = np.ascontiguousarray(self.samples, dtype="<i2")
-        if samples.ndim != 1:
-            raise ValueError(f"EnvelopeChunk.samples must be 1-D, got shape {samples.shape}")
+        samples = _as_codes(self.samples)
         if not (np.isfinite(self.sample_rate) and self.sample_rate > 0):
             raise ValueError(f"EnvelopeChunk.sample_rate {self.sample_rate!r} must be > 0")
         if self.first_sample_index < 0:
@@ -123,6 +125,29 @@ class EnvelopeChunk:
     def end_sample_index(self) -> int:
         """Index one past the last sample: the next chunk's ``first_sample_index`` if no gap."""
         return self.first_sample_index + len(self.samples)
+
+
+def _as_codes(samples: object) -> np.ndarray:
+    """ADC codes as contiguous little-endian int16, or ValueError: a cast would turn NaN into 0
+    and wrap 40000 to -25536 without a word, so only whole numbers within int16 pass."""
+    values = np.asarray(samples)
+    if values.ndim != 1:
+        raise ValueError(f"EnvelopeChunk.samples must be 1-D, got shape {values.shape}")
+    if values.dtype.kind not in "biuf":
+        raise ValueError(f"EnvelopeChunk.samples must be numbers (ADC codes), got dtype {values.dtype}")
+    if values.dtype.kind == "f":
+        bad = ~np.isfinite(values)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(f"EnvelopeChunk.samples[{i}] is {values[i]}: ADC codes are whole numbers")
+        fractional = values != np.round(values)
+        if fractional.any():
+            i = int(np.argmax(fractional))
+            raise ValueError(f"EnvelopeChunk.samples[{i}] is {values[i]}: ADC codes are whole numbers")
+    if values.size and values.dtype != np.int16 and (values.min() < -(2**15) or values.max() > 2**15 - 1):
+        i = int(np.argmax((values < -(2**15)) | (values > 2**15 - 1)))
+        raise ValueError(f"EnvelopeChunk.samples[{i}] is {values[i]}: beyond int16, where ADC codes travel")
+    return np.ascontiguousarray(values, dtype="<i2")
 
 
 @dataclass(frozen=True)

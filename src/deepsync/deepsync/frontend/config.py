@@ -5,6 +5,58 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+# The physical range of every number (inclusive; unit for the message). A value outside is a
+# typo or a unit slip (MHz written in Hz, dB in linear), never a design: left through, it runs
+# the simulator out of memory or overflows 10^(dB/10) far from the line that caused it.
+FRONTEND_RANGES: dict[str, tuple[float, float, str]] = {
+    # Below 0.1 MS/s a 71 us sync symbol spans < 8 samples; 61.44 MS/s (2 x 30.72) samples the
+    # square of a 20 MHz carrier (|x|^2 spans +-18 MHz). Templates further need a rate that
+    # divides 30.72 MHz (templates.check_template_rate); the simulator does not.
+    "adc_rate_hz": (0.1e6, 61.44e6, "Hz"),
+    # codes are int16; a 1-bit ADC keeps no envelope shape
+    "adc_bits": (2, 16, "bits"),
+    # differential inputs of fast ADCs (~0.1 V) to +-10 V industrial ones
+    "adc_full_scale_v": (0.1, 20.0, "V"),
+    # real converters are 0.3..3 LSB RMS; 16 LSB already wastes 4 bits
+    "adc_noise_lsb": (0.0, 16.0, "LSB RMS"),
+    # a crystal is within +-100 ppm; +-1000 ppm also covers a ceramic resonator
+    "clock_offset_ppm": (-1000.0, 1000.0, "ppm"),
+    # a crystal warming up drifts < 1 ppm/s
+    "clock_drift_ppm_per_s": (-10.0, 10.0, "ppm/s"),
+    # below 10 kHz the filter smears a 71 us sync symbol over several; 30.72 MHz passes the
+    # envelope of any LTE carrier (and must stay below adc_rate_hz, checked below)
+    "video_cutoff_hz": (10e3, 30.72e6, "Hz"),
+    # 0: no filter (a squared I/Q recording); a Butterworth above 8th order rings for many
+    # symbols and is not built for a video path
+    "video_filter_order": (0, 8, ""),
+    # AC coupling removes the diode's DC and slow drift only; above 1 kHz (time constant
+    # 160 us) it starts to differentiate the 71 us sync symbols
+    "video_highpass_hz": (0.0, 1e3, "Hz"),
+    # from a 40 dB pad (a strong signal into a sensitive ADC) to 100 dB, where the amplifier's
+    # own input noise (~1 uV RMS in 1 MHz) already fills a tenth of a volt of the ADC
+    "video_gain_db": (-40.0, 100.0, "dB"),
+    # the OFDM envelope peaks ~10 dB over its RMS: at -1 dBFS most peaks clip; at -60 dBFS a
+    # 12-bit ADC sees the signal in ~2 codes
+    "agc_target_dbfs": (-60.0, -1.0, "dBFS"),
+    # a Schottky detector into a 50-ohm load (~10 V/W) to a zero-bias one into a
+    # high-impedance video amplifier (a few kV/W, the best ~50 kV/W)
+    "detector_responsivity_v_per_w": (10.0, 1e5, "V/W"),
+    # 0 switches the detector noise off; real diodes are ~1..50 pW/sqrt(Hz), and 1 nW/sqrt(Hz)
+    # would bury everything below ~-30 dBm in a 1 MHz video bandwidth
+    "detector_nep_w_per_sqrt_hz": (0.0, 1e-9, "W/sqrt(Hz)"),
+    # LNAs are 0.5..10 dB and a lossy input adds its loss; up to 100 dB so a test can raise
+    # the thermal noise until it is measurable against a signal (the noise-density test
+    # uses 80 dB), still far from overflowing 10^(NF/10)
+    "noise_figure_db": (0.0, 100.0, "dB"),
+    # a bare diode (0 dB) to two LNA stages; more would drive the diode out of its square law
+    "rf_gain_db": (0.0, 60.0, "dB"),
+    # the narrowest LTE carrier (1.4 MHz) up to an unfiltered wideband input (6 GHz)
+    "rf_bandwidth_hz": (1e6, 6e9, "Hz"),
+    # 0 switches the RF noise off; electronics run at 233..358 K (-40..85 C), an antenna
+    # seeing hot surroundings somewhat more
+    "noise_temperature_k": (0.0, 1000.0, "K"),
+}
+
 
 @dataclass(frozen=True)
 class FrontendConfig:
@@ -16,7 +68,8 @@ class FrontendConfig:
     Butterworth anti-alias/video filter, AC coupling, and a 12-bit 1.92 MS/s ADC with a
     crystal clock. ``noise_temperature_k: 0`` and ``detector_nep_w_per_sqrt_hz: 0`` switch
     the RF and detector noise off (for checks of the noiseless chain). ``video_gain_db: null`` means the gain is set once, from the first 10 ms,
-    so the signal sits at ``agc_target_dbfs`` (power-up AGC; held fixed afterwards).
+    so the signal sits at ``agc_target_dbfs`` (power-up AGC; held fixed afterwards). Every
+    number must lie in its physical range, :data:`FRONTEND_RANGES`.
     """
 
     adc_rate_hz: float = 1.92e6
@@ -41,21 +94,11 @@ class FrontendConfig:
         for name, value in vars(self).items():
             if isinstance(value, float) and not math.isfinite(value):
                 raise ValueError(f"{name} must be a finite number, got {value!r}")
-        positive = (
-            "adc_rate_hz", "adc_full_scale_v", "video_cutoff_hz",
-            "detector_responsivity_v_per_w", "rf_bandwidth_hz",
-        )
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("adc_noise_lsb", "video_highpass_hz", "detector_nep_w_per_sqrt_hz",
-                     "noise_figure_db", "noise_temperature_k"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
-        if not 2 <= self.adc_bits <= 16:
-            raise ValueError(f"adc_bits must be 2..16 (codes are int16), got {self.adc_bits!r}")
-        if not 0 <= self.video_filter_order <= 8:
-            raise ValueError(f"video_filter_order must be 0..8 (0: none), got {self.video_filter_order!r}")
+        for name, (low, high, unit) in FRONTEND_RANGES.items():
+            value = getattr(self, name)
+            if value is not None and not low <= value <= high:
+                allowed = f"[{low:g}, {high:g}] {unit}".rstrip()
+                raise ValueError(f"{name} must be within {allowed}, got {value!r}")
         if self.video_cutoff_hz >= self.adc_rate_hz:
             raise ValueError(
                 f"video_cutoff_hz ({self.video_cutoff_hz:g}) must be below adc_rate_hz "
@@ -66,14 +109,6 @@ class FrontendConfig:
                 f"video_highpass_hz ({self.video_highpass_hz:g}) must be far below "
                 f"video_cutoff_hz ({self.video_cutoff_hz:g})"
             )
-        if abs(self.clock_offset_ppm) > 1000 or abs(self.clock_drift_ppm_per_s) > 10:
-            raise ValueError(
-                "clock_offset_ppm must be within +-1000 and clock_drift_ppm_per_s within +-10"
-            )
-        if not 0 <= self.rf_gain_db <= 60:
-            raise ValueError(f"rf_gain_db must be within 0..60 dB, got {self.rf_gain_db!r}")
-        if self.agc_target_dbfs >= 0:
-            raise ValueError(f"agc_target_dbfs must be < 0 dBFS, got {self.agc_target_dbfs!r}")
 
     @property
     def rf_power_gain(self) -> float:

@@ -13,18 +13,23 @@ Approximations, and why they hold:
 * The detector is memoryless before the video filter, and the diode's own bandwidth
   (GHz) passes everything, so only the video filter shapes the envelope.
 * Other approximations are documented where they are made: ``render`` (channel, frame-wise
-  delays), ``detector`` (RF noise added analytically, block-wise noise), ``adc`` (AC
+  delays), ``square_law`` (RF noise added analytically, block-wise noise), ``adc`` (AC
   coupling applied after sampling, exact at 50 Hz vs 1.92 MHz).
 
 The analog part is a pure function of the sample range, so long recordings can be cut into
-chunks that run in parallel processes and still give bit-identical codes.
+chunks that run in parallel processes and still give bit-identical codes. The worker processes
+never outlive the stream: an interrupt (Ctrl-C, SIGTERM) or any error terminates them at once,
+and they die with their parent even if it is killed outright.
 """
 
 from __future__ import annotations
 
+import ctypes
 import math
+import multiprocessing
+import signal
+import sys
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,12 +37,14 @@ from threadpoolctl import threadpool_limits
 
 from deepsync.frontend.adc import AdcStage, ReceiverClock, cubic_sample
 from deepsync.frontend.channel import ChannelProvider, Emitter
-from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.square_law import Detector
 from deepsync.lte.numerology import BASE_RATE_HZ
+from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 
 WORK_UNIT_SECONDS = 1.0
+MAX_UNIT_SAMPLES = 2**21  # ADC samples per work unit at most: bounds a worker's memory at any rate
+WORKER_MEMORY_BYTES = 256 * 2**20  # measured peak of one worker on such a unit: 180-205 MB, 1.92-15.36 MHz
 
 
 @dataclass
@@ -136,7 +143,7 @@ class EnvelopeSimulator:
         rate = self.config.adc_rate_hz
         total = int(round(seconds * rate))
         chunk = chunk_samples or max(1, round(rate * FRAME_SECONDS))
-        unit = max(chunk, round(WORK_UNIT_SECONDS * rate) // chunk * chunk)
+        unit = max(chunk, min(round(WORK_UNIT_SECONDS * rate), MAX_UNIT_SAMPLES) // chunk * chunk)
         ranges = [(n, min(n + unit, total)) for n in range(0, total, unit)]
         adc = AdcStage(self.config, self.seed)
         stats = stats if stats is not None else SimulationStats()
@@ -173,16 +180,53 @@ class EnvelopeSimulator:
             for n0, n1 in ranges:
                 yield self.analog(n0, n1)
             return
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(self,)) as pool:
-            yield from pool.map(_worker_analog, ranges)
+        workers = min(workers, len(ranges))  # more processes than work units would only idle
+        check_memory(workers)
+        pool = multiprocessing.get_context().Pool(workers, initializer=_init_worker, initargs=(self,))
+        try:
+            yield from pool.imap(_worker_analog, ranges)
+        finally:  # done, interrupted or failed: no worker is left computing
+            pool.terminate()
+            pool.join()
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the system can still hand out without swapping (Linux ``MemAvailable``), or None."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def check_memory(workers: int) -> None:
+    """ValueError before ``workers`` processes are started that the machine cannot hold."""
+    available = available_memory_bytes()
+    if available is not None and workers * WORKER_MEMORY_BYTES > available:
+        fits = max(1, available // WORKER_MEMORY_BYTES)
+        raise ValueError(
+            f"{workers} worker processes need about {workers * WORKER_MEMORY_BYTES / 2**30:.1f} GiB "
+            f"({WORKER_MEMORY_BYTES // 2**20} MiB each) and {available / 2**30:.1f} GiB is available: "
+            f"use at most {fits}"
+        )
 
 
 _WORKER: EnvelopeSimulator | None = None
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 def _init_worker(simulator: EnvelopeSimulator) -> None:
     global _WORKER
     _WORKER = simulator
+    # The parent handles Ctrl-C (it reaches the whole process group) and SIGTERM, and then
+    # terminates the pool; a worker must neither print its own KeyboardInterrupt nor outlive it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if sys.platform.startswith("linux"):  # die with the parent, however it ends (even SIGKILL)
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def _worker_analog(span: tuple[int, int]) -> np.ndarray:

@@ -7,9 +7,13 @@ amplitude while data averages out. The stacker knows nothing of the network's fr
 The stream arrives in chunks of any size. The stacker checks what a driver or bag can get
 wrong and reports it as a :class:`~deepsync.types.Health` event instead of stacking garbage:
 
-* a gap (``first_sample_index`` jumps) or samples that are not finite: the frames that would
-  span it are dropped and stacking restarts after it; stacks before it are unaffected;
-* a chunk that goes back in time (index below what was already seen): dropped;
+* a gap (``first_sample_index`` jumps), samples that are not finite, or ADC codes beyond the
+  range of ``adc_bits`` (no ADC makes them: the data is corrupt): the frames that would span
+  them are dropped and stacking restarts after them; stacks before are unaffected;
+* a chunk a little before what was already received (a late or repeated chunk, at most a
+  stack back, on the same timeline): dropped;
+* a stream that starts over (its index goes back further than a stack, or goes back while its
+  time goes on: a driver restart, a bag played in a loop): stacking starts afresh from it;
 * a chunk at another sample rate than the stacker's (the rate the templates were built for:
   one source of the rate): dropped with everything pending, and so is every chunk after it
   until the rate is right again, when stacking restarts;
@@ -115,8 +119,10 @@ class FrameStacker:
         """Add a chunk of ADC codes; return the stacks it completes."""
         volts = chunk.samples.astype(np.float32) * np.float32(chunk.volts_per_code)
         low, high = -(2 ** (chunk.adc_bits - 1)), 2 ** (chunk.adc_bits - 1) - 1
-        clipped = (chunk.samples <= low) | (chunk.samples >= high)
-        return self.push_samples(volts, chunk.first_sample_index, chunk.sample_rate, chunk.stamp_ns, clipped)
+        clipped = (chunk.samples == low) | (chunk.samples == high)
+        corrupt = (chunk.samples < low) | (chunk.samples > high)
+        return self.push_samples(volts, chunk.first_sample_index, chunk.sample_rate, chunk.stamp_ns, clipped,
+                                 corrupt if corrupt.any() else None, chunk.adc_bits)
 
     def push_samples(
         self,
@@ -125,9 +131,12 @@ class FrameStacker:
         sample_rate: float,
         stamp_ns: int = 0,
         clipped: np.ndarray | None = None,
+        corrupt: np.ndarray | None = None,
+        adc_bits: int | None = None,
     ) -> list[Stack]:
         """Add float samples from any source (ADC volts, a recorded |x|^2, ...), sampled at
-        ``sample_rate`` (Hz): at any other rate than the stacker's they are dropped (an event)."""
+        ``sample_rate`` (Hz): at any other rate than the stacker's they are dropped (an event).
+        ``clipped`` marks samples at the ADC rails, ``corrupt`` codes beyond ``adc_bits``."""
         samples = np.asarray(samples, dtype=np.float32)
         clipped = np.zeros(len(samples), dtype=bool) if clipped is None else np.asarray(clipped, dtype=bool)
         if not math.isclose(sample_rate, self.sample_rate, rel_tol=1e-9):
@@ -146,6 +155,15 @@ class FrameStacker:
         self._wrong_rate = False
         if self._expected is None:
             self._restart(first_sample_index, stamp_ns)
+        elif first_sample_index < self._expected and self._starts_over(first_sample_index, stamp_ns):
+            self.events.append(Health(
+                HealthKind.RESTART,
+                f"the stream starts over at sample {first_sample_index} after sample {self._expected - 1} "
+                f"(a driver restart, a bag played again?): {len(self._buffer)} pending samples (an unfinished "
+                "stack) dropped; stacking starts afresh",
+                first_sample_index,
+            ))
+            self._restart(first_sample_index, stamp_ns)
         elif first_sample_index < self._expected:
             self.events.append(Health(
                 HealthKind.BACKWARDS,
@@ -158,13 +176,19 @@ class FrameStacker:
             self._restart(first_sample_index, stamp_ns)
         self._expected = first_sample_index + len(samples)
 
-        bad = ~np.isfinite(samples)
+        not_finite = ~np.isfinite(samples)
+        bad = not_finite if corrupt is None else not_finite | corrupt
         if not bad.any():
             return self._append(samples, clipped)
         first, last = int(np.argmax(bad)), len(bad) - 1 - int(np.argmax(bad[::-1]))
         stacks = self._append(samples[:first], clipped[:first])
-        self._event(HealthKind.NOT_FINITE, first_sample_index + first,
-                    f"{int(bad.sum())} non-finite samples up to sample {first_sample_index + last}")
+        if corrupt is not None and corrupt.any():
+            self._event(HealthKind.CORRUPT, first_sample_index + first,
+                        f"{int(corrupt.sum())} codes beyond the {adc_bits}-bit ADC's range (corrupt data?) up to "
+                        f"sample {first_sample_index + last}")
+        else:
+            self._event(HealthKind.NOT_FINITE, first_sample_index + first,
+                        f"{int(bad.sum())} non-finite samples up to sample {first_sample_index + last}")
         after = first_sample_index + last + 1
         self._restart(after, stamp_ns + round((last + 1) * 1e9 / sample_rate))
         return stacks + self._append(samples[last + 1 :], clipped[last + 1 :])
@@ -174,6 +198,14 @@ class FrameStacker:
             kind, f"{what} at sample {index}: {len(self._buffer)} pending samples (an unfinished "
             "stack) dropped; stacking restarts after it", index,
         ))
+
+    def _starts_over(self, index: int, stamp_ns: int) -> bool:
+        """Whether a chunk before what was received begins a new stream rather than repeating
+        part of this one: it goes back more than a stack could span, or its stamp is off the
+        timeline the stream has kept so far by more than a frame (the index went back, time did not)."""
+        stack = self.config.n_frames * self.frame_samples
+        off_timeline = abs(stamp_ns - self._stamp(index)) > FRAME_SECONDS * 1e9
+        return self._expected - index > stack or off_timeline
 
     def _restart(self, index: int, stamp_ns: int) -> None:
         self._buffer = np.empty(0, dtype=np.float32)

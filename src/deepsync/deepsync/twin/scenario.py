@@ -30,18 +30,25 @@ The schema, with defaults for the optional keys::
 
 ``auto`` (or ``null``) values stay ``None`` here; the twin draws them from the seed. The
 ground is flat at the origin's ellipsoidal height: every antenna height is above it.
+
+Every number has a physical range (the ``*_RANGE*`` constants below, each with its reason),
+and the geometry must fit one LTE neighbourhood: no site and no receiver point farther than
+``MAX_DISTANCE_M`` from the origin, and no receiver point farther than that from every site.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
+
 from deepsync.configio import ConfigError, build_dataclass, load_yaml, require_list
 from deepsync.frontend.config import FrontendConfig
+from deepsync.geo import geodetic_to_ecef
 from deepsync.lte.cell import CellConfig, check_pci
 from deepsync.lte.earfcn import band_of, check_channel, downlink_frequency_hz
 from deepsync.lte.numerology import check_bandwidth
@@ -54,6 +61,57 @@ T = TypeVar("T")
 LOS_MODES = ("auto", "los", "nlos")
 TIMING_OFFSET_RANGE_US = (0.0, 10_000.0)  # one 10 ms frame
 AUTO_FREQUENCY_ERROR_PPB = 20.0
+
+# Physical ranges (inclusive) of the scenario's numbers. A value outside is a typo or a unit
+# slip (kW for dBm, radians for degrees), never a world the twin should simulate.
+# The seed travels in bag provenance and ROS 2 parameters, both int64.
+SEED_RANGE = (0, 2**63 - 1)
+# Ellipsoidal height of the ground: the Dead Sea shore (-430 m) to Everest (8849 m), plus the
+# geoid's undulation (-106..+85 m).
+GROUND_HEIGHT_RANGE_M = (-1000.0, 9000.0)
+# Antenna above ground: a transmitter on a tripod to the tallest masts (~630 m); a hill under
+# a site is not modelled (the ground is flat), so up to 1000 m also stands for a ridge site.
+SITE_HEIGHT_RANGE_M = (1.0, 1000.0)
+# A receiver on the ground to a drone (TR 36.777's aerial UEs fly up to 300 m; TR 38.901's
+# path loss itself is fitted for 1.5..22.5 m).
+RECEIVER_HEIGHT_RANGE_M = (0.1, 300.0)
+# TS 36.104 (6.5.1) holds a wide-area eNB's carrier within +-50 ppb (local area +-100, home
+# +-250). The twin allows +-1000 ppb to simulate a faulty or free-running oscillator, which a
+# tracker must survive; beyond that (2 kHz at 2 GHz, 1/8 of a subcarrier) no UE camps.
+FREQUENCY_ERROR_RANGE_PPB = (-1000.0, 1000.0)
+# Carrier EIRP at boresight: a bench test source or a femtocell behind a wall (-30 dBm) to
+# the largest macro sector (2 x 60 W into an 18 dBi panel is ~70 dBm), with margin.
+EIRP_RANGE_DBM = (-30.0, 80.0)
+# A compass bearing of either sign (-30 is 330); more than a turn is a typo.
+AZIMUTH_RANGE_DEG = (-360.0, 360.0)
+# Macro panels tilt 0..15 deg (electrical plus mechanical), a rooftop small cell looks down at
+# up to ~45 deg; an uptilt towards high floors is a few degrees.
+DOWNTILT_RANGE_DEG = (-20.0, 45.0)
+# Sector pattern (twin.antenna): panels are 33..120 deg wide and 4..30 deg tall; narrower is a
+# dish, wider than a half-plane is no sector. Front-to-back and side-lobe levels of real
+# panels are 15..40 dB; beyond 60 dB the scattered environment sets the floor anyway.
+ANTENNA_RANGES: dict[str, tuple[float, float, str]] = {
+    "horizontal_beamwidth_deg": (10.0, 180.0, "deg"),
+    "vertical_beamwidth_deg": (2.0, 90.0, "deg"),
+    "front_back_db": (5.0, 60.0, "dB"),
+    "side_lobe_db": (5.0, 60.0, "dB"),
+}
+# RMS delay spread: one path (1 ns) to hilly terrain (COST 207 HT, ~5 us); TR 38.901's
+# longest reference value is 1000 ns.
+DELAY_SPREAD_RANGE_NS = (1.0, 5000.0)
+# Doppler of the moving surroundings of a static receiver: still air (0) to traffic passing at
+# highway speed (30 m/s at 2.7 GHz is 270 Hz).
+ENVIRONMENT_DOPPLER_RANGE_HZ = (0.0, 300.0)
+# Route speed: a slow walk (slower is standing: give a position) to a high-speed train at
+# 500 km/h, the highest speed LTE is designed for.
+SPEED_RANGE_MPS = (0.1, 140.0)
+# Time for one pass of a route: at least one 10 ms frame (shorter moves the receiver between
+# two fixes: give a position) and at most a day (longer is not one drive: split it).
+ROUTE_DURATION_RANGE_S = (0.01, 86_400.0)
+# LTE's largest cells (PRACH format 3) reach ~100 km; there the flat map-frame ground is already
+# ~0.8 km below the real one. No scenario point may be farther from the origin, and a receiver
+# farther than that from every site hears none of them.
+MAX_DISTANCE_M = 100e3
 
 
 @dataclass(frozen=True)
@@ -246,21 +304,26 @@ def load_scenario(path: str | Path) -> Scenario:
 def parse_scenario(data: object, where: str = "scenario") -> Scenario:
     """Validate an already-loaded scenario mapping (see the module docstring for the schema)."""
     keys = build_dataclass(_ScenarioKeys, data, where)
-    _require(keys.seed >= 0, f"{where}.seed", f"must be >= 0, got {keys.seed}")
+    _require_range(keys.seed, SEED_RANGE, f"{where}.seed")
     origin = build_dataclass(Origin, keys.origin, f"{where}.origin")
     _check_lat_lon(origin, f"{where}.origin")
+    _require_range(origin.height_m, GROUND_HEIGHT_RANGE_M, f"{where}.origin.height_m", "m")
     environment = build_dataclass(Environment, _mapping(keys.environment),
                                   f"{where}.environment")
     _require_choice(environment.model, MODELS, f"{where}.environment.model")
     _require_choice(environment.los, LOS_MODES, f"{where}.environment.los")
+    channel = _parse_channel(keys.channel, f"{where}.channel")
+    sites = _parse_sites(keys.sites, f"{where}.sites")
+    receiver = _parse_receiver(keys.receiver, f"{where}.receiver")
+    _check_distances(origin, sites, receiver, where)
     return Scenario(
         name=keys.name,
         seed=keys.seed,
         origin=origin,
         environment=environment,
-        channel=_parse_channel(keys.channel, f"{where}.channel"),
-        sites=_parse_sites(keys.sites, f"{where}.sites"),
-        receiver=_parse_receiver(keys.receiver, f"{where}.receiver"),
+        channel=channel,
+        sites=sites,
+        receiver=receiver,
         frontend=build_dataclass(FrontendConfig, _mapping(keys.frontend), f"{where}.frontend"),
     )
 
@@ -268,6 +331,12 @@ def parse_scenario(data: object, where: str = "scenario") -> Scenario:
 def _require(condition: bool, where: str, message: str) -> None:
     if not condition:
         raise ConfigError(f"{where}: {message}")
+
+
+def _require_range(value: float, bounds: tuple[float, float], where: str, unit: str = "") -> None:
+    low, high = bounds
+    _require(low <= value <= high, where,
+             f"{value!r} is outside {f'[{low:g}, {high:g}] {unit}'.rstrip()}")
 
 
 def _require_choice(value: str, choices: tuple[str, ...] | list[str], where: str) -> None:
@@ -307,10 +376,10 @@ def _parse_channel(data: object, where: str) -> ChannelSettings:
     for name in ("profile_los", "profile_nlos"):
         _require_choice(getattr(channel, name), list(TDL_PROFILES), f"{where}.{name}")
     if channel.delay_spread_ns is not None:
-        _require(channel.delay_spread_ns > 0, f"{where}.delay_spread_ns",
-                 f"must be > 0 (or auto), got {channel.delay_spread_ns!r}")
-    _require(channel.environment_doppler_hz >= 0, f"{where}.environment_doppler_hz",
-             f"must be >= 0, got {channel.environment_doppler_hz!r}")
+        _require_range(channel.delay_spread_ns, DELAY_SPREAD_RANGE_NS,
+                       f"{where}.delay_spread_ns", "ns (or auto)")
+    _require_range(channel.environment_doppler_hz, ENVIRONMENT_DOPPLER_RANGE_HZ,
+                   f"{where}.environment_doppler_hz", "Hz")
     return channel
 
 
@@ -337,11 +406,14 @@ def _parse_site(data: object, where: str) -> SiteSpec:
                            where)
     _require(keys.name.strip() != "", f"{where}.name", "must not be empty")
     _check_lat_lon(keys, where)
-    _require(keys.height_m > 0, f"{where}.height_m", f"must be > 0 m, got {keys.height_m!r}")
+    _require_range(keys.height_m, SITE_HEIGHT_RANGE_M, f"{where}.height_m", "m")
     if keys.timing_offset_us is not None:
         low, high = TIMING_OFFSET_RANGE_US
         _require(low <= keys.timing_offset_us < high, f"{where}.timing_offset_us",
                  f"{keys.timing_offset_us!r} is outside [{low:g}, {high:g}) us (or use auto)")
+    if keys.frequency_error_ppb is not None:
+        _require_range(keys.frequency_error_ppb, FREQUENCY_ERROR_RANGE_PPB,
+                       f"{where}.frequency_error_ppb", "ppb (or use auto)")
     fields = {f.name: getattr(keys, f.name) for f in dataclasses.fields(keys)}
     fields["cells"] = _parse_list(keys.cells, f"{where}.cells", _parse_cell)
     return SiteSpec(**fields)
@@ -353,14 +425,17 @@ def _parse_cell(data: object, where: str) -> CellSpec:
     _wrap(band_of, keys.earfcn, f"{where}.earfcn")
     bandwidth = _wrap(check_bandwidth, keys.bandwidth_mhz, f"{where}.bandwidth_mhz")
     _wrap(lambda earfcn: check_channel(earfcn, bandwidth), keys.earfcn, f"{where}.bandwidth_mhz")
-    _require(-90.0 <= keys.downtilt_deg <= 90.0, f"{where}.downtilt_deg",
-             f"{keys.downtilt_deg!r} is outside [-90, 90]")
+    _require_range(keys.eirp_dbm, EIRP_RANGE_DBM, f"{where}.eirp_dbm", "dBm")
+    _require_range(keys.azimuth_deg, AZIMUTH_RANGE_DEG, f"{where}.azimuth_deg", "deg")
+    _require_range(keys.downtilt_deg, DOWNTILT_RANGE_DEG, f"{where}.downtilt_deg", "deg")
     # CellConfig checks load, cfi and weights; add them one at a time so an error names its key.
     config: dict[str, Any] = {"pci": keys.pci, "bandwidth_mhz": bandwidth}
     for name in ("load", "cfi", "modulation_weights"):
         config[name] = getattr(keys, name)
         cell = _wrap(lambda values: CellConfig(**values), config, f"{where}.{name}")
     antenna = build_dataclass(SectorPattern, _mapping(keys.antenna), f"{where}.antenna")
+    for name, (low, high, unit) in ANTENNA_RANGES.items():
+        _require_range(getattr(antenna, name), (low, high), f"{where}.antenna.{name}", unit)
     return CellSpec(cell, keys.earfcn, keys.eirp_dbm, keys.azimuth_deg, keys.downtilt_deg,
                     antenna)
 
@@ -375,7 +450,7 @@ def _wrap(check: Callable[[Any], T], value: Any, where: str) -> T:
 
 def _parse_receiver(data: object, where: str) -> ReceiverSpec:
     keys = build_dataclass(_ReceiverKeys, data, where)
-    _require(keys.height_m > 0, f"{where}.height_m", f"must be > 0 m, got {keys.height_m!r}")
+    _require_range(keys.height_m, RECEIVER_HEIGHT_RANGE_M, f"{where}.height_m", "m")
     _require((keys.position is None) != (keys.route is None), where,
              "give exactly one of 'position' (a fixed receiver) or 'route' (a moving one)")
     if keys.position is not None:
@@ -387,12 +462,21 @@ def _parse_receiver(data: object, where: str) -> ReceiverSpec:
 
 def _parse_route(data: object, where: str) -> RouteSpec:
     keys = build_dataclass(_RouteKeys, data, where)
-    _require(keys.speed_mps > 0, f"{where}.speed_mps", f"must be > 0 m/s, got {keys.speed_mps!r}")
+    _require_range(keys.speed_mps, SPEED_RANGE_MPS, f"{where}.speed_mps", "m/s")
     waypoints = _parse_list(keys.waypoints, f"{where}.waypoints", _parse_waypoint)
     _require(len(waypoints) >= 2, f"{where}.waypoints",
              f"a route needs at least 2 waypoints, got {len(waypoints)}")
     _require(len(set(waypoints)) > 1, f"{where}.waypoints",
              "all waypoints are the same point: the route has zero length")
+    # Straight segments, as the trajectory walks them (chords on the ellipsoid: the ground's
+    # height changes the length by < 0.2 %).
+    points = _ecef(waypoints + waypoints[:1] if keys.loop else waypoints, 0.0)
+    length_m = float(np.sum(np.linalg.norm(np.diff(points, axis=0), axis=1)))
+    duration_s = length_m / keys.speed_mps
+    low, high = ROUTE_DURATION_RANGE_S
+    _require(low <= duration_s <= high, where,
+             f"one pass takes {duration_s:.4g} s ({length_m:.4g} m at {keys.speed_mps:g} m/s), "
+             f"outside [{low:g}, {high:g}] s")
     return RouteSpec(keys.speed_mps, waypoints, keys.loop)
 
 
@@ -400,3 +484,43 @@ def _parse_waypoint(data: object, where: str) -> LatLon:
     point = build_dataclass(LatLon, data, where)
     _check_lat_lon(point, where)
     return point
+
+
+def _ecef(points: Sequence[Origin | LatLon | SiteSpec], height_m: float | list[float]
+          ) -> np.ndarray:
+    """ECEF (m) of N >= 2 points at ellipsoidal ``height_m``, shape (N, 3) (pyproj warns on
+    one-element arrays)."""
+    return geodetic_to_ecef([p.latitude_deg for p in points], [p.longitude_deg for p in points],
+                            height_m).reshape(-1, 3)
+
+
+def _check_distances(origin: Origin, sites: tuple[SiteSpec, ...], receiver: ReceiverSpec,
+                     where: str) -> None:
+    """Refuse a site or receiver point beyond ``MAX_DISTANCE_M`` (straight line) from the
+    origin, and a receiver point beyond it from every site: a world the flat map frame cannot
+    hold, or a receiver that hears no cell (and would still get a channel, even LOS)."""
+    limit_km = MAX_DISTANCE_M / 1e3
+    if receiver.position is not None:
+        points, paths = [receiver.position], [f"{where}.receiver.position"]
+    else:
+        points = list(receiver.route.waypoints)
+        paths = [f"{where}.receiver.route.waypoints[{k}]" for k in range(len(points))]
+    # one conversion for all points (the origin and a site make at least two)
+    heights = [origin.height_m, *(origin.height_m + site.height_m for site in sites),
+               *[origin.height_m + receiver.height_m] * len(points)]
+    xyz = _ecef([origin, *sites, *points], heights)
+    centre, site_points, receiver_points = xyz[0], xyz[1 : len(sites) + 1], xyz[len(sites) + 1 :]
+    for i, (site, distance) in enumerate(zip(sites, np.linalg.norm(site_points - centre, axis=1))):
+        _require(distance <= MAX_DISTANCE_M, f"{where}.sites[{i}]",
+                 f"site {site.name!r} is {distance / 1e3:.1f} km from the origin, beyond the "
+                 f"{limit_km:g} km a scenario may span (LTE's largest cell radius)")
+    from_origin = np.linalg.norm(receiver_points - centre, axis=1)
+    from_sites = np.linalg.norm(receiver_points[:, None] - site_points[None], axis=2)
+    for path, distance, to_sites in zip(paths, from_origin, from_sites):
+        _require(distance <= MAX_DISTANCE_M, path,
+                 f"the receiver is {distance / 1e3:.1f} km from the origin, beyond the "
+                 f"{limit_km:g} km a scenario may span (LTE's largest cell radius)")
+        nearest = int(np.argmin(to_sites))
+        _require(to_sites[nearest] <= MAX_DISTANCE_M, path,
+                 f"the receiver is {to_sites[nearest] / 1e3:.1f} km from the nearest site "
+                 f"({sites[nearest].name!r}), beyond the {limit_km:g} km an LTE cell reaches")

@@ -1,0 +1,326 @@
+"""Bad input, configuration: one file of the project's bad-input matrix (``test/test_bad_input_*.py``,
+issue "Nothing silent, nothing lost").
+
+The matrix has one row per bad input, and each row asserts the outcome class that input must
+get. Here, for configuration (the receiver chain ``FrontendConfig``, scenario files, tower
+databases), the outcome is always a ConfigError/ValueError at load time whose message names the
+field and its allowed range, never a value that passes silently and fails later (out of memory,
+an OverflowError, a cell dropped from the search, a receiver on the other side of the Earth
+still "in line of sight"). A few rows per table show that the edge values of each range still
+pass. Later work (fusion, the timing network, the ROS nodes) adds its own files and rows.
+"""
+
+import copy
+import typing
+from pathlib import Path
+
+import pytest
+import yaml
+
+from deepsync.configio import ConfigError
+from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
+from deepsync.towers import load_tower_database, parse_tower_database
+from deepsync.twin.scenario import Scenario, load_scenario, parse_scenario
+
+CONFIG = Path(__file__).resolve().parents[1] / "config"
+
+# -- FrontendConfig ----------------------------------------------------------------------------
+
+# (overrides, field, allowed range as the message gives it)
+BAD_FRONTEND = [
+    pytest.param({"adc_rate_hz": 1e10}, "adc_rate_hz", "[100000, 6.144e+07] Hz",
+                 id="adc-rate-10GHz-out-of-memory"),
+    pytest.param({"adc_rate_hz": 5e4, "video_cutoff_hz": 2e4, "video_highpass_hz": 0.0},
+                 "adc_rate_hz", "[100000, 6.144e+07] Hz", id="adc-rate-50kHz"),
+    pytest.param({"adc_bits": 17}, "adc_bits", "[2, 16] bits", id="adc-bits-17"),
+    pytest.param({"adc_full_scale_v": 1000.0}, "adc_full_scale_v", "[0.1, 20] V",
+                 id="full-scale-1kV"),
+    pytest.param({"adc_full_scale_v": 1e-3}, "adc_full_scale_v", "[0.1, 20] V",
+                 id="full-scale-1mV"),
+    pytest.param({"adc_noise_lsb": 1000.0}, "adc_noise_lsb", "[0, 16] LSB RMS",
+                 id="adc-noise-1000-lsb"),
+    pytest.param({"clock_offset_ppm": 2000.0}, "clock_offset_ppm", "[-1000, 1000] ppm",
+                 id="clock-offset-2000ppm"),
+    pytest.param({"clock_drift_ppm_per_s": -11.0}, "clock_drift_ppm_per_s", "[-10, 10] ppm/s",
+                 id="clock-drift-11ppm-per-s"),
+    pytest.param({"video_cutoff_hz": 1e3, "video_highpass_hz": 0.0}, "video_cutoff_hz",
+                 "[10000, 3.072e+07] Hz", id="video-cutoff-1kHz"),
+    pytest.param({"video_highpass_hz": 5e3}, "video_highpass_hz", "[0, 1000] Hz",
+                 id="highpass-5kHz"),
+    pytest.param({"video_filter_order": 9}, "video_filter_order", "[0, 8]", id="filter-order-9"),
+    pytest.param({"video_gain_db": 1e6}, "video_gain_db", "[-40, 100] dB", id="video-gain-1e6dB"),
+    pytest.param({"video_gain_db": -200.0}, "video_gain_db", "[-40, 100] dB",
+                 id="video-gain-minus-200dB"),
+    pytest.param({"agc_target_dbfs": -0.5}, "agc_target_dbfs", "[-60, -1] dBFS",
+                 id="agc-target-clips"),
+    pytest.param({"agc_target_dbfs": -200.0}, "agc_target_dbfs", "[-60, -1] dBFS",
+                 id="agc-target-minus-200dBFS"),
+    pytest.param({"detector_responsivity_v_per_w": 1e9}, "detector_responsivity_v_per_w",
+                 "[10, 100000] V/W", id="responsivity-1GV-per-W"),
+    pytest.param({"detector_responsivity_v_per_w": 0.01}, "detector_responsivity_v_per_w",
+                 "[10, 100000] V/W", id="responsivity-10mV-per-W"),
+    pytest.param({"detector_nep_w_per_sqrt_hz": 1e-3}, "detector_nep_w_per_sqrt_hz",
+                 "[0, 1e-09] W/sqrt(Hz)", id="nep-1mW"),
+    pytest.param({"noise_figure_db": 1e6}, "noise_figure_db", "[0, 100] dB",
+                 id="noise-figure-1e6dB-overflow"),
+    pytest.param({"rf_gain_db": 61.0}, "rf_gain_db", "[0, 60] dB", id="rf-gain-61dB"),
+    pytest.param({"rf_bandwidth_hz": 1e12}, "rf_bandwidth_hz", "[1e+06, 6e+09] Hz",
+                 id="rf-bandwidth-1THz"),
+    pytest.param({"rf_bandwidth_hz": 1e3}, "rf_bandwidth_hz", "[1e+06, 6e+09] Hz",
+                 id="rf-bandwidth-1kHz"),
+    pytest.param({"noise_temperature_k": 1e6}, "noise_temperature_k", "[0, 1000] K",
+                 id="noise-temperature-1MK"),
+]
+
+
+@pytest.mark.parametrize(("overrides", "field", "allowed"), BAD_FRONTEND)
+def test_bad_frontend_config_names_the_field_and_range(overrides, field, allowed):
+    with pytest.raises(ValueError) as error:
+        FrontendConfig(**overrides)
+    assert f"{field} must be within {allowed}, got" in str(error.value)
+
+
+@pytest.mark.parametrize(("overrides", "field", "allowed"), BAD_FRONTEND)
+def test_bad_frontend_section_of_a_scenario_names_the_path(overrides, field, allowed):
+    data = _scenario()
+    data["frontend"] = overrides
+    with pytest.raises(ConfigError) as error:
+        parse_scenario(data)
+    assert f"scenario.frontend: {field} must be within {allowed}" in str(error.value)
+
+
+@pytest.mark.parametrize("overrides", [
+    pytest.param({"adc_rate_hz": 61.44e6}, id="adc-rate-61.44MHz"),
+    pytest.param({"adc_rate_hz": 0.1e6, "video_cutoff_hz": 10e3, "video_highpass_hz": 0.0},
+                 id="adc-rate-0.1MHz-cutoff-10kHz"),
+    pytest.param({"noise_figure_db": 100.0, "noise_temperature_k": 1000.0}, id="noisiest"),
+    pytest.param({"noise_temperature_k": 0.0, "detector_nep_w_per_sqrt_hz": 0.0,
+                  "adc_noise_lsb": 0.0, "video_highpass_hz": 0.0}, id="noiseless"),
+    pytest.param({"video_gain_db": 100.0, "agc_target_dbfs": -60.0}, id="gain-and-agc-edges"),
+    pytest.param({"adc_bits": 2, "video_filter_order": 0, "rf_gain_db": 0.0}, id="int-edges"),
+])
+def test_frontend_edge_values_pass(overrides):
+    config = FrontendConfig(**overrides)
+    assert all(getattr(config, name) == value for name, value in overrides.items())
+
+
+def test_every_frontend_number_has_a_range():
+    hints = typing.get_type_hints(FrontendConfig)
+    numbers = {name for name, hint in hints.items() if {int, float} & {hint, *typing.get_args(hint)}}
+    assert numbers == set(FRONTEND_RANGES)
+    for low, high, _unit in FRONTEND_RANGES.values():
+        assert low < high
+
+
+# -- scenario files ----------------------------------------------------------------------------
+
+BASE = """\
+name: bad-input
+seed: 3
+origin: {latitude_deg: 38.9869, longitude_deg: -76.9426, height_m: 10.0}
+environment: {model: UMa, los: auto}
+channel: {delay_spread_ns: auto, environment_doppler_hz: 1.0}
+sites:
+  - name: A
+    latitude_deg: 38.9858
+    longitude_deg: -76.9476
+    height_m: 30
+    timing_offset_us: 100.0
+    frequency_error_ppb: 12.0
+    cells:
+      - {pci: 120, earfcn: 2000, bandwidth_mhz: 10, eirp_dbm: 61, azimuth_deg: 30,
+         downtilt_deg: 6, antenna: {horizontal_beamwidth_deg: 65}}
+receiver:
+  height_m: 1.5
+  position: {latitude_deg: 38.9869, longitude_deg: -76.9426}
+frontend: {}
+"""
+ROUTE = {"speed_mps": 1.4, "waypoints": [{"latitude_deg": 38.9869, "longitude_deg": -76.9426},
+                                         {"latitude_deg": 38.9872, "longitude_deg": -76.9420}]}
+CELL = ("sites", 0, "cells", 0)
+ANTIPODE = {"latitude_deg": -38.9869, "longitude_deg": 103.0574}  # 12,740 km through the Earth
+
+
+def _scenario(*edits: tuple[tuple, object]) -> dict:
+    """The base scenario as a mapping, with ``(key path, value)`` edits applied."""
+    data = yaml.safe_load(BASE)
+    for path, value in edits:
+        node = data
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = copy.deepcopy(value)
+    return data
+
+
+def _route(*points: tuple[float, float], speed: float = 1.4) -> dict:
+    return {"speed_mps": speed,
+            "waypoints": [{"latitude_deg": lat, "longitude_deg": lon} for lat, lon in points]}
+
+
+# (edits, field path, the range or limit as the message gives it)
+BAD_SCENARIO = [
+    pytest.param([(CELL + ("eirp_dbm",), 300)], "scenario.sites[0].cells[0].eirp_dbm",
+                 "300.0 is outside [-30, 80] dBm", id="eirp-plus-300dBm"),
+    pytest.param([(CELL + ("eirp_dbm",), -300)], "scenario.sites[0].cells[0].eirp_dbm",
+                 "-300.0 is outside [-30, 80] dBm", id="eirp-minus-300dBm"),
+    pytest.param([(CELL + ("azimuth_deg",), 1e20)], "scenario.sites[0].cells[0].azimuth_deg",
+                 "1e+20 is outside [-360, 360] deg", id="azimuth-1e20"),
+    pytest.param([(CELL + ("azimuth_deg",), -400)], "scenario.sites[0].cells[0].azimuth_deg",
+                 "is outside [-360, 360] deg", id="azimuth-minus-400"),
+    pytest.param([(CELL + ("downtilt_deg",), 60)], "scenario.sites[0].cells[0].downtilt_deg",
+                 "is outside [-20, 45] deg", id="downtilt-60"),
+    pytest.param([(CELL + ("antenna",), {"horizontal_beamwidth_deg": 359})],
+                 "scenario.sites[0].cells[0].antenna.horizontal_beamwidth_deg",
+                 "is outside [10, 180] deg", id="beamwidth-359"),
+    pytest.param([(CELL + ("antenna",), {"front_back_db": 1000})],
+                 "scenario.sites[0].cells[0].antenna.front_back_db",
+                 "is outside [5, 60] dB", id="front-back-1000dB"),
+    pytest.param([(("sites", 0, "frequency_error_ppb"), 1e9)],
+                 "scenario.sites[0].frequency_error_ppb",
+                 "is outside [-1000, 1000] ppb", id="oscillator-1e9ppb"),
+    pytest.param([(("sites", 0, "frequency_error_ppb"), -1500)],
+                 "scenario.sites[0].frequency_error_ppb",
+                 "is outside [-1000, 1000] ppb", id="oscillator-minus-1500ppb"),
+    pytest.param([(("sites", 0, "height_m"), 5000)], "scenario.sites[0].height_m",
+                 "is outside [1, 1000] m", id="site-height-5km"),
+    pytest.param([(("sites", 0, "height_m"), 0.5)], "scenario.sites[0].height_m",
+                 "is outside [1, 1000] m", id="site-height-half-metre"),
+    pytest.param([(("receiver", "height_m"), 1000)], "scenario.receiver.height_m",
+                 "is outside [0.1, 300] m", id="receiver-height-1km"),
+    pytest.param([(("origin", "height_m"), 1e5)], "scenario.origin.height_m",
+                 "is outside [-1000, 9000] m", id="ground-100km-up"),
+    pytest.param([(("seed",), 2**64)], "scenario.seed",
+                 "is outside [0, 9.22337e+18]", id="seed-beyond-int64"),
+    pytest.param([(("channel", "delay_spread_ns"), 1e6)], "scenario.channel.delay_spread_ns",
+                 "is outside [1, 5000] ns", id="delay-spread-1ms"),
+    pytest.param([(("channel", "environment_doppler_hz"), 1e4)],
+                 "scenario.channel.environment_doppler_hz", "is outside [0, 300] Hz",
+                 id="environment-doppler-10kHz"),
+    pytest.param([(("receiver", "position"), None), (("receiver", "route"), {**ROUTE, "speed_mps": 1e3})],
+                 "scenario.receiver.route.speed_mps", "is outside [0.1, 140] m/s",
+                 id="speed-1km-per-s"),
+    pytest.param([(("receiver", "position"), None), (("receiver", "route"), {**ROUTE, "speed_mps": 0.01})],
+                 "scenario.receiver.route.speed_mps", "is outside [0.1, 140] m/s",
+                 id="speed-1cm-per-s"),
+    pytest.param([(("receiver", "position"), None),
+                  (("receiver", "route"), _route((38.9869, -76.9426), (39.3869, -76.9426), speed=0.2))],
+                 "scenario.receiver.route", "outside [0.01, 86400] s", id="route-takes-2.5-days"),
+    pytest.param([(("receiver", "position"), None),
+                  (("receiver", "route"), _route((38.9869, -76.9426), (38.98690001, -76.9426)))],
+                 "scenario.receiver.route", "outside [0.01, 86400] s", id="route-1mm-long"),
+    pytest.param([(("receiver", "position"), ANTIPODE)], "scenario.receiver.position",
+                 "km from the origin, beyond the 100 km", id="receiver-12000km"),
+    pytest.param([(("environment", "los"), "los"), (("receiver", "position"), ANTIPODE)],
+                 "scenario.receiver.position", "km from the origin, beyond the 100 km",
+                 id="receiver-12000km-forced-los"),
+    pytest.param([(("sites", 0, "latitude_deg"), 39.5869), (("sites", 0, "longitude_deg"), -76.9426),
+                  (("receiver", "position"), {"latitude_deg": 38.3869, "longitude_deg": -76.9426})],
+                 "scenario.receiver.position", "km from the nearest site ('A'), beyond the 100 km",
+                 id="receiver-133km-from-the-only-site"),
+    pytest.param([(("receiver", "position"), None),
+                  (("receiver", "route"), _route((38.9869, -76.9426), (40.3369, -76.9426), speed=10))],
+                 "scenario.receiver.route.waypoints[1]", "149.9 km from the origin, beyond the 100 km",
+                 id="route-waypoint-150km"),
+    pytest.param([(("sites", 0, "latitude_deg"), 40.5)], "scenario.sites[0]",
+                 "site 'A' is 168", id="site-168km-from-origin"),
+]
+
+
+@pytest.mark.parametrize(("edits", "field", "allowed"), BAD_SCENARIO)
+def test_bad_scenario_names_the_field_and_range(tmp_path, edits, field, allowed):
+    path = tmp_path / "scenario.yaml"
+    path.write_text(yaml.safe_dump(_scenario(*edits), sort_keys=False))  # as a user's file
+    with pytest.raises(ConfigError) as error:
+        load_scenario(path)
+    message = str(error.value)
+    assert message.startswith(f"{field}: ") and allowed in message, message
+
+
+@pytest.mark.parametrize("edits", [
+    pytest.param([(CELL + ("eirp_dbm",), 80), (CELL + ("azimuth_deg",), -360),
+                  (CELL + ("downtilt_deg",), 45)], id="cell-edges-high"),
+    pytest.param([(CELL + ("eirp_dbm",), -30), (CELL + ("azimuth_deg",), 360),
+                  (CELL + ("downtilt_deg",), -20)], id="cell-edges-low"),
+    pytest.param([(("sites", 0, "frequency_error_ppb"), -1000), (("sites", 0, "height_m"), 1000),
+                  (("receiver", "height_m"), 300), (("origin", "height_m"), -1000)],
+                 id="site-and-heights-edges"),
+    pytest.param([(("channel", "delay_spread_ns"), 5000), (("channel", "environment_doppler_hz"), 300),
+                  (("seed",), 2**63 - 1)], id="channel-and-seed-edges"),
+    pytest.param([(("receiver", "position"), None),
+                  (("receiver", "route"), _route((38.9869, -76.9426), (38.9969, -76.9426), speed=140))],
+                 id="train-speed"),
+    pytest.param([(("receiver", "position"), {"latitude_deg": 38.0869, "longitude_deg": -76.9426})],
+                 id="receiver-99km-away"),
+])
+def test_scenario_edge_values_pass(edits):
+    assert isinstance(parse_scenario(_scenario(*edits)), Scenario)
+
+
+@pytest.mark.parametrize("name", ["campus", "campus_walk"])
+def test_bundled_scenarios_are_inside_every_range(name):
+    assert load_scenario(CONFIG / "scenarios" / f"{name}.yaml").name == name
+
+
+# -- tower databases ---------------------------------------------------------------------------
+
+
+def _towers(*cells: dict, **site: object) -> dict:
+    return {"name": "bad-input", "sites": [{"name": "A", **site, "cells": list(cells)}]}
+
+
+# (database, field path, what the message must say)
+BAD_TOWERS = [
+    pytest.param(_towers({"pci": 120, "earfcn": 2000}, {"pci": 121}), "towers.sites[0].cells",
+                 "earfcn given for cells[0] but not for cells[1]; give it for every sector of "
+                 "site 'A' or for none (sectors of a site are paired by carrier)",
+                 id="earfcn-on-one-sector-only"),
+    pytest.param(_towers({"pci": 120}, {"pci": 121, "earfcn": 2000}, {"pci": 122, "earfcn": 2000}),
+                 "towers.sites[0].cells", "earfcn given for cells[1], cells[2] but not for cells[0]",
+                 id="earfcn-missing-on-first-sector"),
+    pytest.param(_towers({"pci": 120, "earfcn": 2000}, {"pci": 120, "earfcn": 2000}),
+                 "towers.sites[0].cells[1].pci",
+                 "PCI 120 on EARFCN 2000 is already used by towers.sites[0].cells[0]",
+                 id="same-pci-twice-on-one-carrier"),
+    pytest.param(_towers({"pci": 7}, {"pci": 8}, {"pci": 7}), "towers.sites[0].cells[2].pci",
+                 "PCI 7 without an EARFCN is already used by towers.sites[0].cells[0]",
+                 id="same-pci-twice-without-carriers"),
+    pytest.param(_towers({"pci": 1}, latitude_deg=38.98), "towers.sites[0]",
+                 "give both latitude_deg and longitude_deg, or neither", id="half-a-position"),
+    pytest.param(_towers({"pci": 1}, height_m=5000), "towers.sites[0].height_m",
+                 "expected a number in [0, 1000]", id="site-height-5km"),
+    pytest.param(_towers({"pci": 1}, timing_offset_us=-1), "towers.sites[0].timing_offset_us",
+                 "expected a number in [0, 10000]", id="timing-offset-negative"),
+    pytest.param(_towers({"pci": 1}, longitude_deg=200, latitude_deg=0),
+                 "towers.sites[0].longitude_deg", "expected a number in [-180, 180]",
+                 id="longitude-200"),
+    pytest.param(_towers({"pci": 504}), "towers.sites[0].cells[0]",
+                 "PCI 504 is out of range (valid: 0..503)", id="pci-504"),
+    pytest.param(_towers({"pci": 1, "earfcn": 2000.5}), "towers.sites[0].cells[0]",
+                 "EARFCN 2000.5 is not an integer", id="earfcn-fractional"),
+]
+
+
+@pytest.mark.parametrize(("data", "field", "expected"), BAD_TOWERS)
+def test_bad_tower_database_names_the_field(data, field, expected):
+    with pytest.raises(ConfigError) as error:
+        parse_tower_database(data)
+    message = str(error.value)
+    assert message.startswith(f"{field}: ") and expected in message, message
+
+
+@pytest.mark.parametrize(("data", "pairs"), [
+    pytest.param(_towers({"pci": 1}, {"pci": 2}, {"pci": 3}), [(1, 2), (1, 3), (2, 3)],
+                 id="no-carrier-anywhere-pairs-all"),
+    pytest.param(_towers({"pci": 1, "earfcn": 2000}, {"pci": 1, "earfcn": 2300},
+                         {"pci": 2, "earfcn": 2000.0}), [(1, 2)],
+                 id="same-pci-on-two-carriers"),
+    pytest.param(_towers({"pci": 1}, latitude_deg=-90, longitude_deg=180, height_m=0,
+                         timing_offset_us=0), [], id="position-edges"),
+])
+def test_valid_tower_databases_pass(data, pairs):
+    assert parse_tower_database(data).cosited_pairs() == pairs
+
+
+@pytest.mark.parametrize("name", ["campus", "real_lte_1860"])
+def test_bundled_tower_databases_pass(name):
+    assert load_tower_database(CONFIG / "towers" / f"{name}.yaml").name == name
