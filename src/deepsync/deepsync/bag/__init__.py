@@ -22,7 +22,8 @@ from .convert import (
 )
 from .errors import BagError, BagExistsError, MsgDefsNotFoundError
 from .msgdefs import MSG_NAMES, find_msg_dir, load_typestore, msgtype, typestore
-from .reader import BagMessage, BagReader, read_envelope, read_messages
+from .mcapfile import CrcStatus
+from .reader import BagInconsistency, BagMessage, BagReader, read_envelope, read_messages
 from .topics import (
     ENVELOPE_TOPIC,
     RELIABLE_QOS,
@@ -46,9 +47,11 @@ __all__ = [
     "TRUTH_POSE_TOPIC",
     "BagError",
     "BagExistsError",
+    "BagInconsistency",
     "BagMessage",
     "BagReader",
     "BagWriter",
+    "CrcStatus",
     "MsgDefsNotFoundError",
     "cell_timing_array_from_msg",
     "cell_timing_array_to_msg",

@@ -3,6 +3,11 @@
 A bag is written into a hidden temporary sibling of ``out_dir`` and renamed into place only when
 the ``with`` block finishes cleanly, so a crash, a Ctrl-C or a failed simulation never leaves a
 half-written bag that looks valid (``ros2 bag play`` would happily play the first half).
+
+Before the rename, :func:`~deepsync.bag.mcapfile.seal` fills in the MCAP CRCs that rosbags
+leaves at 0 (every chunk, the data section, the summary) and adds the provenance as an MCAP
+metadata record (``deepsync``: ``provenance``), so that corruption is detected when the bag is
+read and the ``.mcap`` file copied on its own still says how it was made.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from .convert import (
     stamp_to_ns,
 )
 from .errors import BagError, BagExistsError
+from .mcapfile import DEEPSYNC_RECORD, provenance_entries, seal
 from .msgdefs import typestore
 from .topics import (
     ENVELOPE_TOPIC,
@@ -40,7 +46,8 @@ if TYPE_CHECKING:
     from typing import Self  # Python >= 3.11; only for type checkers
 
 PROVENANCE_KEY = "deepsync.provenance"
-"""``custom_data`` key of the provenance string (command line, scenario, seed)."""
+"""``custom_data`` key of the provenance string (command line, scenario, seed); the ``.mcap``
+carries it too, in its ``deepsync`` metadata record (key ``provenance``)."""
 ROSBAG2_VERSION = 9
 
 
@@ -109,6 +116,15 @@ class BagWriter:
             shutil.rmtree(self._tmp, ignore_errors=True)
             self._tmp = None
 
+    def _seal(self, built: Path) -> None:
+        """Add the CRCs rosbags leaves at 0, and the provenance as an MCAP metadata record, to
+        the finished file (still in the partial directory, so a failure leaves no bag)."""
+        extra = {}
+        provenance = self._custom.get(PROVENANCE_KEY)
+        if provenance is not None:
+            extra[DEEPSYNC_RECORD] = provenance_entries(provenance)
+        seal(built / f"{built.name}.mcap", extra)
+
     # -- context manager --------------------------------------------------------------------
 
     def __enter__(self) -> Self:
@@ -153,6 +169,7 @@ class BagWriter:
                 writer.set_custom_data(key, value)
             try:
                 writer.close()
+                self._seal(writer.path)
             except Exception as error:
                 raise BagError(f"{self.path}: could not finish the bag: {error}") from error
             self._commit(writer.path)

@@ -2,7 +2,8 @@
 
 A bag carries ADC codes already, so nothing is converted: chunks are the envelope messages,
 gaps and all (the sync stage reports them). The front end is the one the bag says it was
-recorded with (the provenance ``deepsync simulate`` writes); a bag recorded elsewhere gets the
+recorded with (the provenance ``deepsync simulate`` writes, into ``metadata.yaml`` and into the
+``.mcap`` file itself, so an ``.mcap`` copied alone keeps it); a bag recorded elsewhere gets the
 default envelope-detector chain at the rate of its own first envelope message.
 """
 
@@ -29,15 +30,18 @@ from deepsync.types import EnvelopeChunk
 
 
 def is_bag_path(path: str | os.PathLike) -> bool:
-    """A rosbag2 directory (with ``metadata.yaml``) or an ``.mcap`` file, by its name and kind."""
+    """A rosbag2 directory (with ``metadata.yaml``, or at least an ``.mcap`` file) or an
+    ``.mcap`` file, by its name and kind."""
     p = Path(path)
-    return (p.is_dir() and (p / "metadata.yaml").is_file()) or p.suffix.lower() == ".mcap"
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file() or any(x.suffix.lower() == ".mcap" for x in p.iterdir())
+    return p.suffix.lower() == ".mcap"
 
 
 def bag_dir(path: str | os.PathLike) -> Path:
     """Where to open the bag ``path`` names: a bag directory as is; an ``.mcap`` file's
-    directory when that directory's ``metadata.yaml`` lists the file (the provenance lives
-    there, not in the ``.mcap``), else the file alone."""
+    directory when that directory's ``metadata.yaml`` lists the file (so that it is checked
+    against the file), else the file alone (which carries its provenance itself)."""
     p = Path(path)
     if not p.exists():
         raise BagError(f"{p}: no such bag (path does not exist)")
@@ -93,6 +97,8 @@ class BagSource:
             provenance = bag.custom_data.get(PROVENANCE_KEY)
             self.n_chunks = bag.message_counts.get(ENVELOPE_TOPIC, 0)
             self._has_truth = TRUTH_CELL_TIMING_TOPIC in bag.topics
+            self.inconsistencies = bag.inconsistencies
+            """Where the bag's ``metadata.yaml`` disagrees with its ``.mcap`` (which is used)."""
         self._provenance = bool(provenance)
         self.frontend = _frontend(self.path, provenance)
         self.center_hz: float | None = None  # an envelope detector sees every carrier in its RF band
@@ -100,8 +106,11 @@ class BagSource:
     @property
     def description(self) -> str:
         chain = "recorded front end" if self._provenance else "default front end (no provenance)"
-        return (f"rosbag2 bag {self.path}: {self.n_chunks} envelope chunks at "
+        text = (f"rosbag2 bag {self.path}: {self.n_chunks} envelope chunks at "
                 f"{self.frontend.adc_rate_hz / 1e6:g} MS/s, {chain}")
+        if self.inconsistencies:
+            text += f"; metadata.yaml and the .mcap disagree in {len(self.inconsistencies)} point(s)"
+        return text
 
     def chunks(self) -> Iterator[EnvelopeChunk]:
         """The envelope messages in log-time order, as recorded."""

@@ -107,6 +107,7 @@ class FrameStacker:
         self._expected: int | None = None  # next stream index expected; None: (re)start at the next chunk
         self._wrong_rate = False  # in a run of chunks at another sample rate
         self._origin = (0, 0)  # (stream index, stamp ns) the stamps are counted from
+        self._latest = (0, 0)  # (stream index, stamp ns) of the latest chunk: the timeline a chunk must keep
         self._buffer = np.empty(0, dtype=np.float32)
         self._clipped = np.empty(0, dtype=bool)
         self._buffer_start = 0
@@ -155,7 +156,7 @@ class FrameStacker:
         self._wrong_rate = False
         if self._expected is None:
             self._restart(first_sample_index, stamp_ns)
-        elif first_sample_index < self._expected and self._starts_over(first_sample_index, stamp_ns):
+        elif self._starts_over(first_sample_index, stamp_ns):
             self.events.append(Health(
                 HealthKind.RESTART,
                 f"the stream starts over at sample {first_sample_index} after sample {self._expected - 1} "
@@ -175,6 +176,7 @@ class FrameStacker:
             self._event(HealthKind.GAP, self._expected, f"gap of {first_sample_index - self._expected} samples")
             self._restart(first_sample_index, stamp_ns)
         self._expected = first_sample_index + len(samples)
+        self._latest = (first_sample_index, stamp_ns)
 
         not_finite = ~np.isfinite(samples)
         bad = not_finite if corrupt is None else not_finite | corrupt
@@ -200,12 +202,14 @@ class FrameStacker:
         ))
 
     def _starts_over(self, index: int, stamp_ns: int) -> bool:
-        """Whether a chunk before what was received begins a new stream rather than repeating
-        part of this one: it goes back more than a stack could span, or its stamp is off the
-        timeline the stream has kept so far by more than a frame (the index went back, time did not)."""
+        """Whether a chunk begins a new stream rather than continuing, repeating or skipping
+        ahead in this one: its stamp is off the stream's timeline (the time of the previous
+        chunk, moved on by the samples in between) by more than a frame, so index and time no
+        longer agree; or it goes back further than a stack could span (a bag played again)."""
         stack = self.config.n_frames * self.frame_samples
-        off_timeline = abs(stamp_ns - self._stamp(index)) > FRAME_SECONDS * 1e9
-        return self._expected - index > stack or off_timeline
+        latest_index, latest_stamp = self._latest  # not the origin: a slow drift of the stamps never adds up
+        moved_on = latest_stamp + (index - latest_index) * 1e9 / self.sample_rate
+        return abs(stamp_ns - moved_on) > FRAME_SECONDS * 1e9 or self._expected - index > stack
 
     def _restart(self, index: int, stamp_ns: int) -> None:
         self._buffer = np.empty(0, dtype=np.float32)

@@ -105,7 +105,6 @@ class SyncStage:
         self.search = CellSearch(self.templates, self.config.search, None if towers is None else towers.pcis,
                                  None if towers is None else towers.cosited_pairs())
         self.stacker = FrameStacker(frontend.adc_rate_hz, self.config.stack)
-        self._reported_events = 0
         self._previous: dict[int, tuple[float, int]] = {}  # pci -> (code position, streak) last stack
         self._previous_start: int | None = None
 
@@ -119,8 +118,9 @@ class SyncStage:
         return [self._search(stack) for stack in self.stacker.push_samples(samples, first_sample_index, sample_rate, stamp_ns)]
 
     def _new_events(self) -> tuple[Health, ...]:
-        events = tuple(self.stacker.events[self._reported_events :])
-        self._reported_events = len(self.stacker.events)
+        """The stacker's events since the previous result (taken: a long run keeps none)."""
+        events = tuple(self.stacker.events)
+        self.stacker.events.clear()
         return events
 
     def _search(self, stack: Stack) -> SyncResult:
