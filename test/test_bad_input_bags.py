@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import random
+import shutil
 import sqlite3
 import struct
 from dataclasses import asdict
@@ -596,3 +597,27 @@ def test_codes_outside_adc_bits_are_read_as_recorded(tmp_path):
     bag = write_bag(tmp_path / "wild", [wild])
     (back,) = list(read_envelope(bag))
     assert back.adc_bits == 12 and back.samples.tolist() == [-32768, -2049, 2048, 32767, 0]
+
+
+def test_a_bag_at_3_84_mhz_opened_by_its_mcap_alone_is_searched_at_its_own_rate(tmp_path):
+    """On main this bag, opened by its .mcap, was searched with 1.92 MS/s templates and gave
+    0 cells with no flag (exit 0)."""
+    from deepsync.pipeline import Pipeline
+    from deepsync.recording import record_scenario
+    from deepsync.sources import BagSource
+    from deepsync.towers import load_tower_database
+
+    repo = Path(__file__).resolve().parents[1]
+    scenario = tmp_path / "fast.yaml"
+    text = (repo / "config" / "scenarios" / "campus.yaml").read_text()
+    scenario.write_text(text.replace("frontend: {rf_gain_db: 10.0}", "frontend: {rf_gain_db: 10.0, adc_rate_hz: 3.84e6}"))
+    record_scenario(scenario, 0.4, tmp_path / "fast", workers=1, progress=False)
+    alone = tmp_path / "elsewhere"
+    alone.mkdir()
+    shutil.copy(tmp_path / "fast" / "fast.mcap", alone / "fast.mcap")
+    source = BagSource(alone / "fast.mcap")
+    assert source.frontend.adc_rate_hz == 3.84e6 and source.frontend.rf_gain_db == 10.0
+    pipeline = Pipeline(source.frontend, towers=load_tower_database(repo / "config" / "towers" / "campus.yaml"))
+    results = list(pipeline.run(source.chunks()))
+    assert len(results) == 4 and not any(r.health for r in results)
+    assert {56, 301} <= set(results[-1].sync.pcis)

@@ -324,3 +324,14 @@ def test_valid_tower_databases_pass(data, pairs):
 @pytest.mark.parametrize("name", ["campus", "real_lte_1860"])
 def test_bundled_tower_databases_pass(name):
     assert load_tower_database(CONFIG / "towers" / f"{name}.yaml").name == name
+
+
+def test_yaml_exponents_without_a_dot_are_numbers():
+    """PyYAML (YAML 1.1) reads 3.84e6 as text; a user writes it that way, and it is a number.
+    Quoted text stays text."""
+    from deepsync.configio import build_dataclass
+
+    assert build_dataclass(FrontendConfig, {"adc_rate_hz": "3.84e6"}, "frontend").adc_rate_hz == 3.84e6
+    assert build_dataclass(FrontendConfig, {"detector_nep_w_per_sqrt_hz": "5e-12"}, "f").detector_nep_w_per_sqrt_hz == 5e-12
+    with pytest.raises(ConfigError, match="frontend.adc_rate_hz: expected a number, got 'fast'"):
+        build_dataclass(FrontendConfig, {"adc_rate_hz": "fast"}, "frontend")

@@ -9,10 +9,14 @@ its fractional stream sample index on the receiver clock, from the line-of-sight
 from __future__ import annotations
 
 import hashlib
+import heapq
 import json
 import math
+import os
 import platform
+import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -21,6 +25,7 @@ from tqdm import tqdm
 
 import deepsync
 from deepsync.bag import PROVENANCE_KEY, BagWriter
+from deepsync.frontend.channel import Emitter
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
 from deepsync.twin import Twin, build_twin
@@ -82,21 +87,41 @@ def cell_summaries(twin: Twin) -> list[CellSummary]:
     return out
 
 
-def truth_timing(twin: Twin, simulator: EnvelopeSimulator, n_samples: int) -> list[tuple[int, float, int]]:
-    """(pci, toa, emitter index) of every subframe-0 sync code that starts inside the stream."""
+def truth_timing(twin: Twin, simulator: EnvelopeSimulator, n_samples: int) -> Iterator[tuple[int, float, int]]:
+    """(pci, toa, emitter index) of every subframe-0 sync code that starts inside the stream, in
+    order of arrival (emitter order among equal arrivals), computed as they are consumed: an hour
+    of four cells holds 1.4 million codes, and the first chunk should not wait for them all."""
     rate = simulator.config.adc_rate_hz
     end_time = float(simulator.clock.true_time(n_samples / rate))
-    codes = []
-    for i, emitter in enumerate(twin.emitters):
+
+    def arrivals(i: int, emitter: Emitter) -> Iterator[tuple[float, int, int]]:
         first = math.floor((0.0 - emitter.timing_offset_s) / FRAME_SECONDS) - 1
         last = math.ceil((end_time - emitter.timing_offset_s) / FRAME_SECONDS)
-        for k in range(first, last + 1):
+        for k in range(first, last + 1):  # a frame moves the arrival on by far more than the path changes
             sent = emitter.timing_offset_s + k * FRAME_SECONDS
-            arrival = sent + sync_code_offset_seconds() + twin.geometric_delay_s(i, sent)
-            toa = float(simulator.sample_index(arrival))
+            toa = float(simulator.sample_index(sent + sync_code_offset_seconds() + twin.geometric_delay_s(i, sent)))
             if 0 <= toa < n_samples:
-                codes.append((emitter.cell.pci, toa, i))
-    return sorted(codes, key=lambda code: code[1])
+                yield toa, i, emitter.cell.pci
+
+    for toa, i, pci in heapq.merge(*(arrivals(i, emitter) for i, emitter in enumerate(twin.emitters))):
+        yield pci, toa, i
+
+
+def check_output(out_dir: Path, n_samples: int) -> None:
+    """ValueError before a run whose bag cannot be written where asked, or would not fit there:
+    int16 codes compress to about 3/4 with zstd (the bundled bag: 0.73)."""
+    existing = next(p for p in (out_dir, *out_dir.parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{out_dir}: cannot write a bag there ({existing} is not a writable directory)")
+    needed = n_samples * 2 * 0.75
+    free = shutil.disk_usage(existing).free
+    if needed > 0.95 * free:
+        raise ValueError(f"{out_dir}: the bag would take about {_size(needed)} and {_size(free)} is free there; "
+                         "record less, or elsewhere")
+
+
+def _size(n_bytes: float) -> str:
+    return f"{n_bytes / 1e9:.1f} GB" if n_bytes >= 1e9 else f"{n_bytes / 1e6:.1f} MB"
 
 
 def _provenance(scenario_path: Path, seed: int, seconds: float, twin: Twin) -> str:
@@ -126,8 +151,8 @@ def record_scenario(
     progress: bool = True,
 ) -> RecordingSummary:
     """Simulate ``seconds`` of a scenario into the bag ``out_dir`` (written atomically)."""
-    if not (math.isfinite(seconds) and seconds > 0):
-        raise ValueError(f"--seconds must be a positive number, got {seconds!r}")
+    if not (math.isfinite(seconds) and seconds >= FRAME_SECONDS):
+        raise ValueError(f"--seconds must be at least one 10 ms frame, got {seconds!r}")
     scenario_path = Path(scenario_path)
     scenario = load_scenario(scenario_path)
     seed = scenario.seed if seed is None else int(seed)
@@ -136,13 +161,14 @@ def record_scenario(
     rate = twin.frontend.adc_rate_hz
     n_samples = int(round(seconds * rate))
     chunk = max(1, round(FRAME_SECONDS * rate))
+    check_output(Path(out_dir), n_samples)
 
     codes = truth_timing(twin, simulator, n_samples)
+    code = next(codes, None)
     pose_every = max(1, round(POSE_PERIOD_SECONDS * rate))
     stats = SimulationStats()
     started = time.perf_counter()
     chunks = truth_messages = 0
-    next_code = 0
     with BagWriter(out_dir, overwrite=overwrite, provenance=_provenance(scenario_path, seed, seconds, twin)) as bag:
         bar = tqdm(total=n_samples, unit="S", unit_scale=True, disable=not progress, desc="simulate")
         for envelope in simulator.stream(seconds, chunk_samples=chunk, workers=workers, stats=stats):
@@ -152,10 +178,10 @@ def record_scenario(
                 bag.write_truth_pose(simulator.stamp_ns(n), float(x), float(y), float(z))
                 truth_messages += 1
             records = []
-            while next_code < len(codes) and codes[next_code][1] < end:
-                pci, toa, _ = codes[next_code]
+            while code is not None and code[1] < end:
+                pci, toa, _ = code
                 records.append(CellTiming(pci, toa, 0.0, float("nan"), TRUTH_ESTIMATOR))
-                next_code += 1
+                code = next(codes, None)
             if records:
                 bag.write_truth_cell_timing(envelope.stamp_ns, records)
                 truth_messages += 1

@@ -132,10 +132,13 @@ class BagWriter:
             raise BagError(f"{self.path}: a BagWriter writes one bag; create a new one")
         self._used = True
         self._check_target()
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = Path(
-            tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
-        )
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._tmp = Path(
+                tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
+            )
+        except OSError as error:
+            raise BagError(f"{self.path}: cannot write a bag there ({error.strerror})") from None
         try:
             # rosbags names the storage file after its directory: <name>/<name>.mcap
             writer = Writer(

@@ -1,0 +1,202 @@
+"""Bad-input matrix: the ``deepsync`` command and the signals that stop it (one file of
+``test/test_bad_input_*.py``; the module docstring of ``test_bad_input_streams.py`` explains the
+matrix).
+
+Outcome class here: a clear one-line error naming the cause, exit status 2 (argparse's own
+usage errors are 2 as well), no traceback, and nothing written; an interrupt (Ctrl-C, SIGTERM)
+exits with 130 within a second, leaves no partial bag and no worker process behind.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deepsync.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+BAG = REPO / "bags" / "campus"
+SCENARIO = REPO / "config" / "scenarios" / "campus.yaml"
+TOWERS = REPO / "config" / "towers" / "campus.yaml"
+DEEPSYNC = Path(sys.executable).parent / "deepsync"
+
+
+def fails(args: list[str], capsys, message: str) -> None:
+    """``deepsync args`` ends with exit status 2 and one error line that says ``message``."""
+    try:
+        status = main(args)
+    except SystemExit as stop:  # argparse refuses before the command runs
+        status = stop.code
+    err = capsys.readouterr().err
+    assert status == 2, err
+    assert message in err, err
+    assert "Traceback" not in err
+
+
+@pytest.fixture
+def cu8(tmp_path) -> Path:
+    path = tmp_path / "noise.cu8"
+    np.random.default_rng(1).integers(100, 156, 2 * 25 * 19200).astype(np.uint8).tofile(path)
+    return path
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--workers", "0"], "0 workers: give 1..64"),
+    (["--workers", "1000"], "give 1..64"),
+    (["--workers", "two"], "not a whole number"),
+    (["--seconds", "1e-9"], "at least one 10 ms frame"),
+    (["--seconds", "nan"], "must be a positive number"),
+    (["--seconds", "-1"], "must be a positive number"),
+    (["--seed", "x"], "invalid int value"),
+], ids=["workers_0", "workers_1000", "workers_word", "seconds_tiny", "seconds_nan", "seconds_negative", "seed_word"])
+def test_simulate_flags(tmp_path, capsys, args, message):
+    out = tmp_path / "bag"
+    fails(["simulate", "--scenario", str(SCENARIO), "--seconds", "0.1", "--out", str(out), "--quiet", *args],
+          capsys, message)
+    assert not any(tmp_path.iterdir())
+
+
+def test_simulate_a_run_that_cannot_fit_on_disk_is_refused_before_it_starts(tmp_path, capsys):
+    """On main, --seconds 1e6 spent minutes before any progress showed (and would fill the disk)."""
+    if shutil.disk_usage(tmp_path).free > 2e12:
+        pytest.skip("more than 2 TB free here: a 1e6 s bag would fit")
+    started = time.monotonic()
+    fails(["simulate", "--scenario", str(SCENARIO), "--seconds", "1e6", "--out", str(tmp_path / "bag")], capsys,
+          "is free there")
+    assert time.monotonic() - started < 10 and not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("out, message", [
+    (lambda tmp: tmp / "a_file" / "bag", "not a writable directory"),
+    (lambda tmp: Path("/proc/deepsync_test_bag"), "/proc/deepsync_test_bag"),
+    (lambda tmp: BAG, "exists already"),
+], ids=["under_a_file", "proc", "exists"])
+def test_simulate_unwritable_output(tmp_path, capsys, out, message):
+    (tmp_path / "a_file").write_text("not a directory")
+    fails(["simulate", "--scenario", str(SCENARIO), "--seconds", "0.1", "--out", str(out(tmp_path)), "--quiet"],
+          capsys, message)
+
+
+@pytest.mark.parametrize("scenario, message", [
+    ("missing.yaml", "file not found"),
+    ("bad.yaml", "invalid YAML"),
+    ("eirp.yaml", "eirp_dbm"),
+], ids=["missing", "not_yaml", "eirp_300"])
+def test_simulate_bad_scenarios(tmp_path, capsys, scenario, message):
+    (tmp_path / "bad.yaml").write_text("sites: [\n")
+    (tmp_path / "eirp.yaml").write_text(SCENARIO.read_text().replace("eirp_dbm: 61", "eirp_dbm: 300", 1))
+    assert "eirp_dbm: 300" in (tmp_path / "eirp.yaml").read_text()
+    fails(["simulate", "--scenario", str(tmp_path / scenario), "--seconds", "0.1", "--out", str(tmp_path / "bag"),
+           "--quiet"], capsys, message)
+
+
+@pytest.mark.parametrize("args, message", [
+    ([], "give one recording: --bag BAG or --input FILE"),
+    (["--bag", str(BAG), "--input", str(BAG)], "give one recording"),
+    (["--bag", str(BAG), "--frames", "1"], "at least 2 frames"),
+    (["--bag", str(BAG), "--frames", "0"], "n_frames must be 1..1000"),
+    (["--bag", str(BAG), "--frames", "400"], "less than one 400-frame stack"),
+    (["--bag", "/nonexistent/bag"], "/nonexistent/bag"),
+    (["--input", "/nonexistent/file.cu8", "--rate", "1.92e6"], "no such file"),
+    (["--input", str(BAG), "--format", "cu8"], "a bag carries ADC codes already"),
+    (["--bag", str(BAG), "--towers", "/nonexistent/towers.yaml"], "file not found"),
+    (["--bag", str(BAG), "--scale", "0"], "must be a positive number"),
+    (["--bag", str(BAG), "--format", "cu9"], "invalid choice"),
+], ids=["no_recording", "two_recordings", "frames_1", "frames_0", "frames_beyond_input", "bag_missing",
+        "input_missing", "format_for_a_bag", "towers_missing", "scale_0", "format_unknown"])
+def test_detect_flags(capsys, args, message):
+    fails(["detect", *args], capsys, message)
+
+
+def test_detect_raw_recordings_that_do_not_say_enough(tmp_path, capsys, cu8):
+    ambiguous = tmp_path / "capture.bin"
+    shutil.copy(cu8, ambiguous)
+    fails(["detect", "--input", str(ambiguous), "--rate", "1.92e6"], capsys, "cannot tell the sample format")
+    fails(["detect", "--input", str(cu8)], capsys, "the sample rate must be given")
+    fails(["detect", "--input", str(cu8), "--rate", "2.4e6"], capsys, "divides 30.72 MHz")
+    odd = tmp_path / "odd.cu8"
+    odd.write_bytes(cu8.read_bytes()[:-1])
+    fails(["detect", "--input", str(odd), "--rate", "1.92e6"], capsys, "not a whole number of cu8 samples")
+    broken = tmp_path / "nan.cf32"
+    samples = np.ones(2 * 19200 * 3, dtype=np.float32)
+    samples[1001] = np.nan
+    samples.tofile(broken)
+    fails(["detect", "--input", str(broken), "--rate", "1.92e6"], capsys, "sample 500 is not finite")
+
+
+def test_detect_bad_tower_databases(tmp_path, capsys):
+    (tmp_path / "broken.yaml").write_text("sites: {")
+    fails(["detect", "--bag", str(BAG), "--towers", str(tmp_path / "broken.yaml")], capsys, "invalid YAML")
+    (tmp_path / "mixed.yaml").write_text(
+        "sites:\n  - name: A\n    cells: [{pci: 120, earfcn: 2000}, {pci: 121}]\n")
+    fails(["detect", "--bag", str(BAG), "--towers", str(tmp_path / "mixed.yaml")], capsys, "but not for cells[1]")
+
+
+def test_info_of_a_missing_bag(capsys):
+    fails(["info", "--bag", "/nonexistent/bag"], capsys, "/nonexistent/bag")
+
+
+def test_a_closed_pipe_stops_quietly_with_one_line():
+    """``deepsync info | head -1`` ended in a BrokenPipeError traceback on main."""
+    run = subprocess.run(f"set -o pipefail; '{DEEPSYNC}' info --bag '{BAG}' | head -1", shell=True,
+                         executable="/bin/bash", capture_output=True, text=True, timeout=120)
+    assert run.returncode == 1 and run.stdout.startswith("bag ")
+    assert run.stderr.strip() == "deepsync info: output closed early (broken pipe); stopped"
+
+
+# -- interrupts: SIGTERM (timeout, systemd, ros2 launch) and Ctrl-C -----------------------------
+
+
+def children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (from /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads worker processes from /proc")
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["sigterm", "sigint"])
+def test_an_interrupted_simulate_stops_within_a_second_and_leaves_nothing(tmp_path, signum):
+    """On main, SIGTERM left a .NAME.*.partial directory and orphaned the worker processes
+    (~180 MB each, alive minutes later); Ctrl-C took 5-7 s. The signal goes to the main process only."""
+    process = subprocess.Popen(
+        [str(DEEPSYNC), "simulate", "--scenario", str(SCENARIO), "--seconds", "60", "--out", str(tmp_path / "bag"),
+         "--workers", "2", "--quiet"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while len(children(process.pid)) < 2 and time.monotonic() < deadline and process.poll() is None:
+            time.sleep(0.1)
+        workers = children(process.pid)
+        assert len(workers) == 2, "the worker processes never started"
+        time.sleep(1.0)  # mid-run: chunks on their way into the bag
+        sent = time.monotonic()
+        process.send_signal(signum)
+        status = process.wait(timeout=30)
+        stopped = time.monotonic() - sent
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert status == 130 and stopped < 1.0, (status, stopped)
+    assert process.stderr.read().strip() == "deepsync simulate: interrupted; nothing was written"
+    assert not any(tmp_path.iterdir())  # no bag, no .bag.*.partial
+    deadline = time.monotonic() + 2
+    while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(Path(f"/proc/{pid}").exists() for pid in workers), "a worker outlived the command"
