@@ -200,3 +200,17 @@ def test_an_interrupted_simulate_stops_within_a_second_and_leaves_nothing(tmp_pa
     while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not any(Path(f"/proc/{pid}").exists() for pid in workers), "a worker outlived the command"
+
+
+def test_info_says_where_metadata_yaml_disagrees_with_the_file(tmp_path, capsys):
+    """On main, wrong counts in metadata.yaml were printed as the truth."""
+    bag = tmp_path / "campus"
+    shutil.copytree(BAG, bag)
+    metadata = bag / "metadata.yaml"
+    text = metadata.read_text()
+    assert "\n  message_count: 630\n" in text  # the bag's total
+    metadata.write_text(text.replace("\n  message_count: 630\n", "\n  message_count: 9999\n"))
+    assert main(["info", "--bag", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "630 messages" in out and "9999" in out and "the file's value is used" in out
+    assert "integrity: CRCs on all" in out

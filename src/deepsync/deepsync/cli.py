@@ -75,6 +75,14 @@ def describe_bag(path: Path) -> None:
         print(f"bag {path}: {bag.message_count} messages over {bag.duration_ns / 1e9:.3f} s")
         for topic, msgtype in sorted(bag.topics.items()):
             print(f"  {topic:<32} {msgtype:<38} {bag.message_counts[topic]:6d} messages")
+        crc = bag.crc_status
+        if crc.complete:
+            print(f"  integrity: CRCs on all {crc.chunks} chunks and the summary (checked as they are read)")
+        else:
+            print(f"  integrity: CRCs on {crc.chunks_with_crc} of {crc.chunks} chunks"
+                  f"{'' if crc.summary_crc else ', none on the summary'}: corruption there cannot be detected")
+        for note in bag.inconsistencies:
+            print(f"  note: {note}")
         provenance = bag.custom_data.get(PROVENANCE_KEY)
         if provenance:
             try:
