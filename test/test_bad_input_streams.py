@@ -215,12 +215,12 @@ def test_event_clipping_is_flagged_and_the_stack_still_searched():
 
 def test_result_empty_and_one_sample_chunks():
     chunks = list(campus_chunks())[:30]
-    ones = [EnvelopeChunk(c.stamp_ns, RATE, c.first_sample_index, 12, c.volts_per_code, c.samples[:0]) for c in chunks]
+    empty = [EnvelopeChunk(c.stamp_ns, RATE, c.first_sample_index, 12, c.volts_per_code, c.samples[:0]) for c in chunks]
     pieces = []
     for c in chunks[:20]:
         pieces += [shifted(dataclasses.replace(c, samples=c.samples[i : i + 1]), c.first_sample_index + i)
                    for i in range(0, len(c.samples), 997)]  # every 997th sample, as a one-sample chunk
-    assert run(campus_pipeline(), ones) == []  # nothing to stack, nothing raised
+    assert run(campus_pipeline(), empty) == []  # nothing to stack, nothing raised
     whole = [shifted(dataclasses.replace(c, samples=c.samples[i : i + 997]), c.first_sample_index + i)
              for c in chunks for i in range(0, len(c.samples), 997)]
     assert [r.sync.pcis for r in run(campus_pipeline(), whole)] == [r.sync.pcis for r in run(campus_pipeline(), chunks)]

@@ -24,23 +24,26 @@ TOWERS = REPO / "config" / "towers" / "campus.yaml"
 EXPECTED = REPO / "test" / "data" / "campus_arrivals.json"
 
 
-def campus_arrivals() -> list[list[list[float]]]:
-    source = BagSource(BAG)
-    pipeline = Pipeline(source.frontend, towers=load_tower_database(TOWERS))
-    return [[[t.pci, round(t.toa, 6)] for t in result.timing.cells] for result in pipeline.run(source.chunks())]
-
-
-@pytest.fixture(scope="module")
-def campus():
+def run_campus() -> tuple[BagSource, list]:
     source = BagSource(BAG)
     pipeline = Pipeline(source.frontend, towers=load_tower_database(TOWERS))
     return source, list(pipeline.run(source.chunks()))
 
 
+def arrivals(results) -> list[list[list[float]]]:
+    """Per stack, [PCI, arrival rounded to 1e-6 samples] of each timed cell."""
+    return [[[t.pci, round(t.toa, 6)] for t in result.timing.cells] for result in results]
+
+
+@pytest.fixture(scope="module")
+def campus():
+    return run_campus()
+
+
 def test_the_pipeline_reproduces_the_cell_search_of_main_on_the_bundled_bag(campus):
     _, results = campus
     expected = json.loads(EXPECTED.read_text())
-    got = [[[t.pci, round(t.toa, 6)] for t in result.timing.cells] for result in results]
+    got = arrivals(results)
     assert len(got) == len(expected) == 30
     for stack, (mine, theirs) in enumerate(zip(got, expected)):
         assert [pci for pci, _ in mine] == [pci for pci, _ in theirs], f"stack {stack}"
@@ -127,4 +130,4 @@ def test_a_chunk_at_another_rate_mid_stream_is_an_event_and_never_stacked():
 
 
 if __name__ == "__main__":
-    print(json.dumps(campus_arrivals()))
+    print(json.dumps(arrivals(run_campus()[1])))
