@@ -6,7 +6,9 @@ independent ``mcap`` library (what Foxglove and ``ros2 bag``'s MCAP plugin build
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+import math
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +35,7 @@ from deepsync.bag import (
     read_messages,
     stamp_to_ns,
 )
-from deepsync.types import CellTiming, EnvelopeChunk
+from deepsync.types import CellTiming, EnvelopeChunk, StackArrivals
 from mcap.reader import make_reader
 from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 from rosbags.rosbag2 import Reader
@@ -63,7 +65,7 @@ def make_chunks(seed: int = 7) -> list[EnvelopeChunk]:
 
 TRUTH_CELLS = [
     CellTiming(pci=142, toa=1234.5678901234, toa_std=0.0, snr_db=-3.25, estimator="truth"),
-    CellTiming(pci=86, toa=98765.4321, toa_std=0.0, snr_db=7.5, estimator="truth"),
+    CellTiming(pci=86, toa=98765.4321, toa_std=0.0, snr_db=7.5, estimator="truth", earfcn=2000, amplitude=0.125),
 ]
 
 
@@ -72,7 +74,8 @@ def write_example(out_dir: Path, chunks: list[EnvelopeChunk], **kwargs) -> None:
         for k, chunk in enumerate(chunks):
             bag.write_envelope(chunk)
             bag.write_truth_pose(chunk.stamp_ns, 10.0 + k, -20.5, 1.25)
-        bag.write_truth_cell_timing(chunks[0].stamp_ns, TRUTH_CELLS)
+        bag.write_truth_cell_timing(StackArrivals(chunks[0].stamp_ns, chunks[0].first_sample_index,
+                                                   chunks[0].sample_rate, tuple(TRUTH_CELLS), 21.75))
 
 
 @pytest.fixture(scope="module")
@@ -118,9 +121,13 @@ def test_truth_round_trip(bag: Path, chunks: list[EnvelopeChunk]) -> None:
         assert (q.x, q.y, q.z, q.w) == (0.0, 0.0, 0.0, 1.0)
     (timing,) = list(read_messages(bag, [TRUTH_CELL_TIMING_TOPIC]))
     assert timing.msgtype == "deepsync_msgs/msg/CellTimingArray"
-    records = cell_timing_array_from_msg(timing.message)
-    # snr_db is float32 on the wire: chosen values are exact in float32
-    assert records == TRUTH_CELLS
+    arrivals = cell_timing_array_from_msg(timing.message)
+    # snr_db and amplitude are float32 on the wire: chosen values are exact in float32
+    assert dataclasses.replace(arrivals.cells[0], amplitude=math.nan) == TRUTH_CELLS[0]  # NaN: not measured
+    assert math.isnan(arrivals.cells[0].amplitude) and arrivals.cells[0].earfcn is None
+    assert arrivals.cells[1] == TRUTH_CELLS[1]
+    assert (arrivals.stamp_ns, arrivals.first_sample_index, arrivals.sample_rate, arrivals.clock_drift_ppm) == (
+        chunks[0].stamp_ns, chunks[0].first_sample_index, chunks[0].sample_rate, 21.75)
 
 
 def test_log_time_is_header_stamp(bag: Path) -> None:

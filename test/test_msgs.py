@@ -140,10 +140,15 @@ def test_field_types(parsed: dict) -> None:
         "toa": "float64",
         "toa_std": "float64",
         "snr_db": "float32",
+        "earfcn": "uint32",
+        "amplitude": "float32",
         "estimator": "string",
     }
     assert field_types(parsed, "CellTimingArray") == {
         "header": "std_msgs/Header",
+        "first_sample_index": "uint64",
+        "sample_rate": "float64",
+        "clock_drift_ppm": "float64",
         "cells": "deepsync_msgs/CellTiming[]",
     }
 
@@ -154,6 +159,9 @@ def test_units(parsed: dict) -> None:
     assert units[("SyncWindow", "carrier_frequency")] == "Hz"
     assert units[("CellTiming", "toa")] == "samples"
     assert units[("CellTiming", "toa_std")] == "samples"
+    assert units[("CellTiming", "amplitude")] == "V"
+    assert units[("CellTimingArray", "first_sample_index")] == "samples"
+    assert units[("CellTimingArray", "clock_drift_ppm")] == "ppm"
 
 
 def test_idl_round_trip(parsed: dict) -> None:

@@ -3,7 +3,14 @@
 The envelope keeps timing far better than identity, so the cell search leans on this list:
 it scores only these PCIs (known-PCI mode) and a site, not a sector, is the TDOA anchor.
 A site's position and frame-timing offset may be unknown (null): then it still names cells
-but cannot anchor a position fix.
+but cannot anchor a position fix. Fusion also needs the ``origin`` (the ``map`` frame's WGS84
+origin, REP-105; ``height_m`` is the ground's ellipsoidal height, under every antenna ``height_m``)
+and, for drifting site clocks, the instant the offsets hold (``timing_epoch_utc``).
+
+A site's frame timing is ``timing_offset_us`` (frame 0 start modulo 10 ms, against network time
+at ``timing_epoch_utc``) plus ``timing_drift_ns_per_s`` for every second since then (its
+oscillator: a site 20 ppb fast drifts by -20 ns/s). The ``*_std_*`` keys are their 1-sigma
+uncertainties, as a calibration reports them (``deepsync calibrate``).
 
 Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
 by carrier: a cell without one would silently drop out of the pair search), a PCI appears at
@@ -12,12 +19,17 @@ whole (latitude and longitude) or not at all.
 
 ```yaml
 name: campus
+origin: {latitude_deg: 38.9869, longitude_deg: -76.9426, height_m: 10.0}   # optional
+timing_epoch_utc: "2026-01-01T00:00:00Z"   # optional (required with a drift)
 sites:
   - name: A
     latitude_deg: 38.985851      # optional
     longitude_deg: -76.947617    # optional
     height_m: 30.0               # optional, antenna height above ground
     timing_offset_us: 3120.4     # optional, frame timing vs network time (estimate)
+    timing_offset_std_us: 0.01   # optional, its 1-sigma
+    timing_drift_ns_per_s: -12.0 # optional, how fast the timing moves
+    timing_drift_std_ns_per_s: 0.5  # optional, its 1-sigma
     cells:
       - {pci: 120, earfcn: 2000}
 ```
@@ -25,6 +37,7 @@ sites:
 
 from __future__ import annotations
 
+import datetime
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,12 +65,36 @@ class TowerSite:
     height_m: float | None
     timing_offset_us: float | None
     cells: tuple[TowerCell, ...]
+    timing_offset_std_us: float | None = None
+    timing_drift_ns_per_s: float | None = None
+    timing_drift_std_ns_per_s: float | None = None
+
+    @property
+    def has_position(self) -> bool:
+        return self.latitude_deg is not None
+
+
+@dataclass(frozen=True)
+class MapOrigin:
+    """The ``map`` frame's origin: WGS84 latitude/longitude (deg), ground ellipsoidal height (m)."""
+
+    latitude_deg: float
+    longitude_deg: float
+    height_m: float
 
 
 @dataclass(frozen=True)
 class TowerDatabase:
     name: str
     sites: tuple[TowerSite, ...]
+    origin: MapOrigin | None = None
+    timing_epoch_ns: int | None = None  # UTC ns at which the sites' timing offsets hold
+
+    def site(self, name: str) -> TowerSite:
+        for site in self.sites:
+            if site.name == name:
+                return site
+        raise KeyError(f"no site named {name!r} in tower database {self.name!r}")
 
     @property
     def cells(self) -> tuple[TowerCell, ...]:
@@ -84,7 +121,14 @@ class TowerDatabase:
         return sorted(pairs)
 
 
-_SITE_KEYS = {"name", "latitude_deg", "longitude_deg", "height_m", "timing_offset_us", "cells"}
+_TIMING_KEYS = {  # key: (low, high), physical ranges
+    "timing_offset_us": (0.0, 10_000.0),  # within one 10 ms frame
+    "timing_offset_std_us": (0.0, 10_000.0),
+    "timing_drift_ns_per_s": (-1000.0, 1000.0),  # a +-1000 ppb oscillator, as the twin allows
+    "timing_drift_std_ns_per_s": (0.0, 1000.0),
+}
+_SITE_KEYS = {"name", "latitude_deg", "longitude_deg", "height_m", "cells", *_TIMING_KEYS}
+_TOP_KEYS = {"name", "origin", "timing_epoch_utc", "sites"}
 
 
 def _optional_number(site: dict, key: str, where: str, low: float, high: float) -> float | None:
@@ -128,9 +172,9 @@ def _cell_list(indices: list[int]) -> str:
 def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
     """Tower database from a mapping (see the module docstring); errors name the field."""
     top = require_mapping(data, where)
-    unknown = sorted(set(top) - {"name", "sites"})
+    unknown = sorted(set(top) - _TOP_KEYS)
     if unknown:
-        raise ConfigError(f"{where}: unknown key {', '.join(unknown)} (known: name, sites)")
+        raise ConfigError(f"{where}: unknown key {', '.join(unknown)} (known: {', '.join(sorted(_TOP_KEYS))})")
     sites = []
     names = set()
     for i, raw_site in enumerate(require_list(top.get("sites"), f"{where}.sites")):
@@ -171,15 +215,49 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
             latitude_deg=latitude,
             longitude_deg=longitude,
             height_m=_optional_number(site, "height_m", at, 0, 1000),
-            timing_offset_us=_optional_number(site, "timing_offset_us", at, 0, 10000),
             cells=tuple(cells),
+            **{key: _optional_number(site, key, at, *bounds) for key, bounds in _TIMING_KEYS.items()},
         ))
     if not sites:
         raise ConfigError(f"{where}.sites: the database lists no sites")
     name = top.get("name", "")
     if not isinstance(name, str):
         raise ConfigError(f"{where}.name: expected a string, got {name!r}")
-    return TowerDatabase(name, tuple(sites))
+    epoch_ns = _epoch_ns(top.get("timing_epoch_utc"), f"{where}.timing_epoch_utc")
+    drifting = [site.name for site in sites if site.timing_drift_ns_per_s]
+    if drifting and epoch_ns is None:
+        raise ConfigError(f"{where}.timing_epoch_utc: sites {', '.join(drifting)} give a timing drift, which "
+                          "needs the instant their offsets hold")
+    return TowerDatabase(name, tuple(sites), _origin(top.get("origin"), f"{where}.origin"), epoch_ns)
+
+
+def _origin(value: object, where: str) -> MapOrigin | None:
+    if value is None:
+        return None
+    origin = dict(require_mapping(value, where))
+    if set(origin) != {"latitude_deg", "longitude_deg", "height_m"}:
+        raise ConfigError(f"{where}: expected keys latitude_deg, longitude_deg, height_m, got {sorted(origin)}")
+    bounds = {"latitude_deg": (-90, 90), "longitude_deg": (-180, 180), "height_m": (-1000, 9000)}
+    return MapOrigin(**{key: _optional_number(origin, key, where, *bounds[key]) for key in bounds})
+
+
+def _epoch_ns(value: object, where: str) -> int | None:
+    """UTC instant as ns since the Unix epoch, from an ISO 8601 string with a zone."""
+    if value is None:
+        return None
+    if isinstance(value, datetime.datetime):  # YAML reads an unquoted timestamp as one
+        instant = value
+    elif isinstance(value, str):
+        try:
+            instant = datetime.datetime.fromisoformat(value.replace("Z", "+00:00"))
+        except ValueError:
+            raise ConfigError(f"{where}: {value!r} is not an ISO 8601 time (e.g. 2026-01-01T00:00:00Z)") from None
+    else:
+        raise ConfigError(f"{where}: expected an ISO 8601 time string, got {value!r}")
+    if instant.tzinfo is None:
+        raise ConfigError(f"{where}: {value!r} has no time zone (end it with Z for UTC)")
+    delta = instant - datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc)
+    return (delta.days * 86_400 + delta.seconds) * 10**9 + delta.microseconds * 1000
 
 
 def load_tower_database(path: str | Path) -> TowerDatabase:

@@ -205,7 +205,9 @@ class CellTiming:
     ``toa`` is the fractional stream sample index of the subframe-0 sync-code start, ``toa_std``
     its honest 1-sigma in samples (0 for ground truth), ``crlb_std`` the Cramer-Rao bound of
     that estimate at its measured amplitude and noise (NaN where not computed), ``estimator``
-    names who produced it, ``flags`` what deserves attention about it.
+    names who produced it, ``flags`` what deserves attention about it. ``earfcn`` (if known)
+    tells apart two sites that reuse a PCI on different carriers; ``amplitude`` is the fitted
+    sync-code envelope amplitude (volts, proportional to received power through the square law).
     """
 
     pci: int
@@ -215,6 +217,8 @@ class CellTiming:
     estimator: str
     crlb_std: float = math.nan
     flags: tuple[Health, ...] = field(default=())
+    earfcn: int | None = None
+    amplitude: float = math.nan
 
     def __post_init__(self) -> None:
         if not 0 <= int(self.pci) <= MAX_PCI:
@@ -225,24 +229,69 @@ class CellTiming:
             raise ValueError(f"CellTiming.toa_std {self.toa_std!r} must be finite and >= 0")
 
 
+@dataclass(frozen=True)
+class StackArrivals:
+    """The arrivals of one stack and the time base they are read on (``CellTimingArray``).
+
+    Stream sample ``first_sample_index`` was taken at receiver time ``stamp_ns``, so a cell's
+    arrival is at receiver time ``stamp_ns + (toa - first_sample_index) / sample_rate``.
+    ``clock_drift_ppm`` is the receiver clock error the sync stage measured (None: unknown).
+    """
+
+    stamp_ns: int
+    first_sample_index: int
+    sample_rate: float
+    cells: tuple[CellTiming, ...]
+    clock_drift_ppm: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.sample_rate) and self.sample_rate > 0):
+            raise ValueError(f"StackArrivals.sample_rate {self.sample_rate!r} must be > 0")
+        if self.clock_drift_ppm is not None and not math.isfinite(self.clock_drift_ppm):
+            raise ValueError(f"StackArrivals.clock_drift_ppm {self.clock_drift_ppm!r} must be finite or None")
+        object.__setattr__(self, "cells", tuple(self.cells))
+
+    def seconds_after_stamp(self, cell: CellTiming) -> float:
+        """Receiver time of ``cell``'s arrival after ``stamp_ns`` (s)."""
+        return (cell.toa - self.first_sample_index) / self.sample_rate
+
+
 class NoFixReason(enum.Enum):
     """Why fusion produced no position (a closed set, like :class:`HealthKind`)."""
 
-    TOO_FEW_SITES = "too_few_sites"  # fewer sites heard than unknowns
-    UNKNOWN_SITES = "unknown_sites"  # heard cells lack a database position or timing
+    TOO_FEW_SITES = "too_few_sites"  # fewer usable sites heard than unknowns
+    UNKNOWN_SITES = "unknown_sites"  # every heard cell lacks a database position or timing
+    DEGENERATE_GEOMETRY = "degenerate_geometry"  # sites (nearly) collinear: the position is not determined
     NOT_CONVERGED = "not_converged"  # the solver did not converge
     INCONSISTENT = "inconsistent"  # the arrivals contradict each other beyond their sigmas
+    NOT_INITIALISED = "not_initialised"  # the tracker has not yet heard enough sites to start
+
+
+class FixKind(enum.Enum):
+    """Who made a fix."""
+
+    SNAPSHOT = "snapshot"  # one stack's arrivals, solved on their own
+    TRACKED = "tracked"  # the tracker's state after its latest update (or prediction)
 
 
 @dataclass(frozen=True)
 class Fix:
     """A position in the ``map`` frame (ENU metres at the configured origin, REP-105) with its
-    covariance, from the arrivals of the named sites."""
+    covariance, from the arrivals of the named sites (``rejected``: heard, but outliers)."""
 
     stamp_ns: int
     position_enu: tuple[float, float, float]
-    covariance: np.ndarray  # (3, 3) m^2, ENU
+    covariance: np.ndarray  # (3, 3) m^2, ENU; an unmeasured up axis carries a huge variance
     sites: tuple[str, ...]
+    kind: FixKind = FixKind.SNAPSHOT
+    rejected: tuple[str, ...] = ()
+    gdop: float = math.nan
+    clock_bias_m: float = math.nan  # receiver clock bias times c, modulo one frame
+
+    @property
+    def horizontal_std_m(self) -> float:
+        """Root of the trace of the horizontal covariance (DRMS, m)."""
+        return float(math.sqrt(max(self.covariance[0, 0] + self.covariance[1, 1], 0.0)))
 
 
 @dataclass(frozen=True)
@@ -252,3 +301,4 @@ class NoFix:
     stamp_ns: int
     reason: NoFixReason
     message: str
+    rejected: tuple[str, ...] = ()

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys.store import Typestore
 
-from ..types import CellTiming, EnvelopeChunk, SyncWindow
+from ..types import CellTiming, EnvelopeChunk, StackArrivals, SyncWindow
 from .msgdefs import msgtype, typestore
 
 ENVELOPE_FRAME_ID = "envelope_adc"
@@ -86,40 +86,51 @@ def envelope_from_msg(msg: Any) -> EnvelopeChunk:
 
 
 def cell_timing_array_to_msg(
-    stamp_ns: int,
-    records: Iterable[CellTiming],
+    arrivals: StackArrivals,
     *,
     frame_id: str = ENVELOPE_FRAME_ID,
     store: Typestore | None = None,
 ) -> Any:
-    """Per-cell records -> ``deepsync_msgs/msg/CellTimingArray``, every header at ``stamp_ns``."""
+    """One stack's arrivals -> ``deepsync_msgs/msg/CellTimingArray`` (every header at the stack's
+    stamp; 0 / NaN for unknowns)."""
     types = _store(store).types
+    header = make_header(arrivals.stamp_ns, frame_id, store)
     cells = [
         types[CELL_TIMING](
-            header=make_header(stamp_ns, frame_id, store),
+            header=header,
             pci=int(r.pci),
             toa=float(r.toa),
             toa_std=float(r.toa_std),
             snr_db=float(r.snr_db),
+            earfcn=0 if r.earfcn is None else int(r.earfcn),
+            amplitude=float(r.amplitude),
             estimator=str(r.estimator),
         )
-        for r in records
+        for r in arrivals.cells
     ]
-    return types[CELL_TIMING_ARRAY](header=make_header(stamp_ns, frame_id, store), cells=cells)
+    drift = math.nan if arrivals.clock_drift_ppm is None else float(arrivals.clock_drift_ppm)
+    return types[CELL_TIMING_ARRAY](header=header, first_sample_index=int(arrivals.first_sample_index),
+                                    sample_rate=float(arrivals.sample_rate), clock_drift_ppm=drift, cells=cells)
 
 
-def cell_timing_array_from_msg(msg: Any) -> list[CellTiming]:
-    """``deepsync_msgs/msg/CellTimingArray`` -> per-cell records (stamp: ``msg.header.stamp``)."""
-    return [
+def cell_timing_array_from_msg(msg: Any) -> StackArrivals:
+    """``deepsync_msgs/msg/CellTimingArray`` -> the stack's arrivals; ValueError on a value no
+    arrival can have (the message names which)."""
+    cells = tuple(
         CellTiming(
             pci=int(c.pci),
             toa=float(c.toa),
             toa_std=float(c.toa_std),
             snr_db=float(c.snr_db),
             estimator=str(c.estimator),
+            earfcn=int(c.earfcn) or None,
+            amplitude=float(c.amplitude),
         )
         for c in msg.cells
-    ]
+    )
+    drift = float(msg.clock_drift_ppm)
+    return StackArrivals(stamp_to_ns(msg.header.stamp), int(msg.first_sample_index), float(msg.sample_rate), cells,
+                         None if math.isnan(drift) else drift)
 
 
 def sync_window_array_to_msg(

@@ -15,7 +15,7 @@ from __future__ import annotations
 import contextlib
 import shutil
 import tempfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
@@ -24,7 +24,7 @@ from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys.store import Typestore
 
-from ..types import CellTiming, EnvelopeChunk
+from ..types import EnvelopeChunk, StackArrivals
 from .convert import (
     cell_timing_array_to_msg,
     envelope_to_msg,
@@ -245,12 +245,6 @@ class BagWriter:
         """Write the true receiver position (ENU metres in ``map``) as ``PoseStamped``."""
         self.write(topic, pose_to_msg(stamp_ns, x, y, z, store=self.store))
 
-    def write_truth_cell_timing(
-        self,
-        stamp_ns: int,
-        records: Iterable[CellTiming],
-        *,
-        topic: str = TRUTH_CELL_TIMING_TOPIC,
-    ) -> None:
+    def write_truth_cell_timing(self, arrivals: StackArrivals, *, topic: str = TRUTH_CELL_TIMING_TOPIC) -> None:
         """Write true per-cell times of arrival as ``deepsync_msgs/msg/CellTimingArray``."""
-        self.write(topic, cell_timing_array_to_msg(stamp_ns, records, store=self.store))
+        self.write(topic, cell_timing_array_to_msg(arrivals, store=self.store))

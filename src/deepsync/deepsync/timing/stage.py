@@ -8,7 +8,8 @@ pair's fitted model) for the front end the stage was built for; the margin of th
 what their length leaves around that template.
 
 Per cell: ``toa`` = ``coarse_index`` + the estimator's offset (stream samples), its 1-sigma
-(see ``timing.estimators``: main lobe, posterior beyond it, model floor), the SNR, and the
+(see ``timing.estimators``: main lobe, posterior beyond it, model floor), the SNR, the code's
+fitted envelope amplitude (an RSSI: the square law makes it proportional to power), and the
 Cramer-Rao bound at the measured amplitude and noise spectrum, so a consumer sees how far an
 estimate is from the best possible. A window that cannot be timed at all (no variation, a
 length that fits no template) is reported as ``UNTIMEABLE`` and skipped; the stage never raises
@@ -111,6 +112,10 @@ class TimingStage:
             estimator=self.config.estimator.value,
             crlb_std=bound.std_samples,
             flags=flags,
+            earfcn=window.earfcn,
+            # RMS volts of the fitted code envelope: comparable between a single code's
+            # template and a co-sited pair's, whatever their scale
+            amplitude=abs(amplitude) * float(np.sqrt(np.mean(template**2))),
         )
 
     def _template(self, window: SyncWindow) -> np.ndarray:
