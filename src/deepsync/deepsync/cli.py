@@ -1,4 +1,5 @@
-"""The ``deepsync`` command: simulate recordings, inspect bags, detect cells, run the demo.
+"""The ``deepsync`` command: simulate recordings, inspect bags, detect cells, evaluate a route,
+calibrate site clocks, run the demo.
 
 Argument parsing and printing only: the work is done by the pipeline (``deepsync.pipeline``)
 over a source (``deepsync.sources``), and reported by ``deepsync.eval``."""
@@ -93,7 +94,7 @@ def describe_bag(path: Path) -> None:
         if TRUTH_CELL_TIMING_TOPIC in bag.topics:
             codes: dict[int, int] = {}
             for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
-                for record in cell_timing_array_from_msg(item.message):
+                for record in cell_timing_array_from_msg(item.message).cells:
                     codes[record.pci] = codes.get(record.pci, 0) + 1
             print("  ground truth: " + ", ".join(f"PCI {pci} ({n} sync codes)" for pci, n in sorted(codes.items())))
 
@@ -211,6 +212,70 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _pipeline_config(frames: int) -> PipelineConfig:
+    return PipelineConfig(sync=SyncConfig(stack=StackConfig(n_frames=frames)))
+
+
+def _cmd_evaluate_route(args: argparse.Namespace) -> int:
+    from deepsync.eval.route import evaluate_route
+
+    source = BagSource(args.bag)
+    towers = load_tower_database(args.towers)
+    print(f"route evaluation of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
+    summary, paths = evaluate_route(source, towers, Path(args.out), _pipeline_config(args.frames),
+                                    progress=not args.quiet)
+    _print_route(summary)
+    print("  written: " + ", ".join(str(p) for p in paths))
+    return 130 if summary["interrupted"] else 0
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from deepsync.eval.calibrate import calibrate_route
+    from deepsync.towers import write_tower_database
+
+    source = BagSource(args.bag)
+    towers = load_tower_database(args.towers)
+    print(f"site clock calibration from {source.description}\n  tower database {args.towers}")
+    calibration = calibrate_route(source, towers, _pipeline_config(args.frames), progress=not args.quiet)
+    result = calibration.result
+    print(f"  {len(result.sites)} sites heard; offsets relative to site {result.reference_site} (the most heard); "
+          f"range residual RMS {result.residual_rms_before_m:.1f} m before, {result.residual_rms_after_m:.1f} m after "
+          f"(stated sigmas scaled by {result.sigma_scale:.2f})")
+    for site in result.sites:
+        print(f"    site {site.site}: offset {site.offset_correction_s * 1e9:+9.1f} +- {site.offset_std_s * 1e9:5.1f} ns, "
+              f"drift {site.drift_correction * 1e9:+7.2f} +- {site.drift_std * 1e9:5.2f} ns/s  "
+              f"({site.n_arrivals} arrivals, residual RMS {site.residual_rms_m:.1f} m)")
+    write_tower_database(calibration.database, Path(args.out))
+    print(f"  written: {args.out}")
+    return 0
+
+
+def _metres(value: float | None) -> str:
+    return "    -" if value is None else f"{value:7.1f}"
+
+
+def _print_route(summary: dict) -> None:
+    if summary["interrupted"]:
+        print("  interrupted: the numbers cover what was replayed")
+    heard = ", ".join(f"{k}: {n}" for k, n in summary["sites_heard_per_stack"].items())
+    print(f"  {summary['stacks']} stacks over {summary['seconds']:.1f} s; sites heard per stack ({heard}); "
+          f"heard at all: {', '.join(summary['sites_heard']) or 'none'}")
+    print(f"  {'method':10s} {'fix rate':>8s} {'median':>7s} {'p90':>7s} {'p95':>7s} {'NEES':>6s}  no-fix reasons (m)")
+    for name, method in summary["methods"].items():
+        nees = "     -" if method["nees_mean"] is None else f"{method['nees_mean']:6.1f}"
+        reasons = ", ".join(f"{reason} {n}" for reason, n in method["no_fix_reasons"].items())
+        print(f"  {name:10s} {method['fix_rate']:8.0%} {_metres(method['median_m'])} {_metres(method['p90_m'])} "
+              f"{_metres(method['p95_m'])} {nees}  {reasons}")
+    bound = summary["position_bound"]
+    print(f"  {'bound':10s} {bound['stacks']:8d} {_metres(bound['median_m'])} {_metres(bound['p90_m'])}   "
+          "(position Cramer-Rao bound where >= 3 sites were heard)")
+    for site, row in summary["sites"].items():
+        median = row["median_error_samples"]
+        text = "no truth" if median is None else (f"timing error median {median:+.2f}, RMS {row['rms_error_samples']:.2f} "
+                                                  f"samples, {row['beyond_1_sample']:.0%} beyond 1 sample")
+        print(f"    site {site}: {row['stacks']} stacks, {text}; claimed sigma {row['median_claimed_std_samples']:.2f}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="deepsync", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -240,6 +305,24 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
     detect.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
     detect.set_defaults(run=_cmd_detect)
+
+    route = commands.add_parser("evaluate-route", help="fixes along a recorded route against its ground truth "
+                                "(snapshot, tracked, RSSI, the position bound): table, JSON and figures")
+    route.add_argument("--bag", required=True, help="bag with /deepsync/envelope and /deepsync/truth/pose")
+    route.add_argument("--towers", required=True, help="tower database YAML with origin, positions and timing")
+    route.add_argument("--out", default=str(REPO / "out" / "route"), help="where route.json and the PNGs go")
+    route.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
+    route.add_argument("--quiet", action="store_true", help="no progress bar")
+    route.set_defaults(run=_cmd_evaluate_route)
+
+    calibrate = commands.add_parser("calibrate", help="estimate each heard site's frame timing offset and drift "
+                                    "from a recording with ground truth; write the updated tower database")
+    calibrate.add_argument("--bag", required=True, help="bag with /deepsync/envelope and /deepsync/truth/pose")
+    calibrate.add_argument("--towers", required=True, help="tower database YAML to start from")
+    calibrate.add_argument("--out", required=True, help="calibrated tower database YAML to write")
+    calibrate.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
+    calibrate.add_argument("--quiet", action="store_true", help="no progress bar")
+    calibrate.set_defaults(run=_cmd_calibrate)
 
     info = commands.add_parser("info", help="describe a bag")
     info.add_argument("--bag", required=True)

@@ -1,4 +1,4 @@
-"""The DeepSync chain, envelope chunks -> sync -> timing (-> fusion), built from one config.
+"""The DeepSync chain, envelope chunks -> sync -> timing -> fusion, built from one config.
 
 This is the only place where stages are chained: the ``deepsync`` command, bag replay and the
 ROS nodes all run the chain through :class:`Pipeline` (a node that wraps one stage uses that
@@ -7,8 +7,9 @@ source's business (``deepsync.sources``); the source also says which front end t
 through, and every template is built for that front end and its sample rate.
 
 Each completed stack gives one :class:`StackResult`: the sync stage's cells, events and flags,
-and the timing stage's arrivals. Nothing in the chain raises on a bad stream; what went wrong
-is in :attr:`StackResult.health`.
+the timing stage's arrivals and, with a tower database that places its sites (an ``origin``,
+positions, timing offsets), fusion's fixes. Nothing in the chain raises on a bad stream; what
+went wrong is in :attr:`StackResult.health`.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 from deepsync.frontend.config import FrontendConfig
+from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
 from deepsync.sync.stage import SyncConfig, SyncResult, SyncStage
 from deepsync.timing.stage import TimingConfig, TimingResult, TimingStage
 from deepsync.towers import TowerDatabase
-from deepsync.types import EnvelopeChunk, Health
+from deepsync.types import EnvelopeChunk, Health, StackArrivals
 
 
 @dataclass(frozen=True)
@@ -29,6 +31,7 @@ class PipelineConfig:
 
     sync: SyncConfig = field(default_factory=SyncConfig)
     timing: TimingConfig = field(default_factory=TimingConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
 
     def __post_init__(self) -> None:
         if self.sync.stack.n_frames < 2:
@@ -42,6 +45,8 @@ class StackResult:
 
     sync: SyncResult
     timing: TimingResult
+    arrivals: StackArrivals
+    fusion: FusionResult | None = None  # None without a tower database that places its sites
 
     @property
     def stamp_ns(self) -> int:
@@ -53,11 +58,12 @@ class StackResult:
         """Everything the stages reported on this stack: stream events since the previous
         stack, the stack's flags, cells that could not be timed and weak arrivals."""
         weak = tuple(flag for cell in self.timing.cells for flag in cell.flags)
-        return self.sync.events + self.sync.flags + self.timing.events + weak
+        fusion = () if self.fusion is None else self.fusion.events
+        return self.sync.events + self.sync.flags + self.timing.events + weak + fusion
 
 
 class Pipeline:
-    """Sync and timing stages for one front end (and one tower database, if any)."""
+    """Sync, timing and fusion stages for one front end (and one tower database, if any)."""
 
     def __init__(self, frontend: FrontendConfig, config: PipelineConfig | None = None,
                  towers: TowerDatabase | None = None) -> None:
@@ -65,12 +71,25 @@ class Pipeline:
         self.frontend = frontend
         self.sync = SyncStage(frontend, self.config.sync, towers)
         self.timing = TimingStage(frontend, self.config.timing)
+        self.fusion = FusionStage(towers, self.config.fusion) if places_sites(towers) else None
 
     def process(self, chunk: EnvelopeChunk) -> list[StackResult]:
         """Feed one chunk; a result for every stack it completes."""
-        return [StackResult(result, self.timing.process(result.windows)) for result in self.sync.process(chunk)]
+        return [self._fuse(result, self.timing.process(result.windows)) for result in self.sync.process(chunk)]
+
+    def _fuse(self, sync: SyncResult, timing: TimingResult) -> StackResult:
+        arrivals = StackArrivals(sync.stamp_ns, sync.first_sample_index, self.frontend.adc_rate_hz, timing.cells,
+                                 sync.clock_drift_ppm)
+        fusion = None if self.fusion is None else self.fusion.process(arrivals)
+        return StackResult(sync, timing, arrivals, fusion)
 
     def run(self, chunks: Iterable[EnvelopeChunk]) -> Iterator[StackResult]:
         """Results stack by stack as the chunks (a source's ``chunks()``, a bag) stream in."""
         for chunk in chunks:
             yield from self.process(chunk)
+
+
+def places_sites(towers: TowerDatabase | None) -> bool:
+    """Whether a tower database can anchor fixes: a map origin and a site with position and timing."""
+    return towers is not None and towers.origin is not None and any(
+        site.has_position and site.timing_offset_us is not None for site in towers.sites)

@@ -38,8 +38,12 @@ sites:
 from __future__ import annotations
 
 import datetime
+import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+
+import yaml
 
 from deepsync.configio import ConfigError, load_yaml, require_list, require_mapping
 from deepsync.lte.cell import check_pci
@@ -262,3 +266,57 @@ def _epoch_ns(value: object, where: str) -> int | None:
 
 def load_tower_database(path: str | Path) -> TowerDatabase:
     return parse_tower_database(load_yaml(path), str(path))
+
+
+def tower_database_to_dict(db: TowerDatabase) -> dict:
+    """The mapping :func:`parse_tower_database` reads back as ``db`` exactly (values left out
+    where they are None); the epoch as an ISO 8601 UTC string ending in Z."""
+    top: dict = {"name": db.name}
+    if db.origin is not None:
+        top["origin"] = {"latitude_deg": db.origin.latitude_deg, "longitude_deg": db.origin.longitude_deg,
+                         "height_m": db.origin.height_m}
+    if db.timing_epoch_ns is not None:
+        top["timing_epoch_utc"] = _epoch_utc(db.timing_epoch_ns)
+    sites = []
+    for site in db.sites:
+        entry = {"name": site.name}
+        for key in ("latitude_deg", "longitude_deg", "height_m", *_TIMING_KEYS):
+            if getattr(site, key) is not None:
+                entry[key] = getattr(site, key)
+        entry["cells"] = [{"pci": cell.pci} if cell.earfcn is None else {"pci": cell.pci, "earfcn": cell.earfcn}
+                          for cell in site.cells]
+        sites.append(entry)
+    top["sites"] = sites
+    return top
+
+
+def _epoch_utc(epoch_ns: int) -> str:
+    """ISO 8601 UTC text of an instant in ns; the parser reads microseconds, so no finer."""
+    seconds, nanoseconds = divmod(epoch_ns, 10**9)
+    if nanoseconds % 1000:
+        raise ValueError(f"timing_epoch_ns {epoch_ns} has a sub-microsecond part, which ISO 8601 text in the "
+                         "database does not keep")
+    instant = datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc) + datetime.timedelta(
+        seconds=seconds, microseconds=nanoseconds // 1000)
+    fraction = f".{instant.microsecond:06d}" if instant.microsecond else ""
+    return instant.strftime("%Y-%m-%dT%H:%M:%S") + fraction + "Z"
+
+
+def write_tower_database(db: TowerDatabase, path: str | Path) -> None:
+    """Write ``db`` as YAML, atomically: into a temporary file beside ``path``, then renamed over
+    it, so a reader (or a crash) never meets half a database. An existing file's permissions are
+    kept."""
+    path = Path(path)
+    text = yaml.safe_dump(tower_database_to_dict(db), sort_keys=False)
+    mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as file:
+            file.write(text)
+            file.flush()
+            os.fsync(file.fileno())
+        os.chmod(temporary, mode)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise

@@ -42,7 +42,9 @@ class HealthKind(enum.Enum):
     ``GAP``, ``NOT_FINITE``, ``CORRUPT``, ``BACKWARDS``, ``RESTART``, ``RATE_MISMATCH``. Stack flags (a stack was searched,
     but its result deserves less trust, or none): ``CLIPPED``, ``NO_SIGNAL``, ``MISALIGNED``.
     Timing: ``UNTIMEABLE`` (a cell's windows could not be timed at all), ``WEAK_TIMING`` (an
-    arrival whose 1-sigma says it may be far off).
+    arrival whose 1-sigma says it may be far off). Fusion: ``UNANCHORED`` (a heard cell the tower
+    database cannot place: unknown PCI, reused PCI without a carrier, site without position or
+    timing).
     """
 
     GAP = "gap"  # samples missing from the stream: the stack spanning them is dropped
@@ -56,6 +58,7 @@ class HealthKind(enum.Enum):
     MISALIGNED = "misaligned"  # receiver clock drift smeared the stack's frames
     UNTIMEABLE = "untimeable"  # a detected cell's windows carry nothing to time
     WEAK_TIMING = "weak_timing"  # an arrival beyond the estimator's threshold: its 1-sigma is large
+    UNANCHORED = "unanchored"  # a heard cell fusion cannot use: the database does not place it
 
     @property
     def severity(self) -> Severity:
@@ -74,6 +77,7 @@ _SEVERITY = {
     HealthKind.MISALIGNED: Severity.WARN,
     HealthKind.UNTIMEABLE: Severity.WARN,
     HealthKind.WEAK_TIMING: Severity.WARN,
+    HealthKind.UNANCHORED: Severity.WARN,
 }
 
 
@@ -286,7 +290,7 @@ class Fix:
     kind: FixKind = FixKind.SNAPSHOT
     rejected: tuple[str, ...] = ()
     gdop: float = math.nan
-    clock_bias_m: float = math.nan  # receiver clock bias times c, modulo one frame
+    clock_bias_m: float = math.nan  # receiver clock bias against the sites' frame timing, times c
 
     @property
     def horizontal_std_m(self) -> float:

@@ -14,6 +14,10 @@ database (with the carrier where a PCI is reused), and co-sited sectors heard in
 one measurement of one site: they share antenna, timing and propagation, so their errors are
 not independent and the site's range takes the best sector's sigma, not a smaller one.
 
+The site timing is evaluated at the receiver's reading of the time, which is off network time
+by the receiver clock's bias: a site drifting at 20 ns/s is then placed 20 ns x that bias off
+(0.6 m for a receiver clock 0.1 s off UTC). Keep the receiver clock on NTP or GNSS time.
+
 Times stay exact: receiver time is counted from a ``reference_ns`` that is a whole number of
 frames (so the modulo is unchanged), in float seconds only after that subtraction (a Unix time
 in float64 seconds would be 200 ns coarse: 60 m).

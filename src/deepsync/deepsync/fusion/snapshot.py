@@ -12,8 +12,9 @@ measured). With ``N`` sites and ``n`` unknowns:
 * **Refinement**: weighted nonlinear least squares (``scipy.optimize.least_squares``) with a
   Huber loss at 3 sigma: plain least squares for Gaussian errors, a bounded pull for an outlier.
 * **Outliers**: the weighted residuals' sum of squares against chi-square(N - n). If it fails
-  and a site can be left out with a degree of freedom to spare, the site whose removal leaves
-  the smallest sum is rejected and named, and the test repeats; if no removal passes, no fix
+  and a site can be left out with a degree of freedom to spare, the site with the largest
+  studentised residual at the robust solution is rejected and named if the rest then pass
+  (else the removal that passes best), and the test repeats; if no removal passes, no fix
   (``INCONSISTENT``).
 * **Covariance**: ``(H^T W H)^-1`` from the analytic Jacobian at the solution. It is *not*
   rescaled by the residuals: with 1-3 degrees of freedom their variance estimate swings by
@@ -204,10 +205,16 @@ class SnapshotProblem:
                    self.gdop(state, keep), float(state[-1] + self.reference_m))
 
     def gdop(self, state: np.ndarray, keep: np.ndarray) -> float:
-        """Geometric dilution of precision (unit sigmas, no height prior)."""
+        """Geometric dilution of precision for unit range sigmas; in 3-D the height prior counts
+        in proportion to its sigma against the median range sigma (it is what holds the height)."""
         diff = self.position(state) - self.sites[keep]
         unit = diff / np.linalg.norm(diff, axis=1, keepdims=True)
-        h = np.hstack([unit[:, : self.config.dims], np.ones((keep.sum(), 1))])
+        dims = self.config.dims
+        h = np.hstack([unit[:, :dims], np.ones((keep.sum(), 1))])
+        if dims == 3:
+            prior = np.zeros((1, dims + 1))
+            prior[0, 2] = float(np.median(self.sigma[keep])) / self.config.height_prior_std_m
+            h = np.vstack([h, prior])
         try:
             return float(math.sqrt(np.trace(np.linalg.inv(h.T @ h))))
         except np.linalg.LinAlgError:
@@ -240,7 +247,7 @@ def solve_snapshot(arrivals: Sequence[SiteArrival], config: SnapshotConfig | Non
         solution = problem.solve(keep)
         dof = int(keep.sum()) - n
         if not _passes(solution, dof, config):
-            candidate = _leave_one_out(problem, keep, config) if dof >= 2 else None
+            candidate = _leave_one_out(problem, keep, config, solution) if dof >= 2 else None
             if candidate is None:
                 worst = _worst_site(problem, solution.state, keep)
                 return NoFix(stamp_ns, NoFixReason.INCONSISTENT,
@@ -269,8 +276,9 @@ def _checked_fix(problem: SnapshotProblem, solution: _Solution, keep: np.ndarray
         if prior_enu is None:
             return NoFix(stamp_ns, NoFixReason.DEGENERATE_GEOMETRY,
                          "two positions fit the ranges equally well (too few sites to tell them apart)", rejected)
-        here = np.linalg.norm(position[:2] + problem.centre[:2] - prior_enu[:2])
-        there = np.linalg.norm(problem.position(other)[:2] + problem.centre[:2] - prior_enu[:2])
+        prior = np.asarray(prior_enu, dtype=np.float64)[:2] - problem.centre[:2]
+        here = np.linalg.norm(position[:2] - prior)
+        there = np.linalg.norm(problem.position(other)[:2] - prior)
         if there < here:
             solution = _Solution(other, solution.chi_square, True)
     gdop = problem.gdop(solution.state, keep)
@@ -290,16 +298,28 @@ def chi_square_limit(probability: float, dof: int) -> float:
     return float(chi2.isf(probability, dof))
 
 
-def _leave_one_out(problem: SnapshotProblem, keep: np.ndarray, config: SnapshotConfig) -> int | None:
-    """The site whose removal leaves a solution that passes the residual test with the smallest
-    chi-square, or None."""
+def _leave_one_out(problem: SnapshotProblem, keep: np.ndarray, config: SnapshotConfig,
+                   solution: _Solution) -> int | None:
+    """The site to reject, or None: the one with the largest studentised residual at the robust
+    solution (its residual over its own spread, leverage removed: a site the geometry cannot
+    check has a small residual whatever it says) if the rest then pass the residual test; else
+    the removal that passes with the smallest chi-square."""
+    jac = problem.jacobian(solution.state, keep)
+    leverage = np.einsum("ij,jk,ik->i", jac, np.linalg.pinv(jac.T @ jac), jac)[: int(keep.sum())]
+    residuals = problem.residuals(solution.state, keep)[: int(keep.sum())]
+    studentised = np.abs(residuals) / np.sqrt(np.maximum(1 - leverage, 1e-9))
+    sites = np.flatnonzero(keep)
+    first = int(sites[int(np.argmax(studentised))])
     best, best_chi = None, math.inf
-    for i in np.flatnonzero(keep):
+    for i in [first, *(int(j) for j in sites if j != first)]:
         trial = keep.copy()
         trial[i] = False
-        solution = problem.solve(trial)
-        if _passes(solution, int(trial.sum()) - config.n_unknowns, config) and solution.chi_square < best_chi:
-            best, best_chi = int(i), solution.chi_square
+        trial_solution = problem.solve(trial)
+        if _passes(trial_solution, int(trial.sum()) - config.n_unknowns, config):
+            if i == first:
+                return i
+            if trial_solution.chi_square < best_chi:
+                best, best_chi = i, trial_solution.chi_square
     return best
 
 
@@ -334,3 +354,14 @@ def _worst_site(problem: SnapshotProblem, state: np.ndarray, keep: np.ndarray) -
     residuals = problem.residuals(state, keep)[: int(keep.sum())]
     index = int(np.flatnonzero(keep)[int(np.argmax(np.abs(residuals)))])
     return f"{problem.arrivals[index].site} at {np.abs(residuals).max():.1f} sigma"
+
+
+def position_bound(site_positions: np.ndarray, range_std_m: np.ndarray, receiver_enu: np.ndarray,
+                   dims: int = 2) -> np.ndarray:
+    """Cramer-Rao bound of the snapshot position (``dims`` x ``dims``, m^2) at ``receiver_enu``
+    for sites ranged with the given 1-sigmas (the timing bounds, in metres), clock bias unknown:
+    the inverse Fisher information of the pseudorange model, position block."""
+    diff = np.asarray(receiver_enu, dtype=np.float64) - np.asarray(site_positions, dtype=np.float64)
+    unit = diff / np.linalg.norm(diff, axis=1, keepdims=True)
+    h = np.hstack([unit[:, :dims], np.ones((len(unit), 1))]) / np.asarray(range_std_m, dtype=np.float64)[:, None]
+    return np.linalg.inv(h.T @ h)[:dims, :dims]

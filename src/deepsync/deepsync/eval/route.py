@@ -1,0 +1,342 @@
+"""A recorded route through the whole chain, every fix against the ground truth.
+
+``replay_route`` runs the pipeline (sync, timing, fusion) over a bag that carries the true
+receiver track (``/deepsync/truth/pose``) and keeps, per stack, what each method made of it:
+the snapshot solver, the tracker, the RSSI baseline (fitted afterwards, see ``rssi_fixes``) and
+the position Cramer-Rao bound of the sites heard (their timing bounds and the true geometry).
+``summarize_route`` turns that into the numbers people compare: fix rate, horizontal error
+median / p90 / p95, no-fix reasons, NEES, GDOP, sites heard per stack.
+
+The truth is the receiver antenna's true position at the stack's stamp; stamps are receiver
+clock time, which runs a few ppm off true time: at walking pace that is micrometres.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from deepsync.bag import (
+    TRUTH_CELL_TIMING_TOPIC,
+    TRUTH_POSE_TOPIC,
+    BagReader,
+    cell_timing_array_from_msg,
+    position_from_pose_msg,
+)
+from deepsync.bag.convert import stamp_to_ns
+from deepsync.fusion.anchors import Anchors, SiteArrival
+from deepsync.fusion.calibration import CalibrationObservation
+from deepsync.fusion.rssi import RssiAverager, RssiConfig, fit_path_loss, solve_rssi
+from deepsync.fusion.snapshot import position_bound
+from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
+from deepsync.sources import BagSource
+from deepsync.towers import TowerDatabase
+from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, NoFix
+
+CHI2_2DOF_95 = 5.991  # 95 % of a 2-D Gaussian's NEES lies below this
+
+
+@dataclass(frozen=True)
+class TruthTrack:
+    """The true receiver positions of a recording (``map`` ENU) at their stamps."""
+
+    stamps_ns: np.ndarray  # (N,) int64, increasing
+    positions: np.ndarray  # (N, 3)
+
+    def at(self, stamp_ns: int | float) -> np.ndarray:
+        """Position at ``stamp_ns``, linear between poses (ValueError outside the track)."""
+        stamps = self.stamps_ns
+        if not stamps[0] <= stamp_ns <= stamps[-1] + (stamps[-1] - stamps[0]) / max(len(stamps) - 1, 1):
+            raise ValueError(f"stamp {stamp_ns} ns is outside the ground-truth track")
+        offsets = (stamps - stamps[0]).astype(np.float64)
+        t = float(stamp_ns - stamps[0])
+        return np.array([np.interp(t, offsets, self.positions[:, k]) for k in range(3)])
+
+
+def read_truth_arrivals(bag: str | Path) -> dict[int, np.ndarray]:
+    """PCI -> every true sync-code arrival of the cell (stream samples, sorted): the bag's
+    ``/deepsync/truth/cell_timing``; empty without it."""
+    arrivals: dict[int, list[float]] = {}
+    with BagReader(bag) as reader:
+        if TRUTH_CELL_TIMING_TOPIC not in reader.topics:
+            return {}
+        for item in reader.messages([TRUTH_CELL_TIMING_TOPIC]):
+            for cell in cell_timing_array_from_msg(item.message).cells:
+                arrivals.setdefault(cell.pci, []).append(cell.toa)
+    return {pci: np.sort(np.array(toas)) for pci, toas in arrivals.items()}
+
+
+def timing_error(toa: float, truth: np.ndarray) -> float:
+    """Estimate minus the nearest true arrival (samples); NaN without one."""
+    if truth.size == 0:
+        return math.nan
+    i = int(np.clip(np.searchsorted(truth, toa), 1, truth.size - 1)) if truth.size > 1 else 0
+    nearest = truth[i] if truth.size == 1 or abs(truth[i] - toa) < abs(truth[i - 1] - toa) else truth[i - 1]
+    return float(toa - nearest)
+
+
+def read_truth_track(bag: str | Path) -> TruthTrack:
+    """The bag's ``/deepsync/truth/pose`` track; ValueError naming the bag if it has none."""
+    with BagReader(bag) as reader:
+        if TRUTH_POSE_TOPIC not in reader.topics:
+            raise ValueError(f"{bag}: no ground truth ({TRUTH_POSE_TOPIC}); evaluating or calibrating a route "
+                             "needs a simulated recording or one with surveyed positions")
+        poses = [(stamp_to_ns(item.message.header.stamp), position_from_pose_msg(item.message))
+                 for item in reader.messages([TRUTH_POSE_TOPIC])]
+    if len(poses) < 2:
+        raise ValueError(f"{bag}: {len(poses)} ground-truth pose(s), at least 2 are needed")
+    poses.sort(key=lambda pose: pose[0])
+    return TruthTrack(np.array([p[0] for p in poses], dtype=np.int64), np.array([p[1] for p in poses]))
+
+
+@dataclass
+class RouteEpoch:
+    """One stack of a route: what was heard and what each method answered."""
+
+    stamp_ns: int
+    truth_enu: np.ndarray
+    cells: int  # cells timed
+    sites: tuple[SiteArrival, ...]  # anchored sites heard
+    snapshot: Fix | NoFix
+    tracked: Fix | NoFix | None
+    bound_m: float  # horizontal DRMS of the position Cramer-Rao bound (NaN: fewer than 3 sites)
+    site_truth: dict[str, np.ndarray] = field(default_factory=dict)  # truth at each site's arrival
+    timing_errors: dict[str, tuple[float, float]] = field(default_factory=dict)  # site: (error, claimed sigma), samples
+    rssi: Fix | NoFix | None = None
+
+
+@dataclass
+class RouteRun:
+    bag: str
+    epochs: list[RouteEpoch]
+    reference_ns: int | None  # the fusion stage's time origin: ``SiteArrival.time_s`` counts from it
+    interrupted: bool = False
+
+    def observations(self) -> list[CalibrationObservation]:
+        """Every site heard, with where the receiver truly was when its code arrived."""
+        return [CalibrationObservation(site, epoch.site_truth[site.site]) for epoch in self.epochs for site in epoch.sites]
+
+
+def replay_route(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
+                 progress: bool = True, truth: TruthTrack | None = None) -> RouteRun:
+    """Run the chain over ``source`` and pair every stack with the truth. Ctrl-C stops early:
+    what was replayed so far is returned, marked ``interrupted``."""
+    truth = truth or read_truth_track(source.path)
+    true_arrivals = read_truth_arrivals(source.path)
+    pipeline = Pipeline(source.frontend, config, towers)
+    if pipeline.fusion is None:
+        raise ValueError(f"tower database {towers.name!r} places no site (it needs an origin and sites with "
+                         "position and timing offset)")
+    epochs = []
+    interrupted = False
+    bar = tqdm(total=source.n_chunks, unit="chunk", disable=not progress, desc="replay")
+    try:
+        for chunk in source.chunks():
+            for result in pipeline.process(chunk):
+                epochs.append(_epoch(result, pipeline, truth, true_arrivals))
+            bar.update(1)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        bar.close()
+    return RouteRun(str(source.path), epochs, pipeline.fusion.reference_ns, interrupted)
+
+
+def _epoch(result: StackResult, pipeline: Pipeline, truth: TruthTrack,
+           true_arrivals: dict[int, np.ndarray]) -> RouteEpoch:
+    fusion = result.fusion
+    reference = pipeline.fusion.reference_ns
+    site_truth = {site.site: truth.at(reference + site.time_s * 1e9) for site in fusion.sites}
+    cells = {cell.pci: cell for cell in result.arrivals.cells}
+    errors = {}
+    for site in fusion.sites:
+        cell = min((cells[pci] for pci in site.pcis), key=lambda c: c.toa_std)
+        errors[site.site] = (timing_error(cell.toa, true_arrivals.get(cell.pci, np.empty(0))), cell.toa_std)
+    here = truth.at(result.stamp_ns)
+    return RouteEpoch(result.stamp_ns, here, len(result.timing.cells), fusion.sites, fusion.snapshot,
+                      fusion.tracked, _bound(result, fusion.sites, here), site_truth, errors)
+
+
+def _bound(result: StackResult, sites: Sequence[SiteArrival], truth_enu: np.ndarray) -> float:
+    """Horizontal DRMS of the snapshot position bound from the heard sites' timing bounds."""
+    if len(sites) < 3:
+        return math.nan
+    metres_per_sample = SPEED_OF_LIGHT_M_S / result.arrivals.sample_rate
+    crlb = {cell.pci: cell.crlb_std for cell in result.arrivals.cells}
+    sigmas = np.array([min(crlb.get(pci, math.nan) for pci in site.pcis) * metres_per_sample for site in sites])
+    if not np.all(np.isfinite(sigmas) & (sigmas > 0)):
+        return math.nan
+    covariance = position_bound(np.array([s.position_enu for s in sites]), sigmas, truth_enu)
+    return float(math.sqrt(np.trace(covariance)))
+
+
+def add_rssi_fixes(run: RouteRun, config: RssiConfig) -> None:
+    """The RSSI baseline's answer for every stack. Its path-loss model (a power intercept per
+    site, one exponent) is fitted on this same route's powers at the true positions: an oracle
+    fit, as generous to the baseline as a site survey of the route itself would be."""
+    try:
+        model = fit_path_loss(run.observations())
+    except ValueError:
+        return  # too few powers to fit: the baseline has no answer (its fix rate says 0)
+    averager = RssiAverager(config)
+    for epoch in run.epochs:
+        epoch.rssi = solve_rssi(averager.add(epoch.sites), model, config, epoch.stamp_ns)
+
+
+# -- numbers ------------------------------------------------------------------------------------
+
+
+def horizontal_error(fix: Fix, truth_enu: np.ndarray) -> float:
+    return float(np.linalg.norm(np.asarray(fix.position_enu[:2]) - truth_enu[:2]))
+
+
+def nees(fix: Fix, truth_enu: np.ndarray) -> float:
+    """Normalised estimation error squared of the horizontal position (chi-square, 2 dof, if honest)."""
+    error = np.asarray(fix.position_enu[:2]) - truth_enu[:2]
+    return float(error @ np.linalg.solve(fix.covariance[:2, :2], error))
+
+
+def method_summary(answers: Sequence[Fix | NoFix | None], truths: Sequence[np.ndarray]) -> dict:
+    """Fix rate, error percentiles, NEES and no-fix reasons of one method along a route."""
+    pairs = [(a, t) for a, t in zip(answers, truths) if a is not None]
+    fixes = [(a, t) for a, t in pairs if isinstance(a, Fix)]
+    errors = np.array([horizontal_error(a, t) for a, t in fixes])
+    scores = np.array([nees(a, t) for a, t in fixes])
+    reasons = Counter(a.reason.value for a, _ in pairs if isinstance(a, NoFix))
+
+    def percentile(q: float) -> float | None:
+        return float(np.percentile(errors, q)) if errors.size else None
+
+    return {
+        "epochs": len(pairs),
+        "fixes": len(fixes),
+        "fix_rate": len(fixes) / len(pairs) if pairs else 0.0,
+        "median_m": percentile(50),
+        "p90_m": percentile(90),
+        "p95_m": percentile(95),
+        "rms_m": float(np.sqrt(np.mean(errors**2))) if errors.size else None,
+        "nees_mean": float(np.mean(scores)) if scores.size else None,
+        "nees_within_95": float(np.mean(scores <= CHI2_2DOF_95)) if scores.size else None,
+        "median_gdop": float(np.nanmedian([a.gdop for a, _ in fixes])) if fixes and any(
+            math.isfinite(a.gdop) for a, _ in fixes) else None,
+        "no_fix_reasons": dict(reasons.most_common()),
+    }
+
+
+METHODS: dict[str, Callable[[RouteEpoch], Fix | NoFix | None]] = {
+    "snapshot": lambda epoch: epoch.snapshot,
+    "tracked": lambda epoch: epoch.tracked,
+    "rssi": lambda epoch: epoch.rssi,
+}
+
+
+def summarize_route(run: RouteRun) -> dict:
+    """The route's table: per method, and what was heard."""
+    truths = [epoch.truth_enu for epoch in run.epochs]
+    heard = Counter(len(epoch.sites) for epoch in run.epochs)
+    bounds = np.array([epoch.bound_m for epoch in run.epochs])
+    finite = bounds[np.isfinite(bounds)]
+    return {
+        "bag": run.bag,
+        "interrupted": run.interrupted,
+        "stacks": len(run.epochs),
+        "seconds": (run.epochs[-1].stamp_ns - run.epochs[0].stamp_ns) * 1e-9 if run.epochs else 0.0,
+        "sites_heard_per_stack": {str(k): heard[k] for k in sorted(heard)},
+        "sites_heard": sorted({site.site for epoch in run.epochs for site in epoch.sites}),
+        "methods": {name: method_summary([pick(epoch) for epoch in run.epochs], truths)
+                    for name, pick in METHODS.items()},
+        "sites": _site_timing(run),
+        "position_bound": {
+            "stacks": int(finite.size),
+            "median_m": float(np.median(finite)) if finite.size else None,
+            "p90_m": float(np.percentile(finite, 90)) if finite.size else None,
+        },
+    }
+
+
+def _site_timing(run: RouteRun) -> dict:
+    """Per heard site: how often, and its arrivals against the truth (samples): the median error
+    (a bias: NLOS, the channel's pull), the RMS, the share beyond 1 sample (false locks), and the
+    median sigma the timing stage claimed."""
+    errors: dict[str, list[tuple[float, float]]] = {}
+    for epoch in run.epochs:
+        for site, pair in epoch.timing_errors.items():
+            errors.setdefault(site, []).append(pair)
+    table = {}
+    for site, pairs in sorted(errors.items()):
+        error = np.array([e for e, _ in pairs if math.isfinite(e)])
+        table[site] = {
+            "stacks": len(pairs),
+            "median_error_samples": float(np.median(error)) if error.size else None,
+            "rms_error_samples": float(np.sqrt(np.mean(error**2))) if error.size else None,
+            "beyond_1_sample": float(np.mean(np.abs(error) > 1)) if error.size else None,
+            "median_claimed_std_samples": float(np.median([s for _, s in pairs])),
+        }
+    return table
+
+
+def write_route_report(run: RouteRun, summary: dict, anchors: Anchors, out_dir: Path) -> list[Path]:
+    """``route.json`` (the summary and every stack) and the three figures, in ``out_dir``."""
+    from deepsync.eval import route_figures  # matplotlib: only where figures are drawn
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = out_dir / "route.json"
+    document = {"summary": summary, "stacks": [_epoch_record(e) for e in run.epochs]}
+    report.write_text(json.dumps(_strict_json(document), indent=1))
+    paths = [report, out_dir / "route_cdf.png", out_dir / "route_map.png", out_dir / "route_timeline.png"]
+    if run.epochs:
+        route_figures.plot_cdf(run, paths[1])
+        route_figures.plot_map(run, anchors, paths[2])
+        route_figures.plot_timeline(run, paths[3])
+    return paths if run.epochs else paths[:1]
+
+
+def _strict_json(value: object) -> object:
+    """NaN and infinities become null: JSON has no such numbers."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: _strict_json(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict_json(item) for item in value]
+    return value
+
+
+def _answer_record(answer: Fix | NoFix | None, truth_enu: np.ndarray) -> dict | None:
+    if answer is None:
+        return None
+    if isinstance(answer, NoFix):
+        return {"fix": False, "reason": answer.reason.value, "message": answer.message, "rejected": list(answer.rejected)}
+    return {"fix": True, "enu": list(answer.position_enu), "error_m": horizontal_error(answer, truth_enu),
+            "std_m": answer.horizontal_std_m, "nees": nees(answer, truth_enu), "gdop": answer.gdop,
+            "sites": list(answer.sites), "rejected": list(answer.rejected)}
+
+
+def _epoch_record(epoch: RouteEpoch) -> dict:
+    return {
+        "stamp_ns": epoch.stamp_ns,
+        "truth_enu": [float(v) for v in epoch.truth_enu],
+        "cells": epoch.cells,
+        "sites": [site.site for site in epoch.sites],
+        "timing_errors_samples": {site: error for site, (error, _) in epoch.timing_errors.items()},
+        "bound_m": epoch.bound_m,
+        **{name: _answer_record(pick(epoch), epoch.truth_enu) for name, pick in METHODS.items()},
+    }
+
+
+def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, config: PipelineConfig | None = None,
+                   progress: bool = True) -> tuple[dict, list[Path]]:
+    """Replay, score and report a route: the summary and the files written."""
+    run = replay_route(source, towers, config, progress)
+    if not run.epochs:
+        raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
+    add_rssi_fixes(run, RssiConfig(receiver_height_m=(config or PipelineConfig()).fusion.snapshot.receiver_height_m))
+    summary = summarize_route(run)
+    return summary, write_route_report(run, summary, Anchors(towers), out_dir)

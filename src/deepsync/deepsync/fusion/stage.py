@@ -1,0 +1,98 @@
+"""The fusion stage: one stack's arrivals in, a snapshot fix and the tracker's fix out.
+
+``FusionStage.process(arrivals)`` takes exactly what a ``CellTimingArray`` message carries
+(:class:`~deepsync.types.StackArrivals`), so the fusion node and the pipeline call it alike.
+The cells become site ranges through the tower database (``fusion.anchors``); the stack is
+solved on its own (``fusion.snapshot``: needs 3 sites in 2-D) and fed to the tracker
+(``fusion.tracker``: one site is enough). Cells the database cannot place are reported as
+``UNANCHORED`` events and left out; the stage never raises on what it is fed.
+
+Time: ranges are read on the receiver clock counted from the first stack's frame-aligned
+stamp; a stream that starts over (stamps going back) starts the tracker afresh.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+from deepsync.fusion.anchors import Anchors, SiteArrival, frame_reference_ns
+from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
+from deepsync.fusion.tracker import Tracker, TrackerConfig
+from deepsync.geo import LocalFrame
+from deepsync.towers import TowerDatabase
+from deepsync.types import Fix, Health, HealthKind, NoFix, StackArrivals
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """``track``: run the tracker besides the snapshot solver; ``min_std_m`` floors each
+    arrival's 1-sigma (nothing times better than this: ground truth says 0)."""
+
+    snapshot: SnapshotConfig = field(default_factory=SnapshotConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    track: bool = True
+    min_std_m: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.min_std_m, (int, float)) and math.isfinite(self.min_std_m) and 0 < self.min_std_m <= 1e4):
+            raise ValueError(f"min_std_m: {self.min_std_m!r} must be a positive number of metres (<= 1e4)")
+        # one source for the dimensions and the receiver height: the tracker follows the stage's
+        object.__setattr__(self, "tracker", dataclasses.replace(self.tracker, snapshot=self.snapshot))
+
+
+@dataclass(frozen=True)
+class FusionResult:
+    """What fusion made of one stack: the snapshot's answer, the tracker's (None when not
+    tracking), the site ranges both used, and the cells that could not be used."""
+
+    snapshot: Fix | NoFix
+    tracked: Fix | NoFix | None
+    sites: tuple[SiteArrival, ...]
+    events: tuple[Health, ...] = ()
+
+    @property
+    def best(self) -> Fix | NoFix:
+        """The tracker's fix when it has one, else the snapshot's answer."""
+        return self.tracked if isinstance(self.tracked, Fix) else self.snapshot
+
+
+class FusionStage:
+    """Site ranges, snapshot solver and tracker for one tower database."""
+
+    def __init__(self, towers: TowerDatabase, config: FusionConfig | None = None,
+                 frame: LocalFrame | None = None) -> None:
+        self.config = config or FusionConfig()
+        self.anchors = Anchors(towers, frame)
+        self.tracker = Tracker(self.config.tracker) if self.config.track else None
+        self.reference_ns: int | None = None
+        self._last_stamp_ns: int | None = None
+
+    @property
+    def frame(self) -> LocalFrame:
+        return self.anchors.frame
+
+    def process(self, arrivals: StackArrivals) -> FusionResult:
+        """Fix (or no fix, with the reason) for one stack's arrivals."""
+        events = []
+        if self._last_stamp_ns is not None and arrivals.stamp_ns < self._last_stamp_ns:
+            events.append(Health(HealthKind.RESTART, "stamps went back: fusion starts afresh"))
+            self.reference_ns = None
+            if self.tracker is not None:
+                self.tracker.reset()
+        if self.reference_ns is None:
+            self.reference_ns = frame_reference_ns(arrivals.stamp_ns)
+        self._last_stamp_ns = arrivals.stamp_ns
+        sites, problems = self.anchors.site_arrivals(arrivals, self.reference_ns, self.config.min_std_m)
+        events += [Health(HealthKind.UNANCHORED, problem) for problem in problems]
+        clock_rate = None if arrivals.clock_drift_ppm is None else arrivals.clock_drift_ppm * 1e-6
+        tracked = None
+        prior = None
+        if self.tracker is not None:
+            time_s = max([site.time_s for site in sites], default=(arrivals.stamp_ns - self.reference_ns) * 1e-9)
+            tracked = self.tracker.update(sites, arrivals.stamp_ns, time_s, clock_rate)
+            prior = tracked.position_enu if isinstance(tracked, Fix) else None
+        snapshot = solve_snapshot(sites, self.config.snapshot, stamp_ns=arrivals.stamp_ns,
+                                  clock_rate=clock_rate or 0.0, prior_enu=prior)
+        return FusionResult(snapshot, tracked, tuple(sites), tuple(events))

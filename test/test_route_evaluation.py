@@ -1,0 +1,103 @@
+"""The route commands on the bundled campus bag: ``evaluate-route`` and ``calibrate`` end to end.
+
+The campus bag is 3 s of a static receiver hearing three LOS sites (one a co-sited pair): every
+stack that hears all three fixes, and the fixes must agree with the position bound and the
+ground truth. Bad input rows (no ground truth, a database that places no site) are here too.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deepsync.bag import ENVELOPE_TOPIC, BagReader, BagWriter, envelope_from_msg
+from deepsync.cli import main
+from deepsync.eval.calibrate import calibrate_route, oracle_database
+from deepsync.eval.route import evaluate_route, read_truth_track
+from deepsync.sources import BagSource
+from deepsync.towers import load_tower_database
+
+REPO = Path(__file__).resolve().parents[1]
+BAG = REPO / "bags" / "campus"
+TOWERS = REPO / "config" / "towers" / "campus.yaml"
+
+
+@pytest.fixture(scope="module")
+def campus(tmp_path_factory) -> tuple[dict, list[Path]]:
+    out = tmp_path_factory.mktemp("route")
+    return evaluate_route(BagSource(BAG), load_tower_database(TOWERS), out, progress=False)
+
+
+def test_campus_route_fixes_within_a_few_bounds(campus) -> None:
+    summary, paths = campus
+    snapshot = summary["methods"]["snapshot"]
+    bound = summary["position_bound"]
+    assert summary["sites_heard"] == ["A", "B", "C"]
+    assert snapshot["fix_rate"] > 0.5
+    # LOS multipath biases the envelope peak by ~0.1 sample (15 m): errors are a few bounds, not more
+    assert bound["median_m"] < snapshot["median_m"] < 4 * bound["median_m"]
+    assert snapshot["p95_m"] < 100
+    tracked = summary["methods"]["tracked"]
+    assert tracked["fix_rate"] > 0.5 and tracked["median_m"] < 3 * snapshot["median_m"]
+
+
+def test_campus_route_report_files(campus) -> None:
+    summary, paths = campus
+    assert [p.name for p in paths] == ["route.json", "route_cdf.png", "route_map.png", "route_timeline.png"]
+    for path in paths[1:]:
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    document = json.loads(paths[0].read_text())  # strict JSON: NaN would not parse in other readers
+    assert document["summary"]["stacks"] == len(document["stacks"]) == summary["stacks"]
+    fixed = [s for s in document["stacks"] if s["snapshot"]["fix"]]
+    assert fixed and all(abs(s["snapshot"]["error_m"] - np.linalg.norm(
+        np.array(s["snapshot"]["enu"][:2]) - s["truth_enu"][:2])) < 1e-6 for s in fixed)
+
+
+def test_calibration_on_the_campus_bag_writes_a_database_that_fixes_better(tmp_path) -> None:
+    """On one recording the calibration absorbs each site's multipath bias into its offset, so
+    re-evaluating the same bag with it must be no worse; the oracle clocks are the yardstick."""
+    source = BagSource(BAG)
+    towers = load_tower_database(TOWERS)
+    calibration = calibrate_route(source, towers, progress=False)
+    result = calibration.result
+    assert {s.site for s in result.sites} == {"A", "B", "C"}
+    assert result.residual_rms_after_m < result.residual_rms_before_m
+    out = tmp_path / "calibrated.yaml"
+    assert main(["calibrate", "--bag", str(BAG), "--towers", str(TOWERS), "--out", str(out), "--quiet"]) == 0
+    calibrated = load_tower_database(out)
+    assert calibrated.timing_epoch_ns == calibration.database.timing_epoch_ns
+    before, _ = evaluate_route(source, oracle_database(towers, source), tmp_path / "oracle", progress=False)
+    after, _ = evaluate_route(source, calibrated, tmp_path / "after", progress=False)
+    assert after["methods"]["snapshot"]["median_m"] <= 1.1 * before["methods"]["snapshot"]["median_m"]
+
+
+def envelope_only_bag(path: Path) -> Path:
+    with BagReader(BAG) as reader, BagWriter(path) as writer:
+        for k, item in enumerate(reader.messages([ENVELOPE_TOPIC])):
+            writer.write_envelope(envelope_from_msg(item.message))
+            if k == 20:
+                break
+    return path
+
+
+@pytest.mark.parametrize("command", ["evaluate-route", "calibrate"])
+def test_route_commands_refuse_a_bag_without_ground_truth(tmp_path, capsys, command) -> None:
+    bag = envelope_only_bag(tmp_path / "no_truth")
+    out = tmp_path / ("out.yaml" if command == "calibrate" else "out")
+    assert main([command, "--bag", str(bag), "--towers", str(TOWERS), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "no ground truth" in err and "Traceback" not in err
+    assert not out.exists()
+    with pytest.raises(ValueError, match="no ground truth"):
+        read_truth_track(bag)
+
+
+def test_route_commands_refuse_a_database_that_places_no_site(tmp_path, capsys) -> None:
+    towers = tmp_path / "towers.yaml"
+    towers.write_text((REPO / "config" / "towers" / "real_lte_1860.yaml").read_text())
+    out = tmp_path / "out"
+    assert main(["evaluate-route", "--bag", str(BAG), "--towers", str(towers), "--out", str(out), "--quiet"]) == 2
+    assert "places no site" in capsys.readouterr().err and not out.exists()
