@@ -58,7 +58,7 @@ def test_ground_truth_follows_geometry_and_clock(walk_bag):
             if item.topic == TRUTH_POSE_TOPIC:
                 positions.append((item.log_time_ns, position_from_pose_msg(item.message)))
                 continue
-            for record in cell_timing_array_from_msg(item.message):
+            for record in cell_timing_array_from_msg(item.message).cells:
                 toas.setdefault(record.pci, []).append(record.toa)
     assert sorted(toas) == sorted(c.pci for c in twin.cells)
     for i, cell in enumerate(twin.cells):

@@ -411,7 +411,7 @@ def test_bag_source_streams_the_recorded_envelope(path):
         count = bag.message_counts[ENVELOPE_TOPIC]
         first_toa: dict[int, float] = {}
         for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
-            for record in cell_timing_array_from_msg(item.message):
+            for record in cell_timing_array_from_msg(item.message).cells:
                 first_toa[record.pci] = min(first_toa.get(record.pci, math.inf), record.toa)
     assert source.frontend == recorded and recorded != FrontendConfig()  # the bag's own chain (10 dB LNA)
     indices = [c.first_sample_index for c in source.chunks()]

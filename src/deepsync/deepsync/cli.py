@@ -202,6 +202,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     report.write_text(json.dumps({"bag": str(DEMO_BAG.relative_to(REPO)), "summary": summary, "stacks": stacks},
                                  indent=1))
     print(f"  per-stack results in {report}")
+    from deepsync.eval.route import evaluate_route
+
+    print("\n== TDOA fusion: snapshot and tracked positions against the truth")
+    route, paths = evaluate_route(source, load_tower_database(DEMO_TOWERS), out, progress=False)
+    _print_route(route)
+    print("  written: " + ", ".join(str(p) for p in paths))
     if args.simulate:
         from deepsync.recording import record_scenario
 
@@ -230,7 +236,7 @@ def _cmd_evaluate_route(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from deepsync.eval.calibrate import calibrate_route
+    from deepsync.eval.calibrate import MIN_ARRIVALS, calibrate_route
     from deepsync.towers import write_tower_database
 
     source = BagSource(args.bag)
@@ -241,6 +247,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     print(f"  {len(result.sites)} sites heard; offsets relative to site {result.reference_site} (the most heard); "
           f"range residual RMS {result.residual_rms_before_m:.1f} m before, {result.residual_rms_after_m:.1f} m after "
           f"(stated sigmas scaled by {result.sigma_scale:.2f})")
+    if calibration.skipped:
+        print(f"  not calibrated (heard fewer than {MIN_ARRIVALS} times): {', '.join(calibration.skipped)}")
     for site in result.sites:
         print(f"    site {site.site}: offset {site.offset_correction_s * 1e9:+9.1f} +- {site.offset_std_s * 1e9:5.1f} ns, "
               f"drift {site.drift_correction * 1e9:+7.2f} +- {site.drift_std * 1e9:5.2f} ns/s  "
@@ -260,8 +268,12 @@ def _print_route(summary: dict) -> None:
     heard = ", ".join(f"{k}: {n}" for k, n in summary["sites_heard_per_stack"].items())
     print(f"  {summary['stacks']} stacks over {summary['seconds']:.1f} s; sites heard per stack ({heard}); "
           f"heard at all: {', '.join(summary['sites_heard']) or 'none'}")
-    print(f"  {'method':10s} {'fix rate':>8s} {'median':>7s} {'p90':>7s} {'p95':>7s} {'NEES':>6s}  no-fix reasons (m)")
+    print(f"  {'method':10s} {'fix rate':>8s} {'median':>7s} {'p90':>7s} {'p95':>7s} {'NEES':>6s}  "
+          "(horizontal error in m; NEES 2 if the covariance is honest)  no-fix reasons")
     for name, method in summary["methods"].items():
+        if name == "rssi" and not summary["rssi_model"]["fitted"]:
+            print(f"  {name:10s} no path-loss model: {summary['rssi_model']['why']}")
+            continue
         nees = "     -" if method["nees_mean"] is None else f"{method['nees_mean']:6.1f}"
         reasons = ", ".join(f"{reason} {n}" for reason, n in method["no_fix_reasons"].items())
         print(f"  {name:10s} {method['fix_rate']:8.0%} {_metres(method['median_m'])} {_metres(method['p90_m'])} "

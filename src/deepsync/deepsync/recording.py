@@ -3,7 +3,9 @@
 Topics: ``/deepsync/envelope`` (EnvelopeSamples, 10 ms chunks), ``/deepsync/truth/pose``
 (PoseStamped in ``map``, 10 Hz) and ``/deepsync/truth/cell_timing`` (CellTimingArray, one per
 10 ms of stream, listing every cell whose subframe-0 sync code starts in that span; ``toa`` is
-its fractional stream sample index on the receiver clock, from the line-of-sight delay).
+its fractional stream sample index on the receiver clock, from the line-of-sight delay and the
+site's drifting frame clock). The provenance adds the scenario ``origin`` and the true
+``sites`` (position, timing offset at the first sample, timing drift, oscillator error).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
 from deepsync.twin import Twin, build_twin
 from deepsync.twin.scenario import load_scenario
-from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming
+from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming, StackArrivals
 
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: receiver clock at sample 0
 POSE_PERIOD_SECONDS = 0.1
@@ -95,10 +97,10 @@ def truth_timing(twin: Twin, simulator: EnvelopeSimulator, n_samples: int) -> It
     end_time = float(simulator.clock.true_time(n_samples / rate))
 
     def arrivals(i: int, emitter: Emitter) -> Iterator[tuple[float, int, int]]:
-        first = math.floor((0.0 - emitter.timing_offset_s) / FRAME_SECONDS) - 1
-        last = math.ceil((end_time - emitter.timing_offset_s) / FRAME_SECONDS)
+        first = emitter.frame_index_at(0.0) - 1
+        last = emitter.frame_index_at(end_time) + 1
         for k in range(first, last + 1):  # a frame moves the arrival on by far more than the path changes
-            sent = emitter.timing_offset_s + k * FRAME_SECONDS
+            sent = emitter.frame_start_s(k)  # the site's frame clock, drift and all
             toa = float(simulator.sample_index(sent + sync_code_offset_seconds() + twin.geometric_delay_s(i, sent)))
             if 0 <= toa < n_samples:
                 yield toa, i, emitter.cell.pci
@@ -135,9 +137,30 @@ def _provenance(scenario_path: Path, seed: int, seconds: float, twin: Twin) -> s
             "frontend": asdict(twin.frontend),
             "python": platform.python_version(),
             "numpy": np.__version__,
+            "origin": asdict(twin.scenario.origin),
+            "sites": truth_sites(twin),
         },
         sort_keys=True,
     )
+
+
+def truth_sites(twin: Twin) -> list[dict]:
+    """What a perfect tower database would say about each site of the twin, for the bag's
+    provenance: position (``height_m`` above ground), the frame timing offset at the first
+    sample and how fast it changes (the frame clock's drift), and the oscillator error."""
+    out = []
+    for site in twin.sites:
+        clock = next(e for e in twin.emitters if e.site == site.name)  # its cells share one clock
+        out.append({
+            "name": site.name,
+            "latitude_deg": site.latitude_deg,
+            "longitude_deg": site.longitude_deg,
+            "height_m": site.height_m,
+            "timing_offset_us": clock.timing_offset_at(0.0) * 1e6,
+            "timing_drift_ns_per_s": clock.timing_drift_s_per_s * 1e9,
+            "frequency_error_ppb": site.frequency_error_ppb,
+        })
+    return out
 
 
 def record_scenario(
@@ -183,7 +206,7 @@ def record_scenario(
                 records.append(CellTiming(pci, toa, 0.0, float("nan"), TRUTH_ESTIMATOR))
                 code = next(codes, None)
             if records:
-                bag.write_truth_cell_timing(envelope.stamp_ns, records)
+                bag.write_truth_cell_timing(StackArrivals(envelope.stamp_ns, first, rate, tuple(records)))
                 truth_messages += 1
             bag.write_envelope(envelope)
             chunks += 1

@@ -12,13 +12,17 @@ sites' true timing (from the bag's provenance), what no calibration can beat.
 from __future__ import annotations
 
 import dataclasses
+from collections import Counter
 from dataclasses import dataclass
 
 from deepsync.eval.route import RouteRun, replay_route
-from deepsync.fusion.calibration import CalibrationResult, calibrate_sites, calibrated_database
+from deepsync.fusion.calibration import CalibrationObservation, CalibrationResult, calibrate_sites, calibrated_database
 from deepsync.pipeline import PipelineConfig
 from deepsync.sources import BagSource
 from deepsync.towers import TowerDatabase, parse_tower_database, tower_database_to_dict
+
+
+MIN_ARRIVALS = 5  # a site heard fewer times is left out: a stray detection, or too little to fit a drift
 
 
 @dataclass(frozen=True)
@@ -26,6 +30,14 @@ class RouteCalibration:
     result: CalibrationResult
     database: TowerDatabase  # the input database with the calibrated sites' timing
     run: RouteRun
+    skipped: tuple[str, ...] = ()  # sites heard fewer than MIN_ARRIVALS times: not calibrated
+
+
+def calibratable(observations: list[CalibrationObservation]) -> tuple[list[CalibrationObservation], tuple[str, ...]]:
+    """The observations of sites heard at least :data:`MIN_ARRIVALS` times, and the others' names."""
+    counts = Counter(o.arrival.site for o in observations)
+    skipped = tuple(sorted(site for site, n in counts.items() if n < MIN_ARRIVALS))
+    return [o for o in observations if o.arrival.site not in skipped], skipped
 
 
 def calibrate_route(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
@@ -37,12 +49,12 @@ def calibrate_route(source: BagSource, towers: TowerDatabase, config: PipelineCo
     run = replay_route(source, towers, snapshot_only, progress)
     if run.interrupted:
         raise KeyboardInterrupt
-    observations = run.observations()
+    observations, skipped = calibratable(run.observations())
     if not observations:
-        raise ValueError(f"no site of tower database {towers.name!r} was heard in {source.description}: "
-                         "nothing to calibrate")
+        raise ValueError(f"no site of tower database {towers.name!r} was heard {MIN_ARRIVALS} times in "
+                         f"{source.description}: nothing to calibrate")
     result = calibrate_sites(observations)
-    return RouteCalibration(result, calibrated_database(towers, result, run.reference_ns), run)
+    return RouteCalibration(result, calibrated_database(towers, result, run.reference_ns), run, skipped)
 
 
 def oracle_database(towers: TowerDatabase, source: BagSource) -> TowerDatabase:

@@ -35,10 +35,11 @@ from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.rssi import RssiAverager, RssiConfig, fit_path_loss, solve_rssi
 from deepsync.fusion.snapshot import position_bound
-from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
+from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
+from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
 from deepsync.sources import BagSource
 from deepsync.towers import TowerDatabase
-from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, NoFix
+from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, NoFix, StackArrivals
 
 CHI2_2DOF_95 = 5.991  # 95 % of a 2-D Gaussian's NEES lies below this
 
@@ -119,57 +120,83 @@ class RouteRun:
     reference_ns: int | None  # the fusion stage's time origin: ``SiteArrival.time_s`` counts from it
     interrupted: bool = False
 
-    def observations(self) -> list[CalibrationObservation]:
-        """Every site heard, with where the receiver truly was when its code arrived."""
-        return [CalibrationObservation(site, epoch.site_truth[site.site]) for epoch in self.epochs for site in epoch.sites]
+    def observations(self, until_ns: int | None = None) -> list[CalibrationObservation]:
+        """Every site heard (in stacks stamped up to ``until_ns``), with where the receiver truly
+        was when its code arrived."""
+        return [CalibrationObservation(site, epoch.site_truth[site.site]) for epoch in self.epochs
+                if until_ns is None or epoch.stamp_ns <= until_ns for site in epoch.sites]
 
 
-def replay_route(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
-                 progress: bool = True, truth: TruthTrack | None = None) -> RouteRun:
-    """Run the chain over ``source`` and pair every stack with the truth. Ctrl-C stops early:
-    what was replayed so far is returned, marked ``interrupted``."""
-    truth = truth or read_truth_track(source.path)
-    true_arrivals = read_truth_arrivals(source.path)
-    pipeline = Pipeline(source.frontend, config, towers)
-    if pipeline.fusion is None:
+@dataclass
+class Replay:
+    """The arrivals of every stack of a recording, as the timing stage made them: what fusion
+    runs on. Fusion is cheap next to the cell search, so variants (another database, tracker
+    settings) re-run on one replay."""
+
+    source: BagSource
+    arrivals: list[StackArrivals]
+    truth: TruthTrack
+    true_arrivals: dict[int, np.ndarray]
+    interrupted: bool = False
+
+
+def replay(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
+           progress: bool = True) -> Replay:
+    """Run the chain's cell search and timing over ``source``. Ctrl-C stops early: what was
+    replayed so far is kept, marked ``interrupted``. ValueError if the bag has no ground truth
+    or the database places no site."""
+    truth = read_truth_track(source.path)
+    if not places_sites(towers):
         raise ValueError(f"tower database {towers.name!r} places no site (it needs an origin and sites with "
                          "position and timing offset)")
-    epochs = []
+    pipeline = Pipeline(source.frontend, config, towers)
+    arrivals = []
     interrupted = False
     bar = tqdm(total=source.n_chunks, unit="chunk", disable=not progress, desc="replay")
     try:
         for chunk in source.chunks():
-            for result in pipeline.process(chunk):
-                epochs.append(_epoch(result, pipeline, truth, true_arrivals))
+            arrivals += [result.arrivals for result in pipeline.process(chunk)]
             bar.update(1)
     except KeyboardInterrupt:
         interrupted = True
     finally:
         bar.close()
-    return RouteRun(str(source.path), epochs, pipeline.fusion.reference_ns, interrupted)
+    return Replay(source, arrivals, truth, read_truth_arrivals(source.path), interrupted)
 
 
-def _epoch(result: StackResult, pipeline: Pipeline, truth: TruthTrack,
-           true_arrivals: dict[int, np.ndarray]) -> RouteEpoch:
-    fusion = result.fusion
-    reference = pipeline.fusion.reference_ns
-    site_truth = {site.site: truth.at(reference + site.time_s * 1e9) for site in fusion.sites}
-    cells = {cell.pci: cell for cell in result.arrivals.cells}
+def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None) -> RouteRun:
+    """Fusion over a replay's arrivals with ``towers``, every stack paired with the truth."""
+    stage = FusionStage(towers, config)
+    epochs = [_epoch(arrivals, stage.process(arrivals), stage.reference_ns, recorded)
+              for arrivals in recorded.arrivals]
+    return RouteRun(str(recorded.source.path), epochs, stage.reference_ns, recorded.interrupted)
+
+
+def replay_route(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
+                 progress: bool = True) -> RouteRun:
+    """Replay and fuse in one go."""
+    config = config or PipelineConfig()
+    return fuse_route(replay(source, towers, config, progress), towers, config.fusion)
+
+
+def _epoch(arrivals: StackArrivals, fusion: FusionResult, reference_ns: int, recorded: Replay) -> RouteEpoch:
+    site_truth = {site.site: recorded.truth.at(reference_ns + site.time_s * 1e9) for site in fusion.sites}
+    cells = {cell.pci: cell for cell in arrivals.cells}
     errors = {}
     for site in fusion.sites:
         cell = min((cells[pci] for pci in site.pcis), key=lambda c: c.toa_std)
-        errors[site.site] = (timing_error(cell.toa, true_arrivals.get(cell.pci, np.empty(0))), cell.toa_std)
-    here = truth.at(result.stamp_ns)
-    return RouteEpoch(result.stamp_ns, here, len(result.timing.cells), fusion.sites, fusion.snapshot,
-                      fusion.tracked, _bound(result, fusion.sites, here), site_truth, errors)
+        errors[site.site] = (timing_error(cell.toa, recorded.true_arrivals.get(cell.pci, np.empty(0))), cell.toa_std)
+    here = recorded.truth.at(arrivals.stamp_ns)
+    return RouteEpoch(arrivals.stamp_ns, here, len(arrivals.cells), fusion.sites, fusion.snapshot,
+                      fusion.tracked, _bound(arrivals, fusion.sites, here), site_truth, errors)
 
 
-def _bound(result: StackResult, sites: Sequence[SiteArrival], truth_enu: np.ndarray) -> float:
+def _bound(arrivals: StackArrivals, sites: Sequence[SiteArrival], truth_enu: np.ndarray) -> float:
     """Horizontal DRMS of the snapshot position bound from the heard sites' timing bounds."""
     if len(sites) < 3:
         return math.nan
-    metres_per_sample = SPEED_OF_LIGHT_M_S / result.arrivals.sample_rate
-    crlb = {cell.pci: cell.crlb_std for cell in result.arrivals.cells}
+    metres_per_sample = SPEED_OF_LIGHT_M_S / arrivals.sample_rate
+    crlb = {cell.pci: cell.crlb_std for cell in arrivals.cells}
     sigmas = np.array([min(crlb.get(pci, math.nan) for pci in site.pcis) * metres_per_sample for site in sites])
     if not np.all(np.isfinite(sigmas) & (sigmas > 0)):
         return math.nan
@@ -177,17 +204,21 @@ def _bound(result: StackResult, sites: Sequence[SiteArrival], truth_enu: np.ndar
     return float(math.sqrt(np.trace(covariance)))
 
 
-def add_rssi_fixes(run: RouteRun, config: RssiConfig) -> None:
-    """The RSSI baseline's answer for every stack. Its path-loss model (a power intercept per
-    site, one exponent) is fitted on this same route's powers at the true positions: an oracle
-    fit, as generous to the baseline as a site survey of the route itself would be."""
+def add_rssi_fixes(run: RouteRun, config: RssiConfig) -> dict:
+    """The RSSI baseline's answer for every stack, and its path-loss model (or why there is none).
+
+    The model (a power intercept per site, one exponent) is fitted on this same route's powers
+    at the true positions: an oracle fit, as generous to the baseline as a site survey of the
+    route itself would be."""
     try:
         model = fit_path_loss(run.observations())
-    except ValueError:
-        return  # too few powers to fit: the baseline has no answer (its fix rate says 0)
+    except ValueError as error:
+        return {"fitted": False, "why": str(error)}  # no answer from the baseline: its fix rate says 0
     averager = RssiAverager(config)
     for epoch in run.epochs:
         epoch.rssi = solve_rssi(averager.add(epoch.sites), model, config, epoch.stamp_ns)
+    return {"fitted": True, "exponent": model.exponent, "exponent_std": model.exponent_std,
+            "shadowing_db": model.shadowing_db, "observations": model.n_observations}
 
 
 # -- numbers ------------------------------------------------------------------------------------
@@ -337,6 +368,6 @@ def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, conf
     run = replay_route(source, towers, config, progress)
     if not run.epochs:
         raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
-    add_rssi_fixes(run, RssiConfig(receiver_height_m=(config or PipelineConfig()).fusion.snapshot.receiver_height_m))
-    summary = summarize_route(run)
+    model = add_rssi_fixes(run, RssiConfig(receiver_height_m=(config or PipelineConfig()).fusion.snapshot.receiver_height_m))
+    summary = {**summarize_route(run), "rssi_model": model}
     return summary, write_route_report(run, summary, Anchors(towers), out_dir)

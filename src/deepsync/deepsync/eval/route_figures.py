@@ -41,8 +41,9 @@ def plot_cdf(run: RouteRun, path: Path) -> None:
     ax.set_xlabel("horizontal error (m)")
     ax.set_ylabel("fraction of stacks (no fix counts as never)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title("Horizontal error CDF")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    ax.set_title("Horizontal error CDF" if ax.get_legend_handles_labels()[0] else "Horizontal error CDF: no fixes")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -83,7 +84,8 @@ def plot_timeline(run: RouteRun, path: Path) -> None:
         if errors.size:
             axes[0].semilogy(seconds, errors, ".", ms=3, color=COLOURS[method], label=method)
     axes[0].set_ylabel("horizontal error (m)")
-    axes[0].legend(fontsize=8)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=8)
     axes[1].step(t, [len(e.sites) for e in run.epochs], where="post", color="tab:red")
     axes[1].set_ylabel("sites heard")
     tracked = [(s, nees(e.tracked, e.truth_enu)) for s, e in zip(t, run.epochs) if isinstance(e.tracked, Fix)]

@@ -7,6 +7,7 @@ and Doppler, so a statistical 3GPP channel and a ray-traced one are interchangea
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -14,6 +15,9 @@ from typing import Protocol
 import numpy as np
 
 from deepsync.lte.cell import CellConfig
+from deepsync.types import FRAME_SECONDS
+
+MAX_FRAME_RATE_ERROR = 1e-3  # 1e6 ppb: far beyond any oscillator that still carries LTE
 
 
 @dataclass(frozen=True)
@@ -22,9 +26,18 @@ class Emitter:
 
     ``re_power_w`` is the EIRP of one resource element towards antenna boresight (W); the
     channel's path gains carry everything after that (antenna pattern, path loss, fading).
-    ``timing_offset_s`` is when the cell's frame 0 starts in true (network) time, i.e. its
-    frame timing relative to the common time origin; ``frequency_offset_hz`` the carrier
-    error of the site oscillator. Cells of one ``site`` share position, timing and oscillator.
+    ``frequency_offset_hz`` is the carrier error of the site oscillator. Cells of one ``site``
+    share position, timing and oscillator.
+
+    Frame timing: the site's frame clock runs on its oscillator, ``frame_rate_error`` (eps)
+    fast (+20e-9: 20 ppb fast), and reads ``(1 + eps) t - timing_offset_s`` at true (network)
+    time t; frame k starts when it reads k frames (:meth:`frame_start_s`). So
+    ``timing_offset_s`` is the frame timing offset (a frame start minus a whole number of
+    frames) at true time 0, and that offset changes by exactly ``-eps`` seconds per second
+    (:attr:`timing_drift_s_per_s`): a site 20 ppb fast is 1.2 us early after a minute. With
+    eps = 0 frame k starts at ``timing_offset_s + k * FRAME_SECONDS``, bit for bit. Only frame
+    starts drift: within a frame the waveform keeps its nominal sample spacing (at most
+    10 ms x eps late by the frame's end, 10 ns at the 1000 ppb a scenario allows).
     """
 
     cell: CellConfig
@@ -33,6 +46,43 @@ class Emitter:
     timing_offset_s: float = 0.0
     frequency_offset_hz: float = 0.0
     site: str = ""
+    frame_rate_error: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.frame_rate_error) and abs(self.frame_rate_error) <= MAX_FRAME_RATE_ERROR):
+            raise ValueError(f"Emitter.frame_rate_error must be finite and within +-{MAX_FRAME_RATE_ERROR:g}, "
+                             f"got {self.frame_rate_error!r}")
+
+    @property
+    def timing_drift_s_per_s(self) -> float:
+        """How fast the frame timing offset changes (s per s of true time): ``-frame_rate_error``."""
+        return -self.frame_rate_error
+
+    def frame_slip_s(self, k: int) -> float:
+        """How much earlier than ``timing_offset_s + k * FRAME_SECONDS`` frame k starts (s):
+        ``(timing_offset_s + k F) eps / (1 + eps)``; exactly 0.0 without drift."""
+        eps = self.frame_rate_error
+        if eps == 0.0:
+            return 0.0
+        return (self.timing_offset_s + k * FRAME_SECONDS) * (eps / (1.0 + eps))
+
+    def frame_start_s(self, k: int) -> float:
+        """True time at which frame ``k`` leaves the antenna (s)."""
+        return self.timing_offset_s + k * FRAME_SECONDS - self.frame_slip_s(k)
+
+    def timing_offset_at(self, t: float) -> float:
+        """The frame timing offset at true time ``t`` (s): ``timing_offset_s - eps t``."""
+        return self.timing_offset_s + self.timing_drift_s_per_s * t
+
+    def frame_index_at(self, t: float) -> int:
+        """Index of the frame the site is sending at true time ``t`` (the last one started)."""
+        k = math.floor(((1.0 + self.frame_rate_error) * t - self.timing_offset_s) / FRAME_SECONDS)
+        # float rounding at a frame boundary: settle on the exact start times
+        while self.frame_start_s(k) > t:
+            k -= 1
+        while self.frame_start_s(k + 1) <= t:
+            k += 1
+        return k
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,9 @@ What is exact and what is approximated:
   <= 0.05 rad at 100 Hz). A moving receiver's bulk delay
   changes by ~1 ns per frame, so frame boundaries may move by one sample when it crosses a
   sample boundary; the frame then ends one sample early or late, continuing its last symbol.
+* A site's frame clock may drift (``Emitter.frame_rate_error``): frame starts follow it
+  exactly, while the samples within a frame keep their nominal spacing (<= 10 ns off by the
+  frame's end at 1000 ppb); the frame then ends a sample early or late now and then, as above.
 * Carrier offsets that are not whole 15 kHz bins (100 kHz raster, oscillator error) rotate
   the samples continuously in true time.
 """
@@ -82,8 +85,14 @@ class GroupRenderer:
         seed: int,
     ) -> None:
         first = emitters[members[0]]
+        for i in members[1:]:  # one site: one frame clock
+            if (emitters[i].timing_offset_s, emitters[i].frame_rate_error) != (
+                    first.timing_offset_s, first.frame_rate_error):
+                raise ValueError(f"emitters {members[0]} and {i} of site {first.site!r} disagree in "
+                                 "frame timing: the sectors of a site share one frame clock")
         position = cluster.emitter_indices.index(members[0])
         self.members = members
+        self.clock = first  # the group's frame clock (Emitter.frame_start_s and friends)
         self.channel = channel
         self.carrier_bin = cluster.carrier_bins[position]
         self.residual_hz = cluster.residual_hz[position]
@@ -112,7 +121,8 @@ class GroupRenderer:
     # -- timing -----------------------------------------------------------------------------
 
     def frame_time(self, k: int) -> float:
-        return self.timing_offset_s + k * FRAME_SECONDS
+        """True time at which frame k leaves the antennas (drifting with the site clock)."""
+        return self.clock.frame_start_s(k)
 
     def paths(self, k: int) -> list[Paths]:
         if k not in self._paths:
@@ -124,7 +134,10 @@ class GroupRenderer:
     def _arrival(self, k: int) -> float:
         """Arrival of frame k's first sample (first path), in cluster samples (fractional)."""
         first_delay = min(p.first_delay_s for p in self.paths(k))
-        return k * self.frame_length + (self.timing_offset_s + first_delay) * self.rate
+        # the nominal frame grid in whole samples, less the site clock's slip (0.0 without
+        # drift, which keeps this bit-exact); equal to (frame_time(k) + first_delay) * rate
+        nominal = k * self.frame_length + (self.timing_offset_s + first_delay) * self.rate
+        return nominal - self.clock.frame_slip_s(k) * self.rate
 
     def bounds(self, k: int) -> tuple[int, int]:
         """[start, stop) of the samples frame k occupies; stop is frame k+1's start."""
@@ -132,7 +145,7 @@ class GroupRenderer:
 
     def frame_at(self, sample: int) -> int:
         """Index of the frame that covers cluster sample ``sample``."""
-        k = int(np.floor((sample / self.rate - self.timing_offset_s) / FRAME_SECONDS))
+        k = self.clock.frame_index_at(sample / self.rate)  # a guess: arrivals come later
         while self.bounds(k)[0] > sample:
             k -= 1
         while self.bounds(k)[1] <= sample:

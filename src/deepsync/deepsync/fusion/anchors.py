@@ -62,9 +62,11 @@ class SiteArrival:
 
     ``time_s`` is the receiver time of the arrival after the fusion's reference instant;
     ``range_mod_m`` = c * (arrival - site timing - code offset), modulo :data:`FRAME_RANGE_M`;
-    ``std_m`` its 1-sigma: the arrival's own (``timing_std_m``, white from stack to stack) and
-    the site clock's uncertainty at that time (``clock_std_m``, the same error for every stack:
-    a tracker that estimates site clocks takes it into its state instead).
+    ``std_m`` its 1-sigma: the arrival's own (``timing_std_m``, white from stack to stack), the
+    site clock's uncertainty at that time (``clock_std_m``, the same error for every stack) and
+    the range bias multipath and NLOS may add (``bias_std_m``, the same for a while: the
+    envelope's peak lags a blocked first path by up to the channel's delay spread, which no
+    timing sigma knows of). A tracker takes the last two into per-site states instead.
     """
 
     site: str
@@ -76,10 +78,11 @@ class SiteArrival:
     clock_std_m: float = 0.0
     amplitude: float = math.nan  # the best sector's code amplitude (V), an RSSI
     snr_db: float = math.nan
+    bias_std_m: float = 0.0
 
     @property
     def std_m(self) -> float:
-        return math.hypot(self.timing_std_m, self.clock_std_m)
+        return math.hypot(self.timing_std_m, self.clock_std_m, self.bias_std_m)
 
 
 def unwrap_range(range_mod_m: float, predicted_m: float) -> float:
@@ -125,13 +128,14 @@ class Anchors:
                 if any(c.pci == cell.pci and (cell.earfcn is None or c.earfcn in (None, cell.earfcn))
                        for c in site.cells)]
 
-    def site_arrivals(self, arrivals: StackArrivals, reference_ns: int,
-                      min_std_m: float = 0.0) -> tuple[list[SiteArrival], list[str]]:
+    def site_arrivals(self, arrivals: StackArrivals, reference_ns: int, min_std_m: float = 0.0,
+                      bias_std_m: float = 0.0) -> tuple[list[SiteArrival], list[str]]:
         """One :class:`SiteArrival` per anchored site heard in the stack, and a sentence for each
         cell that could not be used (unknown PCI, ambiguous, site without position or timing).
 
         ``reference_ns`` must be a whole number of frames (see :func:`frame_reference_ns`);
-        ``min_std_m`` floors each arrival's own 1-sigma (ground truth carries 0).
+        ``min_std_m`` floors each arrival's own 1-sigma (ground truth carries 0); ``bias_std_m``
+        is the multipath / NLOS range bias every arrival may carry (see :class:`SiteArrival`).
         """
         if reference_ns % FRAME_NS:
             raise ValueError(f"reference_ns {reference_ns} is not a whole number of 10 ms frames")
@@ -164,7 +168,7 @@ class Anchors:
             clock_std_s = math.hypot(anchor.timing_offset_std_s, anchor.timing_drift_std * elapsed)
             out.append(SiteArrival(name, anchor.position_enu, time_s, range_mod,
                                    max(best.toa_std * metres_per_sample, min_std_m), tuple(sorted(c.pci for c in cells)),
-                                   SPEED_OF_LIGHT_M_S * clock_std_s, best.amplitude, best.snr_db))
+                                   SPEED_OF_LIGHT_M_S * clock_std_s, best.amplitude, best.snr_db, bias_std_m))
         return out, problems
 
 

@@ -10,8 +10,10 @@ default envelope-detector chain at the rate of its own first envelope message.
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
@@ -88,6 +90,60 @@ def _frontend(where: Path, provenance: str | None) -> FrontendConfig:
         raise BagError(f"{where}: no default front end at {first.sample_rate:g} Hz: {error}") from None
 
 
+@dataclass(frozen=True)
+class TruthOrigin:
+    """The simulated scenario's map-frame origin: WGS84 position, ellipsoidal ground height."""
+
+    latitude_deg: float
+    longitude_deg: float
+    height_m: float
+
+
+@dataclass(frozen=True)
+class TruthSite:
+    """A simulated site as it really was (what a perfect tower database would hold).
+
+    ``height_m`` is the antenna height above ground; ``timing_offset_us`` the frame timing
+    offset at the bag's first sample, which then changes by ``timing_drift_ns_per_s`` per
+    second of true time (the site's frame clock runs ``frequency_error_ppb`` fast, so the drift
+    is -``frequency_error_ppb``).
+    """
+
+    name: str
+    latitude_deg: float
+    longitude_deg: float
+    height_m: float
+    timing_offset_us: float
+    timing_drift_ns_per_s: float
+    frequency_error_ppb: float
+
+    def timing_offset_us_at(self, seconds: float) -> float:
+        """The frame timing offset (us) ``seconds`` of true time after the first sample."""
+        return self.timing_offset_us + self.timing_drift_ns_per_s * 1e-3 * seconds
+
+
+def _truth_fields(cls: type, value: object, where: str) -> object:
+    """``cls`` from one provenance mapping: every field present, names a string, numbers finite."""
+    if not isinstance(value, dict):
+        raise BagError(f"{where} is not a mapping")
+    fields = cls.__dataclass_fields__
+    missing = [name for name in fields if name not in value]
+    if missing:
+        raise BagError(f"{where} lacks {', '.join(missing)}")
+    parsed = {}
+    for name in fields:
+        item = value[name]
+        if name == "name":
+            if not isinstance(item, str):
+                raise BagError(f"{where}.name {item!r} is not a string")
+        elif isinstance(item, bool) or not isinstance(item, int | float) or not math.isfinite(item):
+            raise BagError(f"{where}.{name} {item!r} is not a finite number")
+        else:
+            item = float(item)
+        parsed[name] = item
+    return cls(**parsed)
+
+
 class BagSource:
     """The envelope topic of a rosbag2 bag: ``path`` is the bag directory or its ``.mcap``."""
 
@@ -100,6 +156,7 @@ class BagSource:
             self.inconsistencies = bag.inconsistencies
             """Where the bag's ``metadata.yaml`` disagrees with its ``.mcap`` (which is used)."""
         self._provenance = bool(provenance)
+        self._provenance_text = provenance
         self.frontend = _frontend(self.path, provenance)
         self.center_hz: float | None = None  # an envelope detector sees every carrier in its RF band
 
@@ -124,6 +181,35 @@ class BagSource:
             return arrivals
         with BagReader(self.path) as bag:
             for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
-                for record in cell_timing_array_from_msg(item.message):
+                for record in cell_timing_array_from_msg(item.message).cells:
                     arrivals.setdefault(record.pci, record.toa)
         return arrivals
+
+    def _truth(self, key: str) -> object:
+        """One key of the provenance ``deepsync simulate`` wrote; ValueError (BagError) naming
+        the bag where there is none: a real recording, or a bag from before that key."""
+        if not self._provenance_text:
+            raise BagError(f"{self.path}: no simulation provenance, so no true {key} (a real recording?)")
+        try:
+            info = json.loads(self._provenance_text)
+        except ValueError as error:
+            raise BagError(f"{self.path}: unreadable provenance ({error})") from None
+        if not isinstance(info, dict) or key not in info:
+            raise BagError(f"{self.path}: its provenance holds no true {key} (recorded by an older "
+                           "deepsync simulate, or not simulated)")
+        return info[key]
+
+    def truth_sites(self) -> list[TruthSite]:
+        """The simulated sites as they really were (positions, timing offsets at the first
+        sample and their drift, oscillator errors), in scenario order. Raises a ValueError
+        (:class:`~deepsync.bag.BagError`) naming the bag if it holds no such truth."""
+        sites = self._truth("sites")
+        if not isinstance(sites, list):
+            raise BagError(f"{self.path}: provenance sites is not a list")
+        return [_truth_fields(TruthSite, site, f"{self.path}: provenance sites[{i}]")
+                for i, site in enumerate(sites)]
+
+    def truth_origin(self) -> TruthOrigin:
+        """The simulated scenario's map-frame origin. Raises a ValueError
+        (:class:`~deepsync.bag.BagError`) naming the bag if it holds no such truth."""
+        return _truth_fields(TruthOrigin, self._truth("origin"), f"{self.path}: provenance origin")

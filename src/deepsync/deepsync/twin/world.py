@@ -31,7 +31,10 @@ from deepsync.twin.seeding import site_rng
 
 @dataclass(frozen=True)
 class TwinSite:
-    """A site with its ``auto`` values resolved: position in the map frame, timing, oscillator."""
+    """A site with its ``auto`` values resolved: position in the map frame, timing, oscillator.
+
+    ``timing_offset_s`` holds at true time 0 (the recording's first sample); the frame timing
+    then drifts with the oscillator (see :attr:`frame_rate_error`)."""
 
     name: str
     latitude_deg: float
@@ -40,6 +43,12 @@ class TwinSite:
     position_enu: np.ndarray = field(compare=False)  # follows from the fields above
     timing_offset_s: float
     frequency_error_ppb: float
+
+    @property
+    def frame_rate_error(self) -> float:
+        """The site's frame clock runs on its oscillator: fast by the same fraction as its
+        carrier (``Emitter.frame_rate_error``), so its frame timing drifts by -ppb ns per s."""
+        return self.frequency_error_ppb * 1e-9
 
 
 @dataclass(frozen=True)
@@ -106,6 +115,7 @@ def build_twin(scenario: Scenario) -> Twin:
                 timing_offset_s=site.timing_offset_s,
                 frequency_offset_hz=site.frequency_error_ppb * 1e-9 * cell.carrier_hz,
                 site=site.name,
+                frame_rate_error=site.frame_rate_error,
             ))
             cells.append(CellInfo(cell.pci, cell.earfcn, cell.band, cell.carrier_hz,
                                   cell.bandwidth_mhz, site.name, cell.azimuth_deg,

@@ -1,0 +1,133 @@
+"""The route table: snapshot, tracked and RSSI fixes along both route variants, with the site
+clocks as a database knows them, as calibrated, as tracked, and as they truly were.
+
+Each bag is replayed once (cell search and timing, the expensive part; its wall time is the
+"evaluation of a route" speed figure), then fusion runs per variant on the same arrivals:
+
+* ``database``: the tower database as written: every site's offset right at its epoch (the
+  recording's start), no drift: a one-time calibration of offsets, as old as the recording;
+* ``calibrated``: offsets and drifts calibrated on the first half of the route (truth known
+  there), evaluated on the second half only (as are all variants, for one yardstick);
+* ``site clock states``: the database as written, the tracker estimating each site's clock;
+* ``true clocks``: the simulation's true offsets and drifts (no calibration can beat it).
+
+The bags are too long for git: ``scripts/route_bags.sh`` makes them (bags/generated/).
+Writes docs/results/route_table.json and, for the ``calibrated`` variant, the route figures
+(docs/results/<route>_{cdf,map,timeline}.png).
+
+    python benchmarks/route_table.py [--routes route_urban route_dense]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pickle
+import time
+from pathlib import Path
+
+from deepsync.eval.calibrate import calibratable, oracle_database
+from deepsync.eval.route import RouteRun, add_rssi_fixes, fuse_route, replay, summarize_route
+from deepsync.eval import route_figures
+from deepsync.fusion.anchors import Anchors
+from deepsync.fusion.calibration import calibrate_sites, calibrated_database
+from deepsync.fusion.rssi import RssiConfig
+from deepsync.fusion.stage import FusionConfig
+from deepsync.fusion.tracker import TrackerConfig
+from deepsync.sources import BagSource
+from deepsync.towers import load_tower_database
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "docs" / "results"
+
+
+def second_half(run: RouteRun) -> RouteRun:
+    """The epochs after the route's middle: where every variant is scored."""
+    middle = (run.epochs[0].stamp_ns + run.epochs[-1].stamp_ns) // 2
+    return dataclasses.replace(run, epochs=[e for e in run.epochs if e.stamp_ns > middle])
+
+
+def evaluate(name: str) -> dict:
+    bag = REPO / "bags" / "generated" / name
+    if not bag.exists():
+        raise SystemExit(f"{bag} is missing: make it with scripts/route_bags.sh")
+    source = BagSource(bag)
+    towers = load_tower_database(REPO / "config" / "towers" / f"{name}.yaml")
+    cache = REPO / "out" / "route_cache" / f"{name}.pickle"
+    started = time.perf_counter()
+    if cache.exists() and cache.stat().st_mtime > max(p.stat().st_mtime for p in bag.iterdir()):
+        with cache.open("rb") as file:  # our own replay of this bag, from an earlier run
+            recorded, replay_s = pickle.load(file), None
+    else:
+        recorded = replay(source, towers)
+        replay_s = time.perf_counter() - started
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        with cache.open("wb") as file:
+            pickle.dump(dataclasses.replace(recorded, source=None), file)
+    recorded = dataclasses.replace(recorded, source=source)
+
+    runs = {"database": fuse_route(recorded, towers)}
+    middle = (recorded.arrivals[0].stamp_ns + recorded.arrivals[-1].stamp_ns) // 2
+    observations, skipped = calibratable(runs["database"].observations(until_ns=middle))
+    calibration = calibrate_sites(observations)
+    calibrated = calibrated_database(towers, calibration, runs["database"].reference_ns)
+    runs["calibrated"] = fuse_route(recorded, calibrated)
+    runs["site clock states"] = fuse_route(recorded, towers, FusionConfig(tracker=TrackerConfig(site_clocks=True)))
+    runs["true clocks"] = fuse_route(recorded, oracle_database(towers, source))
+    table = {}
+    for variant, run in runs.items():
+        model = add_rssi_fixes(run, RssiConfig())
+        table[variant] = {**summarize_route(second_half(run)), "rssi_model": model}
+    figures = RESULTS / name
+    scored = second_half(runs["calibrated"])
+    route_figures.plot_cdf(scored, Path(f"{figures}_cdf.png"))
+    route_figures.plot_map(runs["calibrated"], Anchors(calibrated), Path(f"{figures}_map.png"))
+    route_figures.plot_timeline(runs["calibrated"], Path(f"{figures}_timeline.png"))
+    seconds = (recorded.arrivals[-1].stamp_ns - recorded.arrivals[0].stamp_ns) * 1e-9
+    return {"bag": str(bag.relative_to(REPO)), "route_seconds": seconds, "replay_wall_s": replay_s,
+            "calibration": {"sites": [dataclasses.asdict(s) for s in calibration.sites], "skipped": skipped,
+                            "residual_rms_before_m": calibration.residual_rms_before_m,
+                            "residual_rms_after_m": calibration.residual_rms_after_m,
+                            "sigma_scale": calibration.sigma_scale},
+            "variants": table}
+
+
+def print_table(name: str, result: dict) -> None:
+    replayed = "from the cache" if result["replay_wall_s"] is None else f"in {result['replay_wall_s']:.0f} s"
+    print(f"\n== {name}: {result['route_seconds']:.0f} s of route, replayed {replayed}; scored on the second half")
+    database = result["variants"]["database"]
+    print(f"   sites heard per stack {database['sites_heard_per_stack']}; heard: {', '.join(database['sites_heard'])}")
+    for site, row in database["sites"].items():
+        if row["median_error_samples"] is not None:
+            print(f"   site {site}: {row['stacks']} stacks, timing error median {row['median_error_samples']:+.2f} "
+                  f"samples, RMS {row['rms_error_samples']:.2f}, {row['beyond_1_sample']:.0%} beyond 1 sample, "
+                  f"claimed {row['median_claimed_std_samples']:.2f}")
+    print(f"   {'variant':18s} {'method':9s} {'fix rate':>8s} {'median m':>9s} {'p90 m':>8s} {'NEES':>6s}")
+    for variant, summary in result["variants"].items():
+        for method, row in summary["methods"].items():
+            median = "-" if row["median_m"] is None else f"{row['median_m']:.1f}"
+            p90 = "-" if row["p90_m"] is None else f"{row['p90_m']:.1f}"
+            nees = "-" if row["nees_mean"] is None else f"{row['nees_mean']:.1f}"
+            print(f"   {variant:18s} {method:9s} {row['fix_rate']:8.0%} {median:>9s} {p90:>8s} {nees:>6s}")
+    bound = database["position_bound"]
+    if bound["median_m"] is not None:
+        print(f"   position bound (stacks with >= 3 sites: {bound['stacks']}): median {bound['median_m']:.1f} m, "
+              f"p90 {bound['p90_m']:.1f} m")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--routes", nargs="+", default=["route_urban", "route_dense"])
+    args = parser.parse_args()
+    results = {}
+    for name in args.routes:
+        results[name] = evaluate(name)
+        print_table(name, results[name])
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "route_table.json").write_text(json.dumps(results, indent=1, default=str))
+    print(f"\nwritten: {RESULTS / 'route_table.json'}")
+
+
+if __name__ == "__main__":
+    main()
