@@ -16,6 +16,8 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from deepsync.bag import TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg
 from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
@@ -115,7 +117,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth: dict[int, float],
+def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth: dict[int, np.ndarray],
                     verbose: bool = True) -> list[dict]:
     """Run the pipeline (cell search and classical timing) over a source; print each stack's
     confirmed cells (if verbose) with their arrival and the error against ground truth, if known.
@@ -141,7 +143,7 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     return stacks
 
 
-def _print_stack(result: StackResult, record: dict, truth: dict[int, float]) -> None:
+def _print_stack(result: StackResult, record: dict, truth: dict[int, np.ndarray]) -> None:
     sync = result.sync
     clock = "" if sync.clock_drift_ppm is None else f", receiver clock {sync.clock_drift_ppm:+.1f} ppm"
     print(f"  stack at {record['time_s']:7.3f} s{clock}: {len(sync.cells)} cell(s), {len(sync.tentative)} "

@@ -1,8 +1,8 @@
 """Cell search and timing against ground truth: one record per stack, one summary per cell.
 
-The truth of a simulated recording gives each cell's sync-code arrival in stream samples; the
-code repeats every frame, so an estimate is compared with the nearest true arrival: the error
-is taken modulo a frame (one sample at 1.92 MHz is 156 m of range).
+The truth of a simulated recording gives each cell's sync-code arrivals in stream samples, one
+per frame; an estimate is compared with the nearest true arrival in time (the arrivals move
+with a walking receiver and drifting site clocks; one sample at 1.92 MHz is 156 m of range).
 """
 
 from __future__ import annotations
@@ -11,19 +11,23 @@ import math
 import statistics
 from collections.abc import Mapping
 
+import numpy as np
+
 from deepsync.pipeline import StackResult
-from deepsync.types import FRAME_SECONDS
 
 
-def frame_error(toa: float, truth: float, frame_samples: int) -> float:
-    """Estimate minus truth in samples, folded into +-half a frame."""
-    return (toa - truth + frame_samples / 2) % frame_samples - frame_samples / 2
+def timing_error(toa: float, truth: np.ndarray) -> float:
+    """Estimate minus the nearest true arrival (samples); NaN without one."""
+    if truth.size == 0:
+        return math.nan
+    i = int(np.searchsorted(truth, toa))
+    neighbours = truth[max(i - 1, 0) : i + 1]  # the true arrivals either side
+    return float(toa - neighbours[np.argmin(np.abs(neighbours - toa))])
 
 
-def stack_record(result: StackResult, truth: Mapping[int, float], sample_rate: float) -> dict:
-    """A stack's confirmed cells with their arrivals (and errors against ``truth``, PCI -> a true
-    arrival, where it has the PCI), its flags and the stream events before it, as plain data."""
-    frame = round(sample_rate * FRAME_SECONDS)
+def stack_record(result: StackResult, truth: Mapping[int, np.ndarray], sample_rate: float) -> dict:
+    """A stack's confirmed cells with their arrivals (and errors against ``truth``, PCI -> its true
+    arrivals, where it has the PCI), its flags and the stream events before it, as plain data."""
     timings = {timing.pci: timing for timing in result.timing.cells}
     cells = []
     for cell in result.sync.cells:
@@ -39,7 +43,7 @@ def stack_record(result: StackResult, truth: Mapping[int, float], sample_rate: f
             "estimator": timing.estimator,
             "snr_db": timing.snr_db,
             "peak_sigma": detection.peak_metric,
-            "truth_error": frame_error(timing.toa, truth[cell.pci], frame) if cell.pci in truth else None,
+            "truth_error": timing_error(timing.toa, truth[cell.pci]) if cell.pci in truth else None,
             "runners_up": [c.pci for c in detection.candidates[1:4]],
         })
     return {
@@ -51,7 +55,7 @@ def stack_record(result: StackResult, truth: Mapping[int, float], sample_rate: f
     }
 
 
-def summarize(stacks: list[dict], truth: Mapping[int, float]) -> dict:
+def summarize(stacks: list[dict], truth: Mapping[int, np.ndarray]) -> dict:
     """Per cell: in how many stacks it was reported, its median SNR and claimed std, its RMS
     error against the truth; and the truth cells never reported. ``in_truth`` is None where
     there is no truth to compare with."""

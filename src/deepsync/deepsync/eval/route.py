@@ -23,14 +23,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from deepsync.bag import (
-    TRUTH_CELL_TIMING_TOPIC,
-    TRUTH_POSE_TOPIC,
-    BagReader,
-    cell_timing_array_from_msg,
-    position_from_pose_msg,
-)
+from deepsync.bag import TRUTH_POSE_TOPIC, BagReader, position_from_pose_msg
 from deepsync.bag.convert import stamp_to_ns
+from deepsync.eval.cell_search import timing_error
 from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.rssi import RssiAverager, RssiConfig, fit_path_loss, solve_rssi
@@ -59,28 +54,6 @@ class TruthTrack:
         offsets = (stamps - stamps[0]).astype(np.float64)
         t = float(stamp_ns - stamps[0])
         return np.array([np.interp(t, offsets, self.positions[:, k]) for k in range(3)])
-
-
-def read_truth_arrivals(bag: str | Path) -> dict[int, np.ndarray]:
-    """PCI -> every true sync-code arrival of the cell (stream samples, sorted): the bag's
-    ``/deepsync/truth/cell_timing``; empty without it."""
-    arrivals: dict[int, list[float]] = {}
-    with BagReader(bag) as reader:
-        if TRUTH_CELL_TIMING_TOPIC not in reader.topics:
-            return {}
-        for item in reader.messages([TRUTH_CELL_TIMING_TOPIC]):
-            for cell in cell_timing_array_from_msg(item.message).cells:
-                arrivals.setdefault(cell.pci, []).append(cell.toa)
-    return {pci: np.sort(np.array(toas)) for pci, toas in arrivals.items()}
-
-
-def timing_error(toa: float, truth: np.ndarray) -> float:
-    """Estimate minus the nearest true arrival (samples); NaN without one."""
-    if truth.size == 0:
-        return math.nan
-    i = int(np.clip(np.searchsorted(truth, toa), 1, truth.size - 1)) if truth.size > 1 else 0
-    nearest = truth[i] if truth.size == 1 or abs(truth[i] - toa) < abs(truth[i - 1] - toa) else truth[i - 1]
-    return float(toa - nearest)
 
 
 def read_truth_track(bag: str | Path) -> TruthTrack:
@@ -161,7 +134,7 @@ def replay(source: BagSource, towers: TowerDatabase, config: PipelineConfig | No
         interrupted = True
     finally:
         bar.close()
-    return Replay(source, arrivals, truth, read_truth_arrivals(source.path), interrupted)
+    return Replay(source, arrivals, truth, source.truth_arrivals(), interrupted)
 
 
 def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None) -> RouteRun:

@@ -9,6 +9,8 @@ default envelope-detector chain at the rate of its own first envelope message.
 
 from __future__ import annotations
 
+import numpy as np
+
 import json
 import math
 import os
@@ -173,17 +175,18 @@ class BagSource:
         """The envelope messages in log-time order, as recorded."""
         return read_envelope(self.path)
 
-    def truth_arrivals(self) -> dict[int, float]:
-        """PCI -> the first true sync-code arrival (``toa``, stream samples) of each cell in the
-        bag's ground truth, in log order; empty for a bag without ground truth."""
-        arrivals: dict[int, float] = {}
+    def truth_arrivals(self) -> dict[int, np.ndarray]:
+        """PCI -> every true sync-code arrival of the cell (``toa``, stream samples, sorted) in the
+        bag's ground truth; empty for a bag without ground truth. The arrivals move with the
+        receiver and the site clocks, so compare an estimate with the nearest one in time."""
+        arrivals: dict[int, list[float]] = {}
         if not self._has_truth:
-            return arrivals
+            return {}
         with BagReader(self.path) as bag:
             for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
                 for record in cell_timing_array_from_msg(item.message).cells:
-                    arrivals.setdefault(record.pci, record.toa)
-        return arrivals
+                    arrivals.setdefault(record.pci, []).append(record.toa)
+        return {pci: np.sort(np.array(toas)) for pci, toas in arrivals.items()}
 
     def _truth(self, key: str) -> object:
         """One key of the provenance ``deepsync simulate`` wrote; ValueError (BagError) naming
