@@ -69,8 +69,8 @@ class Route:
                  noise_m: Callable[[float], float] = lambda t: SIGMA_M, config: TrackerConfig = CONFIG,
                  moving: bool = True, velocity: tuple[float, float] = (1.0, 1.0),
                  site_errors: dict[str, tuple[float, float]] | None = None,
-                 clock_std_m: Callable[[float], float] = lambda t: 0.0,
-                 jump: tuple[float, np.ndarray] | None = None) -> None:
+                 clock_std_m: Callable[[float], float] = lambda t: 0.0, sigma_m: float = SIGMA_M,
+                 bias_std_m: float = 0.0, jump: tuple[float, np.ndarray] | None = None) -> None:
         n = int(round(duration_s / STACK_S))
         heard = []
         for k in range(n):
@@ -99,8 +99,8 @@ class Route:
                 offset, rate = errors.get(name, (0.0, 0.0))
                 rho = np.linalg.norm(position[i] - SITES[name]) + bias[i] + offset + rate * t
                 rho += noise_m(t) * rng.standard_normal()
-                arrivals.append(SiteArrival(name, SITES[name], float(t), float(rho % FRAME_RANGE_M), SIGMA_M, (1,),
-                                            clock_std_m(t)))
+                arrivals.append(SiteArrival(name, SITES[name], float(t), float(rho % FRAME_RANGE_M), sigma_m, (1,),
+                                            clock_std_m(t), bias_std_m=bias_std_m))
             self.stacks.append(arrivals)
         self.truth = position[[at[t] for t in self.ends]]
 
@@ -248,6 +248,55 @@ def test_a_state_every_site_contradicts_is_dropped_and_started_again():
         assert horizontal_error(outcomes[k], route.truth[k]) < 4 * outcomes[k].horizontal_std_m
 
 
+# --------------------------------------------------------------------------- multipath biases
+
+
+def biased_route_nees(seed: int, bias_std_m: float) -> list[float]:
+    """NEES every 10 s from 20 s on along a 90 s walk among 6 sites, 2-3 heard per stack, each
+    site's range long or short by its own constant drawn N(0, 40 m) (a blocked first path) plus
+    10 m of white timing noise; the arrivals claim 10 m and ``bias_std_m``."""
+    rng = np.random.default_rng(seed)
+    biases = {name: (rng.normal(0.0, 40.0), 0.0) for name in SITES}
+    route = Route(rng, 90.0, random_sites(2, 3), noise_m=lambda t: 10.0, sigma_m=10.0, site_errors=biases,
+                  bias_std_m=bias_std_m)
+    samples = slice(200, None, 100)
+    return [nees(fix, truth) for fix, truth in zip(route.track()[samples], route.truth[samples])
+            if isinstance(fix, Fix)]
+
+
+def test_per_site_bias_states_keep_constant_multipath_biases_consistent():
+    # a bias stays stack after stack: taken as white it averages down over hundreds of stacks and
+    # the filter believes a position it cannot have; as a state per site it does not. The samples
+    # of one route share its biases, so they are far from independent: the bounds are [1, 3],
+    # not the chi-square bounds of their count (40 routes gave 2.06, within those too)
+    states = [value for seed in range(20) for value in biased_route_nees(seed, 40.0)]
+    white = biased_route_nees(0, 0.0)  # one route says it: there the gate keeps failing, each restart a batch solve
+    mean_states, mean_white = float(np.mean(states)), float(np.mean(white))
+    print(f"constant N(0, 40 m) site biases: NEES {mean_states:.2f} over {len(states)} samples with bias states, "
+          f"{mean_white:.0f} over {len(white)} with the biases unclaimed (white 10 m)")
+    assert 1.0 <= mean_states <= 3.0
+    assert mean_white > 5.0
+
+
+def test_a_site_unheard_for_long_is_forgotten_and_added_again_when_heard():
+    config = TrackerConfig(bias_correlation_s=2.0)  # forgotten after 10 s unheard
+
+    def hear(k: int, rng: np.random.Generator) -> list[str]:
+        return random_sites(3, 3, "ABCD" if 100 <= k < 250 else "ABCDEF")(k, rng)  # E, F silent 10-25 s
+
+    route = Route(np.random.default_rng(20), 35.0, hear, bias_std_m=20.0)
+    tracker = Tracker(config)
+    outcomes = route.track(config, tracker=tracker)
+    assert all(isinstance(fix, Fix) for fix in outcomes[50:])
+    k = 240  # 14 s after E and F were last heard
+    tracker = Tracker(config)
+    for arrivals, end in zip(route.stacks[:k], route.ends[:k]):
+        tracker.update(arrivals, round(end * 1e9), float(end))
+    assert set(tracker._sites) == set("ABCD") and len(tracker._x) == config.dims + 4 + 4
+    tracker.update(route.stacks[k + 10], 1, float(route.ends[k + 10]))
+    assert set(tracker._sites) == set("ABCD") | {a.site for a in route.stacks[k + 10]}
+
+
 # --------------------------------------------------------------------------- site clocks
 
 
@@ -266,8 +315,8 @@ def test_site_clock_states_beat_white_clock_errors():
             errors[site_clocks] += [horizontal_error(fix, truth)
                                     for fix, truth in zip(outcomes[100:], route.truth[100:])]
     without, with_states = (math.sqrt(np.mean(np.square(errors[flag]))) for flag in (False, True))
-    print(f"horizontal RMS over 3 routes of 120 s: {without:.0f} m with white site clock errors, "
-          f"{with_states:.0f} m with site clock states")
+    print(f"horizontal RMS over 3 routes of 120 s: {without:.0f} m without site clock states (their errors in "
+          f"the decaying bias states), {with_states:.0f} m with them")
     # a constant velocity error traded against site drifts is seen only as the geometry turns:
     # on some routes the states gain little (seeds 200-207: 0.16-0.94 of the RMS without)
     assert with_states < without
@@ -357,7 +406,7 @@ def test_an_arrival_older_than_the_filter_is_skipped_and_counted():
 
 @pytest.mark.parametrize("field, value", [("gate_probability", 0.0), ("max_coast_s", -1.0), ("init_window_s", math.nan),
                                           ("acceleration_std_mps2", 0.0), ("max_rejections", 1), ("site_clocks", "yes"),
-                                          ("snapshot", None)])
+                                          ("bias_correlation_s", 0.0), ("snapshot", None)])
 def test_config_refuses_what_is_out_of_range_by_name(field, value):
     with pytest.raises(ValueError, match=field):
         TrackerConfig(**{field: value})

@@ -1,9 +1,9 @@
 """The tightly coupled tracker: position, velocity and receiver clock, updated by each site as it
 is heard, like a GNSS receiver with too few satellites.
 
-Each arrival says ``rho = |x(t) - p_s| + b(t) (+ o_s(t))`` modulo one frame (2998 km): the
-receiver at ``x`` (ENU; 2-D: up held at the receiver height), its clock bias ``b`` (m), and,
-when asked for, the site's frame-clock error ``o_s`` (m). A single arrival fixes one
+Each arrival says ``rho = |x(t) - p_s| + b(t) + m_s(t) (+ o_s(t))`` modulo one frame (2998 km):
+the receiver at ``x`` (ENU; 2-D: up held at the receiver height), its clock bias ``b`` (m), the
+site's range bias ``m_s`` (m) and, when asked for, the site's frame-clock error ``o_s`` (m). A single arrival fixes one
 combination of those, so one site per stack is enough for an update: the motion model carries
 the rest from arrival to arrival, and over a few seconds every heard site has its say.
 
@@ -15,7 +15,7 @@ One pseudorange is a scalar update: the gain is one matrix-vector product over a
 innovation variance, no inverse; and the state grows when site clocks join, which a library
 filter sized at construction does not do. Sixty lines of numpy, no dependency.
 
-**State** ``[position (D), horizontal velocity (2), b, d, (o_s, r_s per site)]``, ``D`` = 2 or 3:
+**State** ``[position (D), horizontal velocity (2), b, d, (m_s (, o_s, r_s) per site)]``, ``D`` = 2 or 3:
 
 * horizontal position and velocity: white-noise acceleration, power spectral density
   ``acceleration_std^2 x 1 s`` per axis, i.e. over one second the velocity wanders by
@@ -29,11 +29,30 @@ filter sized at construction does not do. Sixty lines of numpy, no dependency.
   TCXO's Allan figures (h0 = 2e-19 -> 0.1 m/sqrt(s), h-2 = 2e-20 -> 0.2 m/s/sqrt(s)), the
   latter raised to 0.5 m/s/sqrt(s) for the temperature changes of a receiver carried about.
   ``b`` is kept modulo one frame: only that is measured.
-* site clocks (``site_clocks=True``): per site, offset ``o_s`` (m) and drift ``r_s`` (m/s), the
-  error of the tower database's frame timing, appended when the site is first heard with the
-  arrival's ``clock_std_m`` and ``site_clock_drift_std_mps`` as priors; the arrival's noise is
-  then ``timing_std_m`` alone (without them ``std_m``, which treats an error that stays from
-  stack to stack as white). The offsets are not observable against ``b`` as a whole (adding a
+* site range bias ``m_s`` (m), one per heard site, appended when the site is first heard (and
+  after a start, for the sites it used), dropped when it has not been heard for
+  ``FORGET_CORRELATIONS`` x ``bias_correlation_s``, added afresh when heard again. Multipath
+  and NLOS lengthen a site's range by the same tens of metres stack after stack (the envelope's
+  peak lags a blocked first path): taken as white, that error averages down over hundreds of
+  stacks that share it, and the filter believes a position it cannot have (simulated walk,
+  site biases of -9..+90 m: 2-D NEES 278). As a state it does not average down. A first-order
+  Gauss-Markov process towards 0, correlation time ``bias_correlation_s`` (30 s: a walker
+  moves ~40 m, over which the scatterers around the receiver change), stationary variance
+  ``bias_std_m^2`` of the latest arrival, plus ``clock_std_m^2`` without site clock states:
+  the site clock's offset error is then one more per-site constant in the same state. It
+  should not decay (it is the database's, not the channel's); the approximation costs little
+  while the site is heard every few seconds, since the arrivals hold it, and where the clocks
+  matter ``site_clocks`` gives them their own states. A variance larger than before (a site
+  clock's error grows with the database's age) is added to the state as a fresh error. The
+  arrival's noise is then ``timing_std_m`` alone: what stays from stack to stack is in states.
+  A bias common to every site is the receiver clock's ``b``: the priors hold that gauge.
+  Weakly observable: a position error traded against biases ``m_s = -u_s . dx`` shows only as
+  the geometry turns, and with one site per stack the EKF runs somewhat overconfident along it
+  (simulated, constant N(0, 40 m) biases: 2-D NEES 2.1 with 2-3 sites per stack, 3.4 with 1-3).
+* site clocks (``site_clocks=True``): per site, next to ``m_s``, offset ``o_s`` (m) and drift
+  ``r_s`` (m/s), the error of the tower database's frame timing, appended with the site's
+  bias state with the arrival's ``clock_std_m`` and ``site_clock_drift_std_mps`` as priors,
+  and dropped with it (heard again, the database's priors once more). The offsets are not observable against ``b`` as a whole (adding a
   constant to ``b`` and taking it from every ``o_s`` changes no range), nor the drifts against
   ``d``: their priors hold that gauge, and what the data estimate is how sites disagree. Weakly
   observable too: a constant velocity error ``dv`` traded against drifts ``r_s = -u_s . dv``
@@ -66,7 +85,9 @@ more when the clock rate is unknown (the drift is then solved from the data); it
 same residual test as a snapshot. Its covariance comes from the Jacobian; the motion the static assumption ignores
 enters twice: each arrival's sigma grows by ``initial_speed_std_mps`` times its distance in time
 from the mid-time, and the velocity starts at 0 with that speed as its sigma, so predicting to
-the window's end widens the position by the distance walked.
+the window's end widens the position by the distance walked. The batch takes each arrival's
+``std_m`` as white (its bias included); the filter it starts then gets bias states for the sites
+used, at their priors, independent of the position the batch solved with their biases in it.
 
 **Out-of-order input.** Arrivals older than the filter's time (a late stack) are skipped and
 counted (``stale_arrivals``); the returned state is then the filter's moved back to ``time_s``.
@@ -87,6 +108,9 @@ from deepsync.fusion.snapshot import UNMEASURED_VARIANCE_M2, SnapshotConfig, chi
 from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, FixKind, NoFix, NoFixReason
 
 MAX_CLOCK_RATE = 1e-3  # a clock 1000 ppm off is not a receiver clock but a wrong number
+# a site unheard this many bias correlation times is forgotten: its bias state then keeps
+# e^-5 (under 1 %) of what the arrivals taught it, and a drive past many sites stays small
+FORGET_CORRELATIONS = 5.0
 
 
 @dataclass(frozen=True)
@@ -106,6 +130,7 @@ class TrackerConfig:
     max_clock_ppm: float = 50.0  # drift prior (1-sigma) at a start when the clock rate is unknown
     max_rejections: int = 10  # gated arrivals in a row (from >= 2 sites) that say the state is wrong
     height_correlation_s: float = 60.0  # 3-D: how long the receiver's height stays off the nominal
+    bias_correlation_s: float = 30.0  # how long a site's multipath range bias stays (~40 m walked)
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
     site_clock_drift_std_mps: float = 6.0  # drift prior of a site clock (20 ns/s)
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
@@ -129,6 +154,7 @@ class TrackerConfig:
             "clock_rate_std_ppm": 0 < self.clock_rate_std_ppm <= 1000,
             "max_clock_ppm": 0 < self.max_clock_ppm <= 1000,
             "height_correlation_s": 0 < self.height_correlation_s <= 1e5,
+            "bias_correlation_s": 0 < self.bias_correlation_s <= 1e5,
             "site_clock_drift_std_mps": 0 < self.site_clock_drift_std_mps <= 1e4,
             "site_clock_wander_mps_per_sqrt_s": 0 <= self.site_clock_wander_mps_per_sqrt_s <= 1e3,
         }
@@ -153,6 +179,16 @@ class _Start:
     latest_s: float
     sites: tuple[str, ...]
     rejected: tuple[str, ...]
+
+
+@dataclass
+class _Site:
+    """A heard site's states: its range bias at ``index`` (with site clocks, its clock offset and
+    drift next), the bias's stationary variance (m^2) and when the site was last heard."""
+
+    index: int
+    variance_m2: float
+    heard_s: float
 
 
 class Tracker:
@@ -182,22 +218,31 @@ class Tracker:
         self._t = math.nan
         self._last_accepted = math.nan
         self._rejection_run: list[str] = []
-        self._offsets: dict[str, int | None] = {}  # site -> index of its clock offset state (None: no such state)
+        self._sites: dict[str, _Site] = {}  # in the order of their states
+        self._width = 3 if c.site_clocks else 1  # states per site: bias (, clock offset, clock drift)
         self._bias = dims + 2  # after the position and the horizontal velocity
-        # each pair: a "to" state integrating its "from" state, which random-walks with that PSD
-        self._pairs = [(i, dims + i, c.acceleration_std_mps2**2) for i in range(2)]
-        self._pairs.append((self._bias, self._bias + 1, c.clock_drift_std_mps_per_sqrt_s**2))
-        self._model(dims + 4)
+        self._model()
 
-    def _model(self, n: int) -> None:
-        """The motion model of ``n`` states: F = I + dt S, Q = |dt|^3/3 Q3 + dt|dt|/2 Q2 + |dt| Q1
-        (an integrated random walk per pair, exact for any step, back in time too)."""
+    def _model(self) -> None:
+        """The motion model of the receiver's states and the sites': F = I + dt S, Q = |dt|^3/3 Q3
+        + dt|dt|/2 Q2 + |dt| Q1 (an integrated random walk per pair, exact for any step, back in
+        time too), the site biases' Gauss-Markov decay set in by :meth:`_propagated`."""
+        c, dims = self.config, self.config.dims
+        n = self._bias + 2 + self._width * len(self._sites)
+        # each pair: a "to" state integrating its "from" state, which random-walks with that PSD
+        pairs = [(i, dims + i, c.acceleration_std_mps2**2) for i in range(2)]
+        pairs.append((self._bias, self._bias + 1, c.clock_drift_std_mps_per_sqrt_s**2))
+        if c.site_clocks:
+            pairs += [(site.index + 1, site.index + 2, c.site_clock_wander_mps_per_sqrt_s**2)
+                      for site in self._sites.values()]
         self._eye = np.eye(n)
         self._shift, self._q3, self._q2, self._q1 = (np.zeros((n, n)) for _ in range(4))
-        for to, frm, q in self._pairs:
+        for to, frm, q in pairs:
             self._shift[to, frm] = 1.0
             self._q3[to, to] = self._q2[to, frm] = self._q2[frm, to] = self._q1[frm, frm] = q
-        self._q1[self._bias, self._bias] = self.config.clock_bias_std_m_per_sqrt_s**2
+        self._q1[self._bias, self._bias] = c.clock_bias_std_m_per_sqrt_s**2
+        self._site_biases = np.array([site.index for site in self._sites.values()], dtype=np.intp)
+        self._site_variances = np.array([site.variance_m2 for site in self._sites.values()])
 
     @property
     def initialised(self) -> bool:
@@ -222,6 +267,7 @@ class Tracker:
                                  f"(max_coast_s {self.config.max_coast_s:g} s)", stamp_ns, time_s, clock_rate, ())
         if not self.initialised:
             return self._start(stamp_ns, time_s, clock_rate, arrivals)
+        self._drop_unheard()
         used: list[str] = []
         rejected: list[str] = []
         for arrival in arrivals:
@@ -257,6 +303,11 @@ class Tracker:
         F = self._eye + dt * self._shift
         a = abs(dt)
         Q = (a**3 / 3) * self._q3 + (0.5 * dt * a) * self._q2 + a * self._q1
+        if len(self._site_biases):
+            # site biases: first-order Gauss-Markov towards 0, holding their stationary variance
+            decay = -math.expm1(-2 * a / self.config.bias_correlation_s)
+            F[self._site_biases, self._site_biases] = math.exp(-dt / self.config.bias_correlation_s)
+            Q[self._site_biases, self._site_biases] = self._site_variances * decay
         if self.config.dims == 2:
             return F @ x, F @ P @ F.T + Q
         # 3-D: up relaxes towards the receiver height (first-order Gauss-Markov, stationary sigma
@@ -270,21 +321,19 @@ class Tracker:
 
     def _correct(self, arrival: SiteArrival) -> bool:
         """One pseudorange update; False (state untouched) when the innovation fails the gate."""
-        if arrival.site not in self._offsets:
-            self._add_site(arrival)  # may grow the state: read it after
-        offset = self._offsets[arrival.site]
+        site = self._heard(arrival)  # may grow the state: read it after
         dims, bias, x, P = self.config.dims, self._bias, self._x, self._P
         diff = self._position(x) - arrival.position_enu
         distance = math.sqrt(float(diff @ diff))
         h = np.zeros(len(x))
         h[:dims] = diff[:dims] / distance
         h[bias] = 1.0
-        predicted = distance + x[bias]
-        if offset is not None:
-            h[offset] = 1.0
-            predicted += x[offset]
+        h[site.index] = 1.0  # the site's range bias (and clock offset, next to it)
+        if self.config.site_clocks:
+            h[site.index + 1] = 1.0
+        predicted = distance + float(h[bias:] @ x[bias:])
         innovation = unwrap_range(arrival.range_mod_m, predicted) - predicted
-        noise = arrival.timing_std_m if offset is not None else arrival.std_m
+        noise = arrival.timing_std_m  # what stays from stack to stack is in the site's states
         ph = P @ h
         variance = float(h @ ph) + noise * noise
         if innovation * innovation > self._gate * variance:
@@ -294,22 +343,58 @@ class Tracker:
         P -= np.outer(gain, ph)
         return True
 
-    def _add_site(self, arrival: SiteArrival) -> None:
-        """A newly heard site; with site clocks, its offset and drift states and their priors."""
-        c = self.config
-        if not c.site_clocks:
-            self._offsets[arrival.site] = None
-            return
-        offset = len(self._x)
-        self._offsets[arrival.site] = offset
-        self._x = np.append(self._x, [0.0, 0.0])
-        P = np.zeros((offset + 2, offset + 2))
-        P[:offset, :offset] = self._P
-        P[offset, offset] = arrival.clock_std_m**2
-        P[offset + 1, offset + 1] = c.site_clock_drift_std_mps**2
+    def _bias_variance(self, arrival: SiteArrival) -> float:
+        """The stationary variance of the site's bias state: multipath, and without site clock
+        states the site clock's error too (one constant per site, see the module docstring)."""
+        clock = 0.0 if self.config.site_clocks else arrival.clock_std_m
+        return arrival.bias_std_m**2 + clock**2
+
+    def _heard(self, arrival: SiteArrival) -> _Site:
+        """The arrival's site, its states added when new; a larger bias variance than before (a
+        site clock's error grows with the database's age) adds the difference, as a fresh error."""
+        site = self._sites.get(arrival.site)
+        if site is None:
+            return self._add_site(arrival)
+        site.heard_s = arrival.time_s
+        variance = self._bias_variance(arrival)
+        if variance != site.variance_m2:
+            self._P[site.index, site.index] += max(variance - site.variance_m2, 0.0)
+            site.variance_m2 = variance
+            self._site_variances[list(self._sites).index(arrival.site)] = variance
+        return site
+
+    def _add_site(self, arrival: SiteArrival) -> _Site:
+        """A newly heard site: its bias state (with site clocks, offset and drift states too) at 0,
+        with the arrival's sigmas as priors, independent of the rest."""
+        c, n = self.config, len(self._x)
+        site = self._sites[arrival.site] = _Site(n, self._bias_variance(arrival), arrival.time_s)
+        prior = [site.variance_m2]
+        if c.site_clocks:
+            prior += [arrival.clock_std_m**2, c.site_clock_drift_std_mps**2]
+        self._x = np.append(self._x, np.zeros(self._width))
+        P = np.zeros((n + self._width, n + self._width))
+        P[:n, :n] = self._P
+        P[n:, n:] = np.diag(prior)
         self._P = P
-        self._pairs.append((offset, offset + 1, c.site_clock_wander_mps_per_sqrt_s**2))
-        self._model(offset + 2)
+        self._model()
+        return site
+
+    def _drop_unheard(self) -> None:
+        """Forget the states of sites unheard for ``FORGET_CORRELATIONS`` bias correlation times
+        (marginalised: their rows and columns go); heard again, they start afresh."""
+        oldest = self._t - FORGET_CORRELATIONS * self.config.bias_correlation_s
+        gone = [name for name, site in self._sites.items() if site.heard_s < oldest]
+        if not gone:
+            return
+        keep = np.ones(len(self._x), dtype=bool)
+        for name in gone:
+            index = self._sites.pop(name).index
+            keep[index: index + self._width] = False
+        moved = np.cumsum(keep) - 1  # each kept state's new index
+        for site in self._sites.values():
+            site.index = int(moved[site.index])
+        self._x, self._P = self._x[keep], self._P[np.ix_(keep, keep)]
+        self._model()
 
     def _position(self, x: np.ndarray) -> np.ndarray:
         if self.config.dims == 2:
@@ -370,12 +455,14 @@ class Tracker:
                 break
         if isinstance(outcome, str):
             return NoFix(stamp_ns, NoFixReason.NOT_INITIALISED, f"waiting for a start: {outcome}")
-        self._begin(outcome)
+        self._begin(outcome, candidate)
         return self._fix_at(time_s, stamp_ns, outcome.sites, outcome.rejected)
 
-    def _begin(self, start: _Start) -> None:
+    def _begin(self, start: _Start, arrivals: Sequence[SiteArrival]) -> None:
         """The filter from a batch solution: velocity 0 with the speed prior, predicted to the
-        latest arrival used (which widens the position by the distance walked meanwhile)."""
+        latest arrival used (which widens the position by the distance walked meanwhile); then
+        the bias states of the sites it used, with the priors of their latest arrivals (the batch
+        took those biases as noise: their correlation with its position is not kept)."""
         dims = self.config.dims
         n = dims + 4
         solved = np.array([*range(dims), self._bias, self._bias + 1])
@@ -388,6 +475,9 @@ class Tracker:
         self._t = start.time_s
         self._predict(start.latest_s - start.time_s)
         self._t = self._last_accepted = start.latest_s
+        latest = {a.site: a for a in arrivals if a.site in start.sites}  # in time order: the last stays
+        for name in start.sites:
+            self._add_site(latest[name])
 
 
 def _batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None) -> _Start | str:
@@ -409,11 +499,11 @@ def _batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_r
     theta = problem.fit(start, keep, robust=True)
     # a false lock or a reflection among them: out (once), and the rest solved without it
     keep = np.abs(problem.residuals(theta, keep)[: keep.sum()]) ** 2 <= chi_square_limit(config.gate_probability, 1)
+    kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
+    if len(kept) < dims + 1:  # before solving again: fewer would leave the solve underdetermined
+        return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {dims + 1} needed"
     if not keep.all():
         theta = problem.fit(theta, keep, robust=False)
-    kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
-    if len(kept) < dims + 1:
-        return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {dims + 1} needed"
     residuals = problem.residuals(theta, keep)
     chi_square = float(residuals @ residuals)
     dof = len(residuals) - len(theta)
