@@ -37,6 +37,10 @@ from deepsync.towers import TowerDatabase, TowerSite
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming, StackArrivals
 
 FRAME_NS = round(FRAME_SECONDS * 1e9)
+# A site whose drift the database does not give drifts all the same: take its oscillator as a
+# typical eNodeB's, 20 ppb (TS 36.104 allows 50), so its timing's sigma grows 20 ns (6 m) each
+# second from the database's epoch and fusion trusts it less as it ages.
+UNKNOWN_DRIFT_STD = 20e-9
 FRAME_RANGE_M = SPEED_OF_LIGHT_M_S * FRAME_SECONDS  # 2998 km: ranges are known modulo this
 
 
@@ -119,7 +123,8 @@ class Anchors:
             timing_offset_s=site.timing_offset_us * 1e-6,
             timing_drift=(site.timing_drift_ns_per_s or 0.0) * 1e-9,
             timing_offset_std_s=(site.timing_offset_std_us or 0.0) * 1e-6,
-            timing_drift_std=(site.timing_drift_std_ns_per_s or 0.0) * 1e-9,
+            timing_drift_std=(UNKNOWN_DRIFT_STD if site.timing_drift_ns_per_s is None
+                              else (site.timing_drift_std_ns_per_s or 0.0) * 1e-9),
         )
 
     def sites_of(self, cell: CellTiming) -> list[TowerSite]:

@@ -216,9 +216,10 @@ class SnapshotProblem:
             prior[0, 2] = float(np.median(self.sigma[keep])) / self.config.height_prior_std_m
             h = np.vstack([h, prior])
         try:
-            return float(math.sqrt(np.trace(np.linalg.inv(h.T @ h))))
+            trace = float(np.trace(np.linalg.inv(h.T @ h)))
         except np.linalg.LinAlgError:
             return math.inf
+        return math.sqrt(trace) if math.isfinite(trace) and trace > 0 else math.inf  # < 0: singular in rounding
 
 
 def solve_snapshot(arrivals: Sequence[SiteArrival], config: SnapshotConfig | None = None, *, stamp_ns: int = 0,
