@@ -9,8 +9,6 @@ default envelope-detector chain at the rate of its own first envelope message.
 
 from __future__ import annotations
 
-import numpy as np
-
 import json
 import math
 import os
@@ -18,6 +16,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from deepsync.bag import (
@@ -30,6 +29,7 @@ from deepsync.bag import (
     read_envelope,
 )
 from deepsync.frontend.config import FrontendConfig
+from deepsync.towers import MapOrigin
 from deepsync.types import EnvelopeChunk
 
 
@@ -90,15 +90,6 @@ def _frontend(where: Path, provenance: str | None) -> FrontendConfig:
         return FrontendConfig(adc_rate_hz=first.sample_rate)
     except ValueError as error:
         raise BagError(f"{where}: no default front end at {first.sample_rate:g} Hz: {error}") from None
-
-
-@dataclass(frozen=True)
-class TruthOrigin:
-    """The simulated scenario's map-frame origin: WGS84 position, ellipsoidal ground height."""
-
-    latitude_deg: float
-    longitude_deg: float
-    height_m: float
 
 
 @dataclass(frozen=True)
@@ -212,7 +203,7 @@ class BagSource:
         return [_truth_fields(TruthSite, site, f"{self.path}: provenance sites[{i}]")
                 for i, site in enumerate(sites)]
 
-    def truth_origin(self) -> TruthOrigin:
+    def truth_origin(self) -> MapOrigin:
         """The simulated scenario's map-frame origin. Raises a ValueError
         (:class:`~deepsync.bag.BagError`) naming the bag if it holds no such truth."""
-        return _truth_fields(TruthOrigin, self._truth("origin"), f"{self.path}: provenance origin")
+        return _truth_fields(MapOrigin, self._truth("origin"), f"{self.path}: provenance origin")
