@@ -202,14 +202,22 @@ def test_collinear_sites_are_degenerate() -> None:
     assert isinstance(answer, NoFix) and answer.reason is NoFixReason.DEGENERATE_GEOMETRY
 
 
-def test_far_away_solution_is_not_converged() -> None:
+def test_a_solution_beyond_any_lte_cell_is_not_a_fix() -> None:
+    """Ranges that only a receiver 300 km away fits: the solver finds it, and refuses it."""
     sites = site_arrivals(stack(RECEIVER, sites=[0, 1, 2, 3]))
-    # ranges that only a receiver ~1000 km away could see: differences far beyond the sites' spacing
-    far = [SiteArrival(s.site, s.position_enu, s.time_s, (s.range_mod_m + k * 400e3) % FRAME_RANGE_M, s.timing_std_m,
-                       s.pcis) for k, s in enumerate(sites)]
-    answer = solve_snapshot(far, SnapshotConfig(outlier_probability=1e-300))
-    assert isinstance(answer, NoFix) and answer.reason in (NoFixReason.NOT_CONVERGED, NoFixReason.INCONSISTENT)
-    assert answer.reason is NoFixReason.NOT_CONVERGED or "contradict" in answer.message
+    far = np.array([300e3, 20e3, 1.5])
+    exact = [SiteArrival(s.site, s.position_enu, s.time_s, (np.linalg.norm(far - s.position_enu) + 1234.5) % FRAME_RANGE_M,
+                         s.timing_std_m, s.pcis) for s in sites]
+    answer = solve_snapshot(exact, SnapshotConfig(max_gdop=1e4))
+    assert isinstance(answer, NoFix) and answer.reason is NoFixReason.NOT_CONVERGED
+    assert "beyond any LTE cell" in answer.message
+
+
+def test_cells_heard_but_none_placed_are_unknown_sites() -> None:
+    arrivals = StackArrivals(EPOCH_NS, 0, RATE, (CellTiming(pci=400, toa=5.0, toa_std=0.1, snr_db=0.0, estimator="x"),))
+    result = FusionStage(TOWERS).process(arrivals)
+    assert isinstance(result.snapshot, NoFix) and result.snapshot.reason is NoFixReason.UNKNOWN_SITES
+    assert "PCI 400" in result.snapshot.message
 
 
 def test_contradicting_ranges_without_redundancy_to_spare_are_inconsistent() -> None:

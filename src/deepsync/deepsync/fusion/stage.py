@@ -23,7 +23,7 @@ from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
 from deepsync.geo import LocalFrame
 from deepsync.towers import TowerDatabase
-from deepsync.types import Fix, Health, HealthKind, NoFix, StackArrivals
+from deepsync.types import Fix, Health, HealthKind, NoFix, NoFixReason, StackArrivals
 
 
 @dataclass(frozen=True)
@@ -102,6 +102,9 @@ class FusionStage:
             time_s = max([site.time_s for site in sites], default=(arrivals.stamp_ns - self.reference_ns) * 1e-9)
             tracked = self.tracker.update(sites, arrivals.stamp_ns, time_s, clock_rate)
             prior = tracked.position_enu if isinstance(tracked, Fix) else None
-        snapshot = solve_snapshot(sites, self.config.snapshot, stamp_ns=arrivals.stamp_ns,
-                                  clock_rate=clock_rate or 0.0, prior_enu=prior)
+        if problems and not sites:
+            snapshot = NoFix(arrivals.stamp_ns, NoFixReason.UNKNOWN_SITES, "; ".join(problems))
+        else:
+            snapshot = solve_snapshot(sites, self.config.snapshot, stamp_ns=arrivals.stamp_ns,
+                                      clock_rate=clock_rate or 0.0, prior_enu=prior)
         return FusionResult(snapshot, tracked, tuple(sites), tuple(events))
