@@ -27,6 +27,7 @@ from __future__ import annotations
 import ctypes
 import math
 import multiprocessing
+import multiprocessing.connection
 import signal
 import sys
 from collections.abc import Iterator
@@ -182,12 +183,63 @@ class EnvelopeSimulator:
             return
         workers = min(workers, len(ranges))  # more processes than work units would only idle
         check_memory(workers)
-        pool = multiprocessing.get_context().Pool(workers, initializer=_init_worker, initargs=(self,))
+        team = _Workers(self, workers)
         try:
-            yield from pool.imap(_worker_analog, ranges)
+            yield from team.map(ranges)
         finally:  # done, interrupted or failed: no worker is left computing
-            pool.terminate()
-            pool.join()
+            team.stop()
+
+
+class _Workers:
+    """Worker processes, each with its own pipe, fed round-robin and read in order.
+
+    Not a ``multiprocessing.Pool``: its workers share one task queue behind a lock that an idle
+    worker holds while it waits, and ``Pool.terminate`` takes that lock first, so an interrupt at
+    the wrong moment hung the parent for good. A pipe per worker shares nothing.
+    """
+
+    AHEAD = 2  # units queued per worker: the next one is there when a result goes out
+
+    def __init__(self, simulator: EnvelopeSimulator, count: int) -> None:
+        context = multiprocessing.get_context()
+        self.processes, self.pipes = [], []
+        for _ in range(count):
+            parent, child = context.Pipe()
+            process = context.Process(target=_worker_loop, args=(simulator, child), daemon=True)
+            process.start()
+            child.close()
+            self.processes.append(process)
+            self.pipes.append(parent)
+
+    def map(self, ranges: list[tuple[int, int]]) -> Iterator[np.ndarray]:
+        """Each unit's analog samples, in order."""
+        count = len(self.processes)
+        queued = min(len(ranges), count * self.AHEAD)
+        for k in range(queued):
+            self.pipes[k % count].send(ranges[k])
+        for k in range(len(ranges)):
+            pipe = self.pipes[k % count]
+            try:
+                ok, value = pipe.recv()
+            except EOFError:
+                raise RuntimeError(f"simulation worker {k % count} died (out of memory?)") from None
+            if not ok:
+                raise value
+            if queued < len(ranges):
+                self.pipes[queued % count].send(ranges[queued])
+                queued += 1
+            yield value
+
+    def stop(self) -> None:
+        for process in self.processes:
+            process.terminate()
+        for process in self.processes:
+            process.join(timeout=5)
+            if process.is_alive():
+                process.kill()
+                process.join()
+        for pipe in self.pipes:
+            pipe.close()
 
 
 def available_memory_bytes() -> int | None:
@@ -214,21 +266,27 @@ def check_memory(workers: int) -> None:
         )
 
 
-_WORKER: EnvelopeSimulator | None = None
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
-def _init_worker(simulator: EnvelopeSimulator) -> None:
-    global _WORKER
-    _WORKER = simulator
+def _detach_worker() -> None:
     # The parent handles Ctrl-C (it reaches the whole process group) and SIGTERM, and then
-    # terminates the pool; a worker must neither print its own KeyboardInterrupt nor outlive it.
+    # terminates the workers; a worker must neither print its own KeyboardInterrupt nor outlive it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if sys.platform.startswith("linux"):  # die with the parent, however it ends (even SIGKILL)
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
-def _worker_analog(span: tuple[int, int]) -> np.ndarray:
-    assert _WORKER is not None
-    return _WORKER.analog(*span)
+def _worker_loop(simulator: EnvelopeSimulator, pipe: multiprocessing.connection.Connection) -> None:
+    """Compute the units the parent sends until it closes the pipe; a failure goes back to it."""
+    _detach_worker()
+    while True:
+        try:
+            span = pipe.recv()
+        except EOFError:
+            return
+        try:
+            pipe.send((True, simulator.analog(*span)))
+        except Exception as error:  # the parent raises it
+            pipe.send((False, error))
