@@ -34,9 +34,11 @@ sought. Once each ``y`` is unwrapped the model is linear in every unknown.
 * **Sigmas**: ``(A^T W A)^-1`` times the residual variance (in the Huber M-estimator's form:
   ``sum psi^2 / (n - p) / mean(psi')^2``, the plain variance when no residual passes the knee).
   Unlike a snapshot's 1-3 degrees of freedom, a recording gives hundreds against tens of
-  unknowns: the variance estimate is good to ``sqrt(2 / (n - p))``, a few percent. The
-  residuals are taken as white: an NLOS bias that stays with one site along the whole route
-  moves its offset and is not in its sigma.
+  unknowns: the variance estimate is good to ``sqrt(2 / (n - p))``, a few percent. Residuals
+  that persist in time (multipath and NLOS bias stay with a site for seconds while the receiver
+  walks) count as fewer independent arrivals: each site's sigmas grow by the AR(1) factor of
+  its residuals (``_persistence``). On an NLOS route a bias that changes along the way still
+  looks like a clock drift, and no recording tells the two apart: calibrate in line of sight.
 
 Corrections hold at the observations' time origin (the ``reference_ns`` of the arrivals).
 Choose it near the middle of the recording: there a site's offset and drift estimates are
@@ -303,6 +305,8 @@ def calibrate_sites(observations: Sequence[CalibrationObservation],
     before = unwrap_range(problem.y_mod, bias) - bias
     others = [s for s in range(len(problem.names)) if s != problem.reference]
     std = np.sqrt(np.diag(covariance))
+    inflation = [_persistence(residual[problem.site == s], problem.time[problem.site == s])
+                 for s in range(len(problem.names))]
     sites = []
     for s, name in enumerate(problem.names):
         rms = float(np.sqrt(np.mean(residual[problem.site == s] ** 2)))
@@ -310,10 +314,28 @@ def calibrate_sites(observations: Sequence[CalibrationObservation],
             sites.append(SiteCalibration(name, 0.0, 0.0, 0.0, 0.0, int(problem.counts[s]), rms))
             continue
         i, j = n_clock + others.index(s), n_clock + len(others) + others.index(s)
-        sites.append(SiteCalibration(name, float(unwrap_range(x[i], 0.0)) / C, float(std[i]) / C,
-                                     float(x[j]) / C, float(std[j]) / C, int(problem.counts[s]), rms))
+        k = math.sqrt(max(inflation[s], inflation[problem.reference]))  # a difference of the two sites
+        sites.append(SiteCalibration(name, float(unwrap_range(x[i], 0.0)) / C, k * float(std[i]) / C,
+                                     float(x[j]) / C, k * float(std[j]) / C, int(problem.counts[s]), rms))
     return CalibrationResult(tuple(sites), problem.names[problem.reference], clock,
                              float(np.sqrt(np.mean(before**2))), float(np.sqrt(np.mean(residual**2))), sigma_scale)
+
+
+def _persistence(residual: np.ndarray, time_s: np.ndarray) -> float:
+    """How many arrivals of a site count as one independent one: ``(1 + rho) / (1 - rho)`` for
+    the lag-1 correlation ``rho`` of its residuals in time order (an AR(1) process's variance
+    factor), 1 when ``rho`` is not significant, at most the number of arrivals. Multipath that
+    stays with a site for seconds makes its residuals persist; the white-noise sigma of an
+    estimate from them would be too small by the root of this factor."""
+    n = residual.size
+    if n < 3:
+        return 1.0
+    ordered = residual[np.argsort(time_s)] - residual.mean()
+    power = float(ordered @ ordered)
+    rho = float(ordered[1:] @ ordered[:-1]) / power if power > 0 else 0.0
+    if rho <= 2 / math.sqrt(n):  # within the noise of a white sequence's estimate
+        return 1.0
+    return min((1 + rho) / (1 - rho) if rho < 1 else math.inf, float(n))
 
 
 def _check_finite(observations: Sequence[CalibrationObservation]) -> None:
