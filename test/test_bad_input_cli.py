@@ -178,6 +178,9 @@ def test_an_interrupted_simulate_stops_within_a_second_and_leaves_nothing(tmp_pa
         [str(DEEPSYNC), "simulate", "--scenario", str(SCENARIO), "--seconds", "60", "--out", str(tmp_path / "bag"),
          "--workers", "2", "--quiet"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        # as from a terminal: a suite started in the background (`.ci/run &`) ignores SIGINT, and
+        # an ignored signal is inherited, which would make Ctrl-C here a no-op
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         deadline = time.monotonic() + 120

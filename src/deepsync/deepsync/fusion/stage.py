@@ -61,11 +61,6 @@ class FusionResult:
     sites: tuple[SiteArrival, ...]
     events: tuple[Health, ...] = ()
 
-    @property
-    def best(self) -> Fix | NoFix:
-        """The tracker's fix when it has one, else the snapshot's answer."""
-        return self.tracked if isinstance(self.tracked, Fix) else self.snapshot
-
 
 class FusionStage:
     """Site ranges, snapshot solver and tracker for one tower database."""
