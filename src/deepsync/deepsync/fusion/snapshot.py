@@ -326,21 +326,29 @@ def _leave_one_out(problem: SnapshotProblem, keep: np.ndarray, config: SnapshotC
 
 def _other_fit(problem: SnapshotProblem, solution: _Solution, keep: np.ndarray,
                config: SnapshotConfig) -> np.ndarray | None:
-    """A second closed-form candidate that fits as well as the solution and lies elsewhere, with
-    every modelled distance positive (ranges minus the clock bias): the exactly determined
-    case's mirror. None when there is redundancy or the alternative is implausible."""
-    if int(keep.sum()) > config.n_unknowns:
+    """Another closed-form candidate that, refined, passes the residual test as well as the
+    solution (exactly determined: fits as exactly), lies elsewhere, and has every modelled
+    distance positive (ranges minus the clock bias): a mirror the ranges cannot rule out.
+    Checked up to one spare site (with two, a second minimum that passes too is rare and the
+    search would cost a third of the solve); candidates whose start already fails the test
+    badly are not refined."""
+    dof = int(keep.sum()) - config.n_unknowns
+    if dof > 1:
         return None
+    limit = chi_square_limit(config.outlier_probability, dof) if dof > 0 else 0.0
     sigma = float(np.min(problem.sigma[keep]))
+    here = problem.position(solution.state)[:2]
     for start in problem.starts(keep)[:-1]:
-        other = problem.refine(start, keep).state
-        chi_square = float(np.sum(problem.residuals(other, keep) ** 2))
-        position = problem.position(other)
-        moved = np.linalg.norm(position[:2] - problem.position(solution.state)[:2])
+        if dof > 0 and float(np.sum(problem.residuals(start, keep) ** 2)) > 10 * limit:
+            continue
+        other = problem.refine(start, keep)
+        position = problem.position(other.state)
+        moved = np.linalg.norm(position[:2] - here)
         distances = np.linalg.norm(problem.sites[keep] - position, axis=1)
-        plausible = np.all(problem.rho[keep] - other[-1] > 0) and distances.min() < MAX_DISTANCE_M
-        if chi_square < 1e-3 + solution.chi_square and moved > 10 * sigma and plausible:
-            return other
+        plausible = np.all(problem.rho[keep] - other.state[-1] > 0) and distances.min() < MAX_DISTANCE_M
+        fits = other.chi_square < 1e-3 + solution.chi_square if dof <= 0 else other.chi_square <= limit
+        if fits and moved > 10 * sigma and plausible:
+            return other.state
     return None
 
 
