@@ -101,3 +101,36 @@ def test_route_commands_refuse_a_database_that_places_no_site(tmp_path, capsys) 
     out = tmp_path / "out"
     assert main(["evaluate-route", "--bag", str(BAG), "--towers", str(towers), "--out", str(out), "--quiet"]) == 2
     assert "places no site" in capsys.readouterr().err and not out.exists()
+
+
+def test_replay_writes_what_the_nodes_publish_into_a_bag_ros_can_play(tmp_path) -> None:
+    """``deepsync replay``: per stack the arrivals, and per fix a PoseWithCovarianceStamped in map
+    (orientation unmeasured) and a NavSatFix at the same place in WGS84, next to the truth."""
+    from deepsync.bag import CELL_TIMING_TOPIC, NAV_SAT_FIX_TOPIC, POSE_TOPIC, TRUTH_POSE_TOPIC, stamp_to_ns
+    from deepsync.geo import LocalFrame
+    from deepsync.types import UNMEASURED_VARIANCE
+
+    out = tmp_path / "replayed"
+    assert main(["replay", "--bag", str(BAG), "--towers", str(TOWERS), "--out", str(out), "--quiet"]) == 0
+    with BagReader(out) as bag:
+        counts = bag.message_counts
+        items = list(bag.messages([POSE_TOPIC, NAV_SAT_FIX_TOPIC]))
+    poses = [item.message for item in items if item.topic == POSE_TOPIC]
+    fixes = [item.message for item in items if item.topic == NAV_SAT_FIX_TOPIC]
+    assert {item.msgtype for item in items} == {"geometry_msgs/msg/PoseWithCovarianceStamped",
+                                                "sensor_msgs/msg/NavSatFix"}
+    assert counts[CELL_TIMING_TOPIC] == 30 and counts[TRUTH_POSE_TOPIC] == 30
+    assert 20 <= counts[POSE_TOPIC] == counts[NAV_SAT_FIX_TOPIC] <= 30
+    towers = load_tower_database(TOWERS)
+    frame = LocalFrame(towers.origin.latitude_deg, towers.origin.longitude_deg, towers.origin.height_m)
+    truth = read_truth_track(BAG)
+    for pose, fix in zip(poses, fixes):
+        assert pose.header.frame_id == "map" and stamp_to_ns(pose.header.stamp) == stamp_to_ns(fix.header.stamp)
+        covariance = np.asarray(pose.pose.covariance).reshape(6, 6)
+        assert np.all(np.diag(covariance)[3:] == UNMEASURED_VARIANCE) and np.allclose(covariance, covariance.T)
+        p = pose.pose.pose.position
+        assert np.linalg.norm(np.array([p.x, p.y]) - truth.at(stamp_to_ns(pose.header.stamp))[:2]) < 100
+        enu = frame.geodetic_to_enu(fix.latitude, fix.longitude, fix.altitude)
+        assert np.allclose(enu, [p.x, p.y, p.z], atol=1e-3)  # the same place, in WGS84
+        assert fix.position_covariance_type == 3 and np.allclose(np.reshape(fix.position_covariance, (3, 3)),
+                                                                  covariance[:3, :3])

@@ -260,6 +260,18 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from deepsync.replay import replay_bag
+
+    source = BagSource(args.bag)
+    print(f"replay of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
+    summary = replay_bag(source, load_tower_database(args.towers), args.out, _pipeline_config(args.frames),
+                         overwrite=args.overwrite, progress=not args.quiet)
+    print(f"  {summary.stacks} stacks: {summary.stacks} CellTimingArray, {summary.poses} PoseWithCovarianceStamped "
+          f"and NavSatFix, {summary.truth_poses} ground-truth poses written to {summary.out}")
+    return 0
+
+
 def _metres(value: float | None) -> str:
     return "    -" if value is None else f"{value:7.1f}"
 
@@ -328,6 +340,16 @@ def build_parser() -> argparse.ArgumentParser:
     route.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
     route.add_argument("--quiet", action="store_true", help="no progress bar")
     route.set_defaults(run=_cmd_evaluate_route)
+
+    replay = commands.add_parser("replay", help="run the chain over a bag and write what the nodes publish "
+                                 "(cell timing, pose with covariance, NavSatFix) into a new bag")
+    replay.add_argument("--bag", required=True, help="bag with /deepsync/envelope")
+    replay.add_argument("--towers", required=True, help="tower database YAML with origin, positions and timing")
+    replay.add_argument("--out", required=True, help="bag directory to create")
+    replay.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
+    replay.add_argument("--overwrite", action="store_true", help="replace an existing bag")
+    replay.add_argument("--quiet", action="store_true", help="no progress bar")
+    replay.set_defaults(run=_cmd_replay)
 
     calibrate = commands.add_parser("calibrate", help="estimate each heard site's frame timing offset and drift "
                                     "from a recording with ground truth; write the updated tower database")

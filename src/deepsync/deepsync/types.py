@@ -25,6 +25,9 @@ SPEED_OF_LIGHT_M_S = 299_792_458.0
 FRAME_SECONDS = 10e-3  # an LTE radio frame; every cell repeats its sync codes once per frame
 HALF_FRAME_SECONDS = FRAME_SECONDS / 2  # the PSS repeats every half-frame (subframes 0 and 5)
 MAX_PCI = 503  # physical cell identities are 0..503 (TS 36.211 6.11)
+# The variance of what a fix does not measure (a 2-D fix's height, any orientation): huge, so a
+# consumer's filter (robot_localization) takes it as no information, finite so it stays a number.
+UNMEASURED_VARIANCE = 1e6
 
 
 class Severity(enum.IntEnum):
@@ -285,7 +288,7 @@ class Fix:
 
     stamp_ns: int
     position_enu: tuple[float, float, float]
-    covariance: np.ndarray  # (3, 3) m^2, ENU; an unmeasured up axis carries a huge variance
+    covariance: np.ndarray  # (3, 3) m^2, ENU; an unmeasured up axis carries UNMEASURED_VARIANCE
     sites: tuple[str, ...]
     kind: FixKind = FixKind.SNAPSHOT
     rejected: tuple[str, ...] = ()

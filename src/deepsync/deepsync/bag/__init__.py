@@ -12,6 +12,8 @@ from .convert import (
     cell_timing_array_to_msg,
     envelope_from_msg,
     envelope_to_msg,
+    fix_to_navsat_msg,
+    fix_to_pose_msg,
     make_header,
     ns_to_stamp,
     pose_to_msg,
@@ -25,7 +27,10 @@ from .msgdefs import MSG_NAMES, find_msg_dir, load_typestore, msgtype, typestore
 from .mcapfile import CrcStatus
 from .reader import BagInconsistency, BagMessage, BagReader, read_envelope, read_messages
 from .topics import (
+    CELL_TIMING_TOPIC,
     ENVELOPE_TOPIC,
+    NAV_SAT_FIX_TOPIC,
+    POSE_TOPIC,
     RELIABLE_QOS,
     SENSOR_DATA_QOS,
     TOPIC_QOS,
@@ -35,10 +40,13 @@ from .topics import (
 from .writer import PROVENANCE_KEY, BagWriter
 
 __all__ = [
+    "CELL_TIMING_TOPIC",
     "ENVELOPE_FRAME_ID",
     "ENVELOPE_TOPIC",
     "MAP_FRAME_ID",
     "MSG_NAMES",
+    "NAV_SAT_FIX_TOPIC",
+    "POSE_TOPIC",
     "PROVENANCE_KEY",
     "RELIABLE_QOS",
     "SENSOR_DATA_QOS",
@@ -58,6 +66,8 @@ __all__ = [
     "envelope_from_msg",
     "envelope_to_msg",
     "find_msg_dir",
+    "fix_to_navsat_msg",
+    "fix_to_pose_msg",
     "load_typestore",
     "make_header",
     "msgtype",

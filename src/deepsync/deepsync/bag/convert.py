@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 from rosbags.typesys.store import Typestore
 
-from ..types import CellTiming, EnvelopeChunk, StackArrivals, SyncWindow
+from ..geo import LocalFrame
+from ..types import UNMEASURED_VARIANCE, CellTiming, EnvelopeChunk, Fix, StackArrivals, SyncWindow
 from .msgdefs import msgtype, typestore
 
 ENVELOPE_FRAME_ID = "envelope_adc"
@@ -31,6 +32,10 @@ CELL_TIMING_ARRAY = msgtype("CellTimingArray")
 SYNC_WINDOW = msgtype("SyncWindow")
 SYNC_WINDOW_ARRAY = msgtype("SyncWindowArray")
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
+NAV_SAT_FIX = "sensor_msgs/msg/NavSatFix"
+ANTENNA_FRAME_ID = "deepsync_antenna"
+"""Frame of the receiver antenna, where a ``NavSatFix`` is measured (REP-105: a child of base_link)."""
 
 
 def _store(store: Typestore | None) -> Typestore:
@@ -215,3 +220,45 @@ def position_from_pose_msg(msg: Any) -> tuple[float, float, float]:
     """``geometry_msgs/msg/PoseStamped`` -> (x, y, z) in metres of ``msg.header.frame_id``."""
     p = msg.pose.position
     return float(p.x), float(p.y), float(p.z)
+
+
+def fix_to_pose_msg(fix: Fix, *, frame_id: str = MAP_FRAME_ID, store: Typestore | None = None) -> Any:
+    """A fix -> ``geometry_msgs/msg/PoseWithCovarianceStamped`` in ``map`` (ENU, REP-103/105).
+
+    The covariance is 6x6 row-major over (x, y, z, roll, pitch, yaw): the fix's ENU block, and
+    :data:`~deepsync.types.UNMEASURED_VARIANCE` on the orientation a position fix does not
+    measure (the identity quaternion stands in for it).
+    """
+    types = _store(store).types
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = fix.covariance
+    covariance[3:, 3:] = np.eye(3) * UNMEASURED_VARIANCE
+    x, y, z = (float(v) for v in fix.position_enu)
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    return types[POSE_WITH_COVARIANCE_STAMPED](
+        header=make_header(fix.stamp_ns, frame_id, store),
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.ascontiguousarray(
+            covariance.ravel(), dtype="<f8")),
+    )
+
+
+def fix_to_navsat_msg(fix: Fix, frame: LocalFrame, *, frame_id: str = ANTENNA_FRAME_ID,
+                      store: Typestore | None = None) -> Any:
+    """A fix -> ``sensor_msgs/msg/NavSatFix``: WGS84 latitude, longitude and ellipsoidal altitude of
+    the ``map`` position, the ENU covariance as ``COVARIANCE_TYPE_KNOWN``, status ``STATUS_FIX``
+    (no GNSS service: the bits name satellite systems)."""
+    types = _store(store).types
+    latitude, longitude, height = frame.enu_to_geodetic(np.asarray(fix.position_enu, dtype=np.float64))
+    status = types["sensor_msgs/msg/NavSatStatus"](status=0, service=0)  # STATUS_FIX
+    return types[NAV_SAT_FIX](
+        header=make_header(fix.stamp_ns, frame_id, store),
+        status=status,
+        latitude=float(latitude),
+        longitude=float(longitude),
+        altitude=float(height),
+        position_covariance=np.ascontiguousarray(np.asarray(fix.covariance, dtype=np.float64).ravel(), dtype="<f8"),
+        position_covariance_type=3,  # COVARIANCE_TYPE_KNOWN
+    )

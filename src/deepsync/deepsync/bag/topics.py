@@ -19,6 +19,9 @@ from rosbags.interfaces import (
 ENVELOPE_TOPIC = "/deepsync/envelope"
 TRUTH_POSE_TOPIC = "/deepsync/truth/pose"
 TRUTH_CELL_TIMING_TOPIC = "/deepsync/truth/cell_timing"
+CELL_TIMING_TOPIC = "/deepsync/cell_timing"  # the timing stage's arrivals
+POSE_TOPIC = "/deepsync/pose"  # fusion's fix in map, with covariance
+NAV_SAT_FIX_TOPIC = "/deepsync/fix"  # the same fix in WGS84
 
 # RMW_DURATION_INFINITE = INT64_MAX ns, as rosbag2 (Jazzy) records it.
 _INFINITE = QosTime(sec=9_223_372_036, nsec=854_775_807)
@@ -48,5 +51,8 @@ TOPIC_QOS: dict[str, Qos] = {
     ENVELOPE_TOPIC: SENSOR_DATA_QOS,
     TRUTH_POSE_TOPIC: RELIABLE_QOS,
     TRUTH_CELL_TIMING_TOPIC: RELIABLE_QOS,
+    CELL_TIMING_TOPIC: RELIABLE_QOS,
+    POSE_TOPIC: RELIABLE_QOS,
+    NAV_SAT_FIX_TOPIC: RELIABLE_QOS,
 }
 """Offered QoS of the topics we know; any other topic is written as reliable."""

@@ -39,8 +39,8 @@ from scipy.optimize import least_squares
 
 from deepsync.fusion.anchors import SiteArrival, site_names
 from deepsync.fusion.calibration import CalibrationObservation
-from deepsync.fusion.snapshot import MAX_DISTANCE_M, UNMEASURED_VARIANCE_M2
-from deepsync.types import Fix, FixKind, NoFix, NoFixReason
+from deepsync.fusion.snapshot import MAX_DISTANCE_M
+from deepsync.types import UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
 
 MIN_SITES = 3  # two unknowns (east, north), and one more to tell the fit from an interpolation
 MIN_DISTANCE_M = 1.0  # the model's reference distance; nearer, its far-field law says nothing
@@ -190,7 +190,7 @@ def solve_rssi(arrivals: Sequence[SiteArrival], model: PathLossModel, config: Rs
                      "position)")
     covariance = np.zeros((3, 3))
     covariance[:2, :2] = np.linalg.inv(information)
-    covariance[2, 2] = UNMEASURED_VARIANCE_M2
+    covariance[2, 2] = UNMEASURED_VARIANCE
     position = (result.x[0] + problem.centre[0], result.x[1] + problem.centre[1], config.receiver_height_m)
     return Fix(stamp_ns, tuple(float(v) for v in position), covariance, site_names(usable), FixKind.SNAPSHOT)
 

@@ -38,9 +38,8 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from deepsync.fusion.anchors import SiteArrival, site_names, unwrap_range
-from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, FixKind, NoFix, NoFixReason
+from deepsync.types import SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
 
-UNMEASURED_VARIANCE_M2 = 1e6  # an axis the solver does not measure (REP-103 consumers ignore it)
 MAX_DISTANCE_M = 100e3  # LTE's largest cells: a solution farther from every site is not a fix
 HUBER_KNEE = 3.0  # sigmas: residuals beyond pull linearly, not quadratically
 
@@ -198,7 +197,7 @@ class SnapshotProblem:
         covariance = np.zeros((3, 3))
         covariance[:dims, :dims] = covariance_state[:dims, :dims]
         if dims == 2:
-            covariance[2, 2] = UNMEASURED_VARIANCE_M2
+            covariance[2, 2] = UNMEASURED_VARIANCE
         position = self.position(state) + self.centre
         return Fix(stamp_ns, tuple(float(v) for v in position), covariance,
                    tuple(a.site for a, k in zip(self.arrivals, keep) if k), FixKind.SNAPSHOT, rejected,

@@ -104,8 +104,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
-from deepsync.fusion.snapshot import UNMEASURED_VARIANCE_M2, SnapshotConfig, chi_square_limit, solve_snapshot
-from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, FixKind, NoFix, NoFixReason
+from deepsync.fusion.snapshot import SnapshotConfig, chi_square_limit, solve_snapshot
+from deepsync.types import SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
 
 MAX_CLOCK_RATE = 1e-3  # a clock 1000 ppm off is not a receiver clock but a wrong number
 # a site unheard this many bias correlation times is forgotten: its bias state then keeps
@@ -416,7 +416,7 @@ class Tracker:
         covariance = np.zeros((3, 3))
         covariance[:dims, :dims] = P[:dims, :dims]
         if dims == 2:
-            covariance[2, 2] = UNMEASURED_VARIANCE_M2
+            covariance[2, 2] = UNMEASURED_VARIANCE
         position = self._position(x)
         return Fix(stamp_ns, (float(position[0]), float(position[1]), float(position[2])), covariance, used,
                    FixKind.TRACKED, rejected, math.nan, float(x[self._bias] % FRAME_RANGE_M))
