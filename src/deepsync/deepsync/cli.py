@@ -302,6 +302,14 @@ def _print_route(summary: dict) -> None:
         print(f"    site {site}: {row['stacks']} stacks, {text}; claimed sigma {row['median_claimed_std_samples']:.2f}")
 
 
+def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_help: str) -> None:
+    """What every command that replays a bag through the whole chain takes."""
+    command.add_argument("--bag", required=True, help=bag_help)
+    command.add_argument("--towers", required=True, help=towers_help)
+    command.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
+    command.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="deepsync", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -334,30 +342,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     route = commands.add_parser("evaluate-route", help="fixes along a recorded route against its ground truth "
                                 "(snapshot, tracked, RSSI, the position bound): table, JSON and figures")
-    route.add_argument("--bag", required=True, help="bag with /deepsync/envelope and /deepsync/truth/pose")
-    route.add_argument("--towers", required=True, help="tower database YAML with origin, positions and timing")
+    _replay_arguments(route, "bag with /deepsync/envelope and /deepsync/truth/pose",
+                      "tower database YAML with origin, positions and timing")
     route.add_argument("--out", default=str(REPO / "out" / "route"), help="where route.json and the PNGs go")
-    route.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
-    route.add_argument("--quiet", action="store_true", help="no progress bar")
     route.set_defaults(run=_cmd_evaluate_route)
 
     replay = commands.add_parser("replay", help="run the chain over a bag and write what the nodes publish "
                                  "(cell timing, pose with covariance, NavSatFix) into a new bag")
-    replay.add_argument("--bag", required=True, help="bag with /deepsync/envelope")
-    replay.add_argument("--towers", required=True, help="tower database YAML with origin, positions and timing")
+    _replay_arguments(replay, "bag with /deepsync/envelope", "tower database YAML with origin, positions and timing")
     replay.add_argument("--out", required=True, help="bag directory to create")
-    replay.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
     replay.add_argument("--overwrite", action="store_true", help="replace an existing bag")
-    replay.add_argument("--quiet", action="store_true", help="no progress bar")
     replay.set_defaults(run=_cmd_replay)
 
     calibrate = commands.add_parser("calibrate", help="estimate each heard site's frame timing offset and drift "
                                     "from a recording with ground truth; write the updated tower database")
-    calibrate.add_argument("--bag", required=True, help="bag with /deepsync/envelope and /deepsync/truth/pose")
-    calibrate.add_argument("--towers", required=True, help="tower database YAML to start from")
+    _replay_arguments(calibrate, "bag with /deepsync/envelope and /deepsync/truth/pose",
+                      "tower database YAML to start from")
     calibrate.add_argument("--out", required=True, help="calibrated tower database YAML to write")
-    calibrate.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
-    calibrate.add_argument("--quiet", action="store_true", help="no progress bar")
     calibrate.set_defaults(run=_cmd_calibrate)
 
     info = commands.add_parser("info", help="describe a bag")
