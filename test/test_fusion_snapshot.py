@@ -314,3 +314,12 @@ def test_four_sites_with_a_second_position_that_passes_the_residual_test_are_ref
     assert "two positions" in answer.message
     fix = solve_snapshot(arrivals, prior_enu=truth + np.array([30.0, 30.0, 0.0]))
     assert isinstance(fix, Fix) and np.linalg.norm(np.asarray(fix.position_enu[:2]) - truth[:2]) < 0.01
+
+
+@pytest.mark.parametrize("field, value", [("min_std_m", 0.0), ("min_std_m", math.nan), ("multipath_std_m", -1.0),
+                                          ("multipath_std_m", "40"), ("multipath_std_m", 1e5)])
+def test_a_bad_fusion_config_names_its_field(field, value) -> None:
+    from deepsync.fusion.stage import FusionConfig
+
+    with pytest.raises(ValueError, match=field):
+        FusionConfig(**{field: value})

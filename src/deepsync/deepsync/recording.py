@@ -26,7 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 import deepsync
-from deepsync.bag import PROVENANCE_KEY, BagWriter
+from deepsync.bag import BagWriter
 from deepsync.frontend.channel import Emitter
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds

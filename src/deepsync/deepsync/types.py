@@ -25,6 +25,8 @@ SPEED_OF_LIGHT_M_S = 299_792_458.0
 FRAME_SECONDS = 10e-3  # an LTE radio frame; every cell repeats its sync codes once per frame
 HALF_FRAME_SECONDS = FRAME_SECONDS / 2  # the PSS repeats every half-frame (subframes 0 and 5)
 MAX_PCI = 503  # physical cell identities are 0..503 (TS 36.211 6.11)
+# LTE's largest cells (PRACH format 3) reach ~100 km: no receiver hears a site farther away.
+MAX_CELL_RANGE_M = 100e3
 # The variance of what a fix does not measure (a 2-D fix's height, any orientation): huge, so a
 # consumer's filter (robot_localization) takes it as no information, finite so it stays a number.
 UNMEASURED_VARIANCE = 1e6

@@ -29,14 +29,14 @@ from deepsync.eval.cell_search import timing_error
 from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.rssi import RssiAverager, RssiConfig, fit_path_loss, solve_rssi
-from deepsync.fusion.snapshot import position_bound
+from deepsync.fusion.snapshot import chi_square_limit, position_bound
 from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
 from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
 from deepsync.sources import BagSource
 from deepsync.towers import TowerDatabase
 from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, NoFix, StackArrivals
 
-CHI2_2DOF_95 = 5.991  # 95 % of a 2-D Gaussian's NEES lies below this
+CHI2_2DOF_95 = chi_square_limit(0.05, 2)  # 95 % of a 2-D Gaussian's NEES lies below this (5.99)
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,8 @@ class TruthTrack:
     def at(self, stamp_ns: int | float) -> np.ndarray:
         """Position at ``stamp_ns``, linear between poses (ValueError outside the track)."""
         stamps = self.stamps_ns
-        if not stamps[0] <= stamp_ns <= stamps[-1] + (stamps[-1] - stamps[0]) / max(len(stamps) - 1, 1):
+        period = (stamps[-1] - stamps[0]) / (len(stamps) - 1)  # a stack may start in the last pose's period
+        if not stamps[0] <= stamp_ns <= stamps[-1] + period:
             raise ValueError(f"stamp {stamp_ns} ns is outside the ground-truth track")
         offsets = (stamps - stamps[0]).astype(np.float64)
         t = float(stamp_ns - stamps[0])

@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from deepsync.eval.route import METHODS, RouteRun, horizontal_error, nees  # noqa: E402
+from deepsync.eval.route import CHI2_2DOF_95, METHODS, RouteRun, horizontal_error, nees  # noqa: E402
 from deepsync.fusion.anchors import Anchors  # noqa: E402
 from deepsync.types import Fix  # noqa: E402
 
@@ -91,7 +91,7 @@ def plot_timeline(run: RouteRun, path: Path) -> None:
     tracked = [(s, nees(e.tracked, e.truth_enu)) for s, e in zip(t, run.epochs) if isinstance(e.tracked, Fix)]
     if tracked:
         axes[2].semilogy([s for s, _ in tracked], [v for _, v in tracked], ".", ms=3, color=COLOURS["tracked"])
-        axes[2].axhline(5.991, color="k", ls="--", lw=1, label="95 % of chi-square(2)")
+        axes[2].axhline(CHI2_2DOF_95, color="k", ls="--", lw=1, label="95 % of chi-square(2)")
         axes[2].legend(fontsize=8)
     axes[2].set_ylabel("tracked NEES")
     axes[2].set_xlabel("time (s)")

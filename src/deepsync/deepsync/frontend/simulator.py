@@ -40,7 +40,6 @@ from deepsync.frontend.adc import AdcStage, ReceiverClock, cubic_sample
 from deepsync.frontend.channel import ChannelProvider, Emitter
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.square_law import Detector
-from deepsync.lte.numerology import BASE_RATE_HZ
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 
 WORK_UNIT_SECONDS = 1.0

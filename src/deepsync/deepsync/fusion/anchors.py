@@ -163,12 +163,13 @@ class Anchors:
         out = []
         stamp_s = (arrivals.stamp_ns - reference_ns) * 1e-9
         since_epoch = 0.0 if self.epoch_ns is None else (reference_ns - self.epoch_ns) * 1e-9
+        code_offset = sync_code_offset_seconds()
         for name, cells in by_site.items():
             anchor = self.anchors[name]
             best = min(cells, key=lambda c: c.toa_std)
             time_s = stamp_s + arrivals.seconds_after_stamp(best)
             elapsed = since_epoch + time_s
-            timing = anchor.timing_s(elapsed) + sync_code_offset_seconds()
+            timing = anchor.timing_s(elapsed) + code_offset
             range_mod = (SPEED_OF_LIGHT_M_S * (time_s - timing)) % FRAME_RANGE_M
             clock_std_s = math.hypot(anchor.timing_offset_std_s, anchor.timing_drift_std * elapsed)
             out.append(SiteArrival(name, anchor.position_enu, time_s, range_mod,

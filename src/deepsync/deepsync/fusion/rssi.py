@@ -39,8 +39,7 @@ from scipy.optimize import least_squares
 
 from deepsync.fusion.anchors import SiteArrival, site_names
 from deepsync.fusion.calibration import CalibrationObservation
-from deepsync.fusion.snapshot import MAX_DISTANCE_M
-from deepsync.types import UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
+from deepsync.types import MAX_CELL_RANGE_M, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
 
 MIN_SITES = 3  # two unknowns (east, north), and one more to tell the fit from an interpolation
 MIN_DISTANCE_M = 1.0  # the model's reference distance; nearer, its far-field law says nothing
@@ -179,7 +178,7 @@ def solve_rssi(arrivals: Sequence[SiteArrival], model: PathLossModel, config: Rs
     if result.status <= 0 or not np.all(np.isfinite(result.x)):
         return NoFix(stamp_ns, NoFixReason.NOT_CONVERGED, "the least-squares solver did not converge")
     nearest = float(np.min(np.linalg.norm(problem.offsets(result.x), axis=1)))
-    if nearest > MAX_DISTANCE_M:
+    if nearest > MAX_CELL_RANGE_M:
         return NoFix(stamp_ns, NoFixReason.NOT_CONVERGED,
                      f"the solution lies {nearest / 1e3:.0f} km from the nearest site, beyond any LTE cell")
     jac = problem.jacobian(result.x)

@@ -38,9 +38,8 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from deepsync.fusion.anchors import SiteArrival, site_names, unwrap_range
-from deepsync.types import SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
+from deepsync.types import MAX_CELL_RANGE_M, SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
 
-MAX_DISTANCE_M = 100e3  # LTE's largest cells: a solution farther from every site is not a fix
 HUBER_KNEE = 3.0  # sigmas: residuals beyond pull linearly, not quadratically
 
 
@@ -268,7 +267,7 @@ def _checked_fix(problem: SnapshotProblem, solution: _Solution, keep: np.ndarray
         return NoFix(stamp_ns, NoFixReason.NOT_CONVERGED, "the least-squares solver did not converge", rejected)
     position = problem.position(solution.state)
     nearest = float(np.min(np.linalg.norm(problem.sites[keep] - position, axis=1)))
-    if nearest > MAX_DISTANCE_M:
+    if nearest > MAX_CELL_RANGE_M:
         return NoFix(stamp_ns, NoFixReason.NOT_CONVERGED,
                      f"the solution lies {nearest / 1e3:.0f} km from the nearest site, beyond any LTE cell", rejected)
     other = _other_fit(problem, solution, keep, config)
@@ -344,7 +343,7 @@ def _other_fit(problem: SnapshotProblem, solution: _Solution, keep: np.ndarray,
         position = problem.position(other.state)
         moved = np.linalg.norm(position[:2] - here)
         distances = np.linalg.norm(problem.sites[keep] - position, axis=1)
-        plausible = np.all(problem.rho[keep] - other.state[-1] > 0) and distances.min() < MAX_DISTANCE_M
+        plausible = np.all(problem.rho[keep] - other.state[-1] > 0) and distances.min() < MAX_CELL_RANGE_M
         fits = other.chi_square < 1e-3 + solution.chi_square if dof <= 0 else other.chi_square <= limit
         if fits and moved > 10 * sigma and plausible:
             return other.state

@@ -42,13 +42,17 @@ class FusionConfig:
     multipath_std_m: float = 40.0
 
     def __post_init__(self) -> None:
-        for name, smallest in (("min_std_m", "positive"), ("multipath_std_m", "non-negative")):
-            value = getattr(self, name)
-            ok = isinstance(value, (int, float)) and math.isfinite(value) and value <= 1e4
-            if not (ok and (value > 0 if smallest == "positive" else value >= 0)):
-                raise ValueError(f"{name}: {value!r} must be a {smallest} number of metres (<= 1e4)")
+        if not (_metres(self.min_std_m) and self.min_std_m > 0):
+            raise ValueError(f"min_std_m: {self.min_std_m!r} must be a positive number of metres (<= 1e4)")
+        if not _metres(self.multipath_std_m):
+            raise ValueError(f"multipath_std_m: {self.multipath_std_m!r} must be a non-negative number of metres "
+                             "(<= 1e4)")
         # one source for the dimensions and the receiver height: the tracker follows the stage's
         object.__setattr__(self, "tracker", dataclasses.replace(self.tracker, snapshot=self.snapshot))
+
+
+def _metres(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and 0 <= value <= 1e4
 
 
 @dataclass(frozen=True)

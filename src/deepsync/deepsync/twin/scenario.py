@@ -54,7 +54,9 @@ from deepsync.lte.earfcn import band_of, check_channel, downlink_frequency_hz
 from deepsync.lte.numerology import check_bandwidth
 from deepsync.twin.antenna import SectorPattern
 from deepsync.twin.propagation import MODELS
+from deepsync.towers import MapOrigin
 from deepsync.twin.tdl import TDL_PROFILES
+from deepsync.types import MAX_CELL_RANGE_M
 
 T = TypeVar("T")
 
@@ -108,19 +110,10 @@ SPEED_RANGE_MPS = (0.1, 140.0)
 # Time for one pass of a route: at least one 10 ms frame (shorter moves the receiver between
 # two fixes: give a position) and at most a day (longer is not one drive: split it).
 ROUTE_DURATION_RANGE_S = (0.01, 86_400.0)
-# LTE's largest cells (PRACH format 3) reach ~100 km; there the flat map-frame ground is already
-# ~0.8 km below the real one. No scenario point may be farther from the origin, and a receiver
-# farther than that from every site hears none of them.
-MAX_DISTANCE_M = 100e3
-
-
-@dataclass(frozen=True)
-class Origin:
-    """Map-frame origin: WGS84 latitude/longitude (deg) and ellipsoidal height (m)."""
-
-    latitude_deg: float
-    longitude_deg: float
-    height_m: float
+# At LTE's largest cell range the flat map-frame ground is already ~0.8 km below the real one. No
+# scenario point may be farther from the origin, and a receiver farther than that from every
+# site hears none of them.
+MAX_DISTANCE_M = MAX_CELL_RANGE_M
 
 
 @dataclass(frozen=True)
@@ -228,7 +221,7 @@ class Scenario:
 
     name: str
     seed: int
-    origin: Origin
+    origin: MapOrigin
     environment: Environment
     channel: ChannelSettings
     sites: tuple[SiteSpec, ...]
@@ -305,7 +298,7 @@ def parse_scenario(data: object, where: str = "scenario") -> Scenario:
     """Validate an already-loaded scenario mapping (see the module docstring for the schema)."""
     keys = build_dataclass(_ScenarioKeys, data, where)
     _require_range(keys.seed, SEED_RANGE, f"{where}.seed")
-    origin = build_dataclass(Origin, keys.origin, f"{where}.origin")
+    origin = build_dataclass(MapOrigin, keys.origin, f"{where}.origin")
     _check_lat_lon(origin, f"{where}.origin")
     _require_range(origin.height_m, GROUND_HEIGHT_RANGE_M, f"{where}.origin.height_m", "m")
     environment = build_dataclass(Environment, _mapping(keys.environment),
@@ -358,7 +351,7 @@ def _auto(data: object, *names: str) -> object:
             for key, value in data.items()}
 
 
-def _check_lat_lon(point: Origin | LatLon | _SiteKeys, where: str) -> None:
+def _check_lat_lon(point: MapOrigin | LatLon | _SiteKeys, where: str) -> None:
     _require(-90.0 <= point.latitude_deg <= 90.0, f"{where}.latitude_deg",
              f"{point.latitude_deg!r} is outside [-90, 90]")
     _require(-180.0 <= point.longitude_deg <= 180.0, f"{where}.longitude_deg",
@@ -486,7 +479,7 @@ def _parse_waypoint(data: object, where: str) -> LatLon:
     return point
 
 
-def _ecef(points: Sequence[Origin | LatLon | SiteSpec], height_m: float | list[float]
+def _ecef(points: Sequence[MapOrigin | LatLon | SiteSpec], height_m: float | list[float]
           ) -> np.ndarray:
     """ECEF (m) of N >= 2 points at ellipsoidal ``height_m``, shape (N, 3) (pyproj warns on
     one-element arrays)."""
@@ -494,7 +487,7 @@ def _ecef(points: Sequence[Origin | LatLon | SiteSpec], height_m: float | list[f
                             height_m).reshape(-1, 3)
 
 
-def _check_distances(origin: Origin, sites: tuple[SiteSpec, ...], receiver: ReceiverSpec,
+def _check_distances(origin: MapOrigin, sites: tuple[SiteSpec, ...], receiver: ReceiverSpec,
                      where: str) -> None:
     """Refuse a site or receiver point beyond ``MAX_DISTANCE_M`` (straight line) from the
     origin, and a receiver point beyond it from every site: a world the flat map frame cannot
