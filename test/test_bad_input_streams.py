@@ -36,7 +36,7 @@ from deepsync.sync.stacking import StackConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
 from deepsync.timing.stage import TimingStage
 from deepsync.towers import load_tower_database
-from deepsync.types import EnvelopeChunk, HealthKind, Severity, SyncWindow
+from deepsync.types import EnvelopeChunk, HealthKind, Severity, StackWindows, SyncWindow
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "campus"
@@ -275,7 +275,7 @@ def test_error_a_window_that_cannot_exist(campus_window, change, message):
 
 
 def test_error_a_sync_window_message_with_the_wrong_number_of_values(campus_window):
-    msg = sync_window_array_to_msg(0, [campus_window])
+    msg = sync_window_array_to_msg(StackWindows(0, 0, 1.92e6, (campus_window,)))
     msg.cells[0].windows = msg.cells[0].windows[:-1]
     with pytest.raises(ValueError, match="n_frames x window_length"):
         sync_window_array_from_msg(msg)

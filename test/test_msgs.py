@@ -132,6 +132,9 @@ def test_field_types(parsed: dict) -> None:
     }
     assert field_types(parsed, "SyncWindowArray") == {
         "header": "std_msgs/Header",
+        "first_sample_index": "uint64",
+        "sample_rate": "float64",
+        "clock_drift_ppm": "float64",
         "cells": "deepsync_msgs/SyncWindow[]",
     }
     assert field_types(parsed, "CellTiming") == {

@@ -71,10 +71,12 @@ def test_the_timing_stage_fed_from_a_sync_window_message_gives_the_same_arrivals
     stage = TimingStage(source.frontend)
     pairs = 0
     for result in results[-5:]:
-        received = sync_window_array_from_msg(sync_window_array_to_msg(result.stamp_ns, result.sync.windows))
-        assert [w.pci for w in received] == result.sync.pcis
-        pairs += sum(w.cosited_pci is not None for w in received)
-        for direct, rebuilt in zip(result.timing.cells, stage.process(received).cells):
+        received = sync_window_array_from_msg(sync_window_array_to_msg(result.sync.stack_windows))
+        assert [w.pci for w in received.windows] == result.sync.pcis
+        base = lambda stack: (stack.stamp_ns, stack.first_sample_index, stack.sample_rate, stack.clock_drift_ppm)
+        assert base(received) == base(result.arrivals)  # the timing node's arrivals keep the sync stage's time base
+        pairs += sum(w.cosited_pci is not None for w in received.windows)
+        for direct, rebuilt in zip(result.timing.cells, stage.process(received.windows).cells):
             # float32 on the wire: the pair coefficients and windows round at 1e-7
             assert rebuilt.toa == pytest.approx(direct.toa, abs=1e-4)
             assert rebuilt.toa_std == pytest.approx(direct.toa_std, rel=1e-3)

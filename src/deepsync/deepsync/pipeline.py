@@ -78,8 +78,7 @@ class Pipeline:
         return [self._fuse(result, self.timing.process(result.windows)) for result in self.sync.process(chunk)]
 
     def _fuse(self, sync: SyncResult, timing: TimingResult) -> StackResult:
-        arrivals = StackArrivals(sync.stamp_ns, sync.first_sample_index, self.frontend.adc_rate_hz, timing.cells,
-                                 sync.clock_drift_ppm)
+        arrivals = sync.stack_windows.arrivals(timing.cells)
         fusion = None if self.fusion is None else self.fusion.process(arrivals)
         return StackResult(sync, timing, arrivals, fusion)
 

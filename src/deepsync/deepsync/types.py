@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -263,6 +264,34 @@ class StackArrivals:
     def seconds_after_stamp(self, cell: CellTiming) -> float:
         """Receiver time of ``cell``'s arrival after ``stamp_ns`` (s)."""
         return (cell.toa - self.first_sample_index) / self.sample_rate
+
+
+@dataclass(frozen=True)
+class StackWindows:
+    """The cells the sync stage cut from one stack, on the stack's time base (``SyncWindowArray``).
+
+    The same time base as :class:`StackArrivals`, which the timing stage makes of it: stream
+    sample ``first_sample_index`` was taken at receiver time ``stamp_ns``; ``clock_drift_ppm``
+    is the receiver clock error the sync stage measured (None: unknown).
+    """
+
+    stamp_ns: int
+    first_sample_index: int
+    sample_rate: float
+    windows: tuple[SyncWindow, ...]
+    clock_drift_ppm: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.sample_rate) and self.sample_rate > 0):
+            raise ValueError(f"StackWindows.sample_rate {self.sample_rate!r} must be > 0")
+        if self.clock_drift_ppm is not None and not math.isfinite(self.clock_drift_ppm):
+            raise ValueError(f"StackWindows.clock_drift_ppm {self.clock_drift_ppm!r} must be finite or None")
+        object.__setattr__(self, "windows", tuple(self.windows))
+
+    def arrivals(self, cells: Sequence[CellTiming]) -> StackArrivals:
+        """The timing stage's arrivals of these cells, on this stack's time base."""
+        return StackArrivals(self.stamp_ns, self.first_sample_index, self.sample_rate, tuple(cells),
+                             self.clock_drift_ppm)
 
 
 class NoFixReason(enum.Enum):

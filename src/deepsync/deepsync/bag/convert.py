@@ -1,21 +1,36 @@
-"""Core types <-> rosbags message objects: every bag conversion lives in this one module.
+"""Core types <-> ROS messages: every message conversion lives in this one module.
 
-rosbags serialises numpy arrays only in the exact dtype of the field, contiguous and
-little-endian (``int16[]`` wants ``'<i2'``), and scalar float fields as plain Python floats, so
-every builder here normalises its inputs instead of trusting the caller.
+The same builders serve two kinds of message classes, told apart by :class:`MessageTypes`:
+rosbags' (bags written and read without ROS: the simulator, replay, the demo) and rclpy's
+(the nodes, through ``deepsync_ros.conversions``). They differ only in where a class comes from
+and in what a variable-length array field takes: rosbags serialises numpy arrays, only in the
+exact dtype of the field, contiguous and little-endian (``int16[]`` wants ``'<i2'``); rclpy's
+generated setters take an ``array.array`` of the field's type code (a numpy array fails their
+type check). Fixed-size arrays (``float64[36]``) are numpy in both. Scalar fields must be plain
+Python ``int`` / ``float`` in both, so every builder normalises its inputs instead of trusting
+the caller. Readers accept either kind: ``np.asarray`` reads numpy and ``array.array`` alike.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from rosbags.typesys.store import Typestore
 
 from ..geo import LocalFrame
-from ..types import UNMEASURED_VARIANCE, CellTiming, EnvelopeChunk, Fix, StackArrivals, SyncWindow
+from ..types import (
+    UNMEASURED_VARIANCE,
+    CellTiming,
+    EnvelopeChunk,
+    Fix,
+    StackArrivals,
+    StackWindows,
+    SyncWindow,
+)
 from .msgdefs import msgtype, typestore
 
 ENVELOPE_FRAME_ID = "envelope_adc"
@@ -38,8 +53,33 @@ ANTENNA_FRAME_ID = "deepsync_antenna"
 """Frame of the receiver antenna, where a ``NavSatFix`` is measured (REP-105: a child of base_link)."""
 
 
-def _store(store: Typestore | None) -> Typestore:
-    return typestore() if store is None else store
+@dataclass(frozen=True)
+class MessageTypes:
+    """Where message classes come from and what their variable-length arrays take.
+
+    ``resolve`` maps a full type name (``deepsync_msgs/msg/CellTiming``) to its class;
+    ``sequence`` turns a contiguous little-endian numpy array, already in the field's dtype,
+    into the value a ``T[]`` field takes.
+    """
+
+    resolve: Callable[[str], type]
+    sequence: Callable[[np.ndarray], Any]
+
+
+def rosbags_types(store: Typestore) -> MessageTypes:
+    """rosbags' classes from ``store``; arrays stay numpy."""
+    return MessageTypes(store.types.__getitem__, lambda values: values)
+
+
+Types = Typestore | MessageTypes | None
+"""What the builders take: rosbags' store (None: ours, :func:`~deepsync.bag.typestore`) or any
+:class:`MessageTypes` (rclpy's, in ``deepsync_ros.conversions``)."""
+
+
+def _types(store: Types) -> MessageTypes:
+    if isinstance(store, MessageTypes):
+        return store
+    return rosbags_types(typestore() if store is None else store)
 
 
 def stamp_to_ns(stamp: Any) -> int:
@@ -47,34 +87,32 @@ def stamp_to_ns(stamp: Any) -> int:
     return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
 
 
-def ns_to_stamp(stamp_ns: int, store: Typestore | None = None) -> Any:
+def ns_to_stamp(stamp_ns: int, store: Types = None) -> Any:
     """Integer nanoseconds -> ``builtin_interfaces/Time``; refuses what int32 sec can't hold."""
     stamp_ns = int(stamp_ns)
     if not 0 <= stamp_ns < _MAX_STAMP_NS:
         raise ValueError(f"stamp {stamp_ns} ns is outside builtin_interfaces/Time [0, 2^31 s)")
-    time_cls = _store(store).types["builtin_interfaces/msg/Time"]
+    time_cls = _types(store).resolve("builtin_interfaces/msg/Time")
     sec, nanosec = divmod(stamp_ns, _NS_PER_S)
     return time_cls(sec=sec, nanosec=nanosec)
 
 
-def make_header(stamp_ns: int, frame_id: str, store: Typestore | None = None) -> Any:
+def make_header(stamp_ns: int, frame_id: str, store: Types = None) -> Any:
     """``std_msgs/Header`` with the given stamp (ns) and frame."""
-    header_cls = _store(store).types["std_msgs/msg/Header"]
+    header_cls = _types(store).resolve("std_msgs/msg/Header")
     return header_cls(stamp=ns_to_stamp(stamp_ns, store), frame_id=str(frame_id))
 
 
-def envelope_to_msg(
-    chunk: EnvelopeChunk, *, frame_id: str = ENVELOPE_FRAME_ID, store: Typestore | None = None
-) -> Any:
+def envelope_to_msg(chunk: EnvelopeChunk, *, frame_id: str = ENVELOPE_FRAME_ID, store: Types = None) -> Any:
     """:class:`EnvelopeChunk` -> ``deepsync_msgs/msg/EnvelopeSamples`` (stamp = first sample)."""
-    cls = _store(store).types[ENVELOPE_SAMPLES]
-    return cls(
-        header=make_header(chunk.stamp_ns, frame_id, store),
+    types = _types(store)
+    return types.resolve(ENVELOPE_SAMPLES)(
+        header=make_header(chunk.stamp_ns, frame_id, types),
         sample_rate=float(chunk.sample_rate),
         first_sample_index=int(chunk.first_sample_index),
         adc_bits=int(chunk.adc_bits),
         volts_per_code=float(chunk.volts_per_code),
-        samples=np.ascontiguousarray(chunk.samples, dtype="<i2"),
+        samples=types.sequence(np.ascontiguousarray(chunk.samples, dtype="<i2")),
     )
 
 
@@ -90,18 +128,23 @@ def envelope_from_msg(msg: Any) -> EnvelopeChunk:
     )
 
 
-def cell_timing_array_to_msg(
-    arrivals: StackArrivals,
-    *,
-    frame_id: str = ENVELOPE_FRAME_ID,
-    store: Typestore | None = None,
-) -> Any:
+def _optional_drift(drift: float | None) -> float:
+    return math.nan if drift is None else float(drift)
+
+
+def _drift_from_msg(value: float) -> float | None:
+    drift = float(value)
+    return None if math.isnan(drift) else drift
+
+
+def cell_timing_array_to_msg(arrivals: StackArrivals, *, frame_id: str = ENVELOPE_FRAME_ID,
+                             store: Types = None) -> Any:
     """One stack's arrivals -> ``deepsync_msgs/msg/CellTimingArray`` (every header at the stack's
     stamp; 0 / NaN for unknowns)."""
-    types = _store(store).types
-    header = make_header(arrivals.stamp_ns, frame_id, store)
+    types = _types(store)
+    header = make_header(arrivals.stamp_ns, frame_id, types)
     cells = [
-        types[CELL_TIMING](
+        types.resolve(CELL_TIMING)(
             header=header,
             pci=int(r.pci),
             toa=float(r.toa),
@@ -113,9 +156,9 @@ def cell_timing_array_to_msg(
         )
         for r in arrivals.cells
     ]
-    drift = math.nan if arrivals.clock_drift_ppm is None else float(arrivals.clock_drift_ppm)
-    return types[CELL_TIMING_ARRAY](header=header, first_sample_index=int(arrivals.first_sample_index),
-                                    sample_rate=float(arrivals.sample_rate), clock_drift_ppm=drift, cells=cells)
+    return types.resolve(CELL_TIMING_ARRAY)(
+        header=header, first_sample_index=int(arrivals.first_sample_index), sample_rate=float(arrivals.sample_rate),
+        clock_drift_ppm=_optional_drift(arrivals.clock_drift_ppm), cells=cells)
 
 
 def cell_timing_array_from_msg(msg: Any) -> StackArrivals:
@@ -133,23 +176,16 @@ def cell_timing_array_from_msg(msg: Any) -> StackArrivals:
         )
         for c in msg.cells
     )
-    drift = float(msg.clock_drift_ppm)
     return StackArrivals(stamp_to_ns(msg.header.stamp), int(msg.first_sample_index), float(msg.sample_rate), cells,
-                         None if math.isnan(drift) else drift)
+                         _drift_from_msg(msg.clock_drift_ppm))
 
 
-def sync_window_array_to_msg(
-    stamp_ns: int,
-    windows: Iterable[SyncWindow],
-    *,
-    frame_id: str = ENVELOPE_FRAME_ID,
-    store: Typestore | None = None,
-) -> Any:
-    """One stack's cells -> ``deepsync_msgs/msg/SyncWindowArray`` (0 / -1 / empty for unknowns)."""
-    types = _store(store).types
+def sync_window_array_to_msg(stack: StackWindows, *, frame_id: str = ENVELOPE_FRAME_ID, store: Types = None) -> Any:
+    """One stack's cells -> ``deepsync_msgs/msg/SyncWindowArray`` (0 / -1 / empty / NaN for unknowns)."""
+    types = _types(store)
     cells = [
-        types[SYNC_WINDOW](
-            header=make_header(w.stamp_ns, frame_id, store),
+        types.resolve(SYNC_WINDOW)(
+            header=make_header(w.stamp_ns, frame_id, types),
             pci=int(w.pci),
             earfcn=0 if w.earfcn is None else int(w.earfcn),
             carrier_frequency=0.0 if w.carrier_hz is None else float(w.carrier_hz),
@@ -158,26 +194,28 @@ def sync_window_array_to_msg(
             snr_db=float(w.snr_db),
             n_frames=int(w.n_frames),
             window_length=int(w.window_length),
-            windows=np.ascontiguousarray(w.windows, dtype="<f4").ravel(),
+            windows=types.sequence(np.ascontiguousarray(w.windows, dtype="<f4").ravel()),
             cosited_pci=-1 if w.cosited_pci is None else int(w.cosited_pci),
-            site_coefficients=np.asarray(w.site_coefficients or (), dtype="<f4"),
+            site_coefficients=types.sequence(np.asarray(w.site_coefficients or (), dtype="<f4")),
         )
-        for w in windows
+        for w in stack.windows
     ]
-    return types[SYNC_WINDOW_ARRAY](header=make_header(stamp_ns, frame_id, store), cells=cells)
+    return types.resolve(SYNC_WINDOW_ARRAY)(
+        header=make_header(stack.stamp_ns, frame_id, types), first_sample_index=int(stack.first_sample_index),
+        sample_rate=float(stack.sample_rate), clock_drift_ppm=_optional_drift(stack.clock_drift_ppm), cells=cells)
 
 
-def sync_window_array_from_msg(msg: Any) -> list[SyncWindow]:
-    """``deepsync_msgs/msg/SyncWindowArray`` -> one :class:`SyncWindow` per cell; ValueError if
-    a cell's window array does not hold n_frames x window_length values."""
-    out = []
+def sync_window_array_from_msg(msg: Any) -> StackWindows:
+    """``deepsync_msgs/msg/SyncWindowArray`` -> the stack's cells; ValueError if a cell's window
+    array does not hold n_frames x window_length values, or on a time base no stack can have."""
+    windows = []
     for c in msg.cells:
         values = np.array(c.windows, dtype=np.float32)
         if values.size != int(c.n_frames) * int(c.window_length):
             raise ValueError(f"SyncWindow of PCI {c.pci}: {values.size} window values, but n_frames x "
                              f"window_length = {c.n_frames} x {c.window_length}")
         coefficients = tuple(float(x) for x in c.site_coefficients)
-        out.append(SyncWindow(
+        windows.append(SyncWindow(
             stamp_ns=stamp_to_ns(c.header.stamp),
             pci=int(c.pci),
             coarse_index=int(c.coarse_index),
@@ -189,72 +227,67 @@ def sync_window_array_from_msg(msg: Any) -> list[SyncWindow]:
             cosited_pci=None if c.cosited_pci < 0 else int(c.cosited_pci),
             site_coefficients=coefficients or None,
         ))
-    return out
+    return StackWindows(stamp_to_ns(msg.header.stamp), int(msg.first_sample_index), float(msg.sample_rate),
+                        tuple(windows), _drift_from_msg(msg.clock_drift_ppm))
 
 
-def pose_to_msg(
-    stamp_ns: int,
-    x: float,
-    y: float,
-    z: float,
-    *,
-    frame_id: str = MAP_FRAME_ID,
-    store: Typestore | None = None,
-) -> Any:
+def _pose(types: MessageTypes, x: float, y: float, z: float) -> Any:
+    """A ``geometry_msgs/Pose`` at (x, y, z) with the identity quaternion (no orientation measured)."""
+    return types.resolve("geometry_msgs/msg/Pose")(
+        position=types.resolve("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=float(z)),
+        orientation=types.resolve("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+
+
+def pose_to_msg(stamp_ns: int, x: float, y: float, z: float, *, frame_id: str = MAP_FRAME_ID,
+                store: Types = None) -> Any:
     """Receiver position (ENU metres in ``map``) -> ``geometry_msgs/msg/PoseStamped``.
 
     Orientation is the identity quaternion: the truth we simulate is a position only.
     """
-    types = _store(store).types
     for name, value in (("x", x), ("y", y), ("z", z)):
         if not math.isfinite(value):
             raise ValueError(f"pose {name}={value!r} must be finite")
-    pose = types["geometry_msgs/msg/Pose"](
-        position=types["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=float(z)),
-        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-    )
-    return types[POSE_STAMPED](header=make_header(stamp_ns, frame_id, store), pose=pose)
+    types = _types(store)
+    return types.resolve(POSE_STAMPED)(header=make_header(stamp_ns, frame_id, types), pose=_pose(types, x, y, z))
 
 
 def position_from_pose_msg(msg: Any) -> tuple[float, float, float]:
-    """``geometry_msgs/msg/PoseStamped`` -> (x, y, z) in metres of ``msg.header.frame_id``."""
-    p = msg.pose.position
+    """``geometry_msgs/msg/PoseStamped`` or ``PoseWithCovarianceStamped`` -> (x, y, z) in metres
+    of ``msg.header.frame_id``."""
+    pose = msg.pose.pose if hasattr(msg.pose, "covariance") else msg.pose
+    p = pose.position
     return float(p.x), float(p.y), float(p.z)
 
 
-def fix_to_pose_msg(fix: Fix, *, frame_id: str = MAP_FRAME_ID, store: Typestore | None = None) -> Any:
+def fix_to_pose_msg(fix: Fix, *, frame_id: str = MAP_FRAME_ID, store: Types = None) -> Any:
     """A fix -> ``geometry_msgs/msg/PoseWithCovarianceStamped`` in ``map`` (ENU, REP-103/105).
 
     The covariance is 6x6 row-major over (x, y, z, roll, pitch, yaw): the fix's ENU block, and
     :data:`~deepsync.types.UNMEASURED_VARIANCE` on the orientation a position fix does not
     measure (the identity quaternion stands in for it).
     """
-    types = _store(store).types
+    types = _types(store)
     covariance = np.zeros((6, 6))
     covariance[:3, :3] = fix.covariance
     covariance[3:, 3:] = np.eye(3) * UNMEASURED_VARIANCE
-    x, y, z = (float(v) for v in fix.position_enu)
-    pose = types["geometry_msgs/msg/Pose"](
-        position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
-        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-    )
-    return types[POSE_WITH_COVARIANCE_STAMPED](
-        header=make_header(fix.stamp_ns, frame_id, store),
-        pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.ascontiguousarray(
-            covariance.ravel(), dtype="<f8")),
+    x, y, z = fix.position_enu
+    return types.resolve(POSE_WITH_COVARIANCE_STAMPED)(
+        header=make_header(fix.stamp_ns, frame_id, types),
+        pose=types.resolve("geometry_msgs/msg/PoseWithCovariance")(
+            pose=_pose(types, x, y, z), covariance=np.ascontiguousarray(covariance.ravel(), dtype="<f8")),
     )
 
 
-def fix_to_navsat_msg(fix: Fix, frame: LocalFrame, *, frame_id: str = ANTENNA_FRAME_ID,
-                      store: Typestore | None = None) -> Any:
+def fix_to_navsat_msg(fix: Fix, frame: LocalFrame, *, frame_id: str = ANTENNA_FRAME_ID, store: Types = None) -> Any:
     """A fix -> ``sensor_msgs/msg/NavSatFix``: WGS84 latitude, longitude and ellipsoidal altitude of
     the ``map`` position, the ENU covariance as ``COVARIANCE_TYPE_KNOWN``, status ``STATUS_FIX``
     (no GNSS service: the bits name satellite systems)."""
-    types = _store(store).types
+    types = _types(store)
     latitude, longitude, height = frame.enu_to_geodetic(np.asarray(fix.position_enu, dtype=np.float64))
-    status = types["sensor_msgs/msg/NavSatStatus"](status=0, service=0)  # STATUS_FIX
-    return types[NAV_SAT_FIX](
-        header=make_header(fix.stamp_ns, frame_id, store),
+    status = types.resolve("sensor_msgs/msg/NavSatStatus")(status=0, service=0)  # STATUS_FIX
+    return types.resolve(NAV_SAT_FIX)(
+        header=make_header(fix.stamp_ns, frame_id, types),
         status=status,
         latitude=float(latitude),
         longitude=float(longitude),

@@ -29,7 +29,7 @@ from deepsync.sync.search import CellDetection, CellSearch, SearchConfig
 from deepsync.sync.stacking import FrameStacker, Stack, StackConfig
 from deepsync.sync.windows import extract_windows
 from deepsync.towers import TowerDatabase
-from deepsync.types import EnvelopeChunk, Health, HealthKind, SyncWindow
+from deepsync.types import EnvelopeChunk, Health, HealthKind, StackWindows, SyncWindow
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,7 @@ class SyncResult:
 
     stamp_ns: int  # receiver time of the stack's first sample
     first_sample_index: int
+    sample_rate: float
     n_frames: int
     aligned: bool
     flags: tuple[Health, ...]  # what makes this stack less trustworthy
@@ -88,6 +89,12 @@ class SyncResult:
     def windows(self) -> tuple[SyncWindow, ...]:
         """The confirmed cells as the timing stage takes them."""
         return tuple(c.window for c in self.cells)
+
+    @property
+    def stack_windows(self) -> StackWindows:
+        """The confirmed cells with the stack's time base: what ``cell_sync`` publishes."""
+        return StackWindows(self.stamp_ns, self.first_sample_index, self.sample_rate, self.windows,
+                            self.clock_drift_ppm)
 
 
 class SyncStage:
@@ -135,6 +142,7 @@ class SyncStage:
         return SyncResult(
             stamp_ns=stack.stamp_ns,
             first_sample_index=stack.first_sample_index,
+            sample_rate=self.stacker.sample_rate,
             n_frames=stack.n_frames,
             aligned=stack.aligned,
             flags=stack.flags,
