@@ -16,9 +16,13 @@ from rosbags.interfaces import (
     QosTime,
 )
 
+NAMESPACE = "/deepsync"
+"""The namespace our nodes run in (the launch file's default): their relative topic names,
+e.g. ``envelope``, resolve to the topics below, so a bag plays straight into the nodes."""
 ENVELOPE_TOPIC = "/deepsync/envelope"
 TRUTH_POSE_TOPIC = "/deepsync/truth/pose"
 TRUTH_CELL_TIMING_TOPIC = "/deepsync/truth/cell_timing"
+SYNC_WINDOWS_TOPIC = "/deepsync/sync_windows"  # the sync stage's cells and windows
 CELL_TIMING_TOPIC = "/deepsync/cell_timing"  # the timing stage's arrivals
 POSE_TOPIC = "/deepsync/pose"  # fusion's fix in map, with covariance
 NAV_SAT_FIX_TOPIC = "/deepsync/fix"  # the same fix in WGS84
@@ -51,8 +55,17 @@ TOPIC_QOS: dict[str, Qos] = {
     ENVELOPE_TOPIC: SENSOR_DATA_QOS,
     TRUTH_POSE_TOPIC: RELIABLE_QOS,
     TRUTH_CELL_TIMING_TOPIC: RELIABLE_QOS,
+    SYNC_WINDOWS_TOPIC: RELIABLE_QOS,
     CELL_TIMING_TOPIC: RELIABLE_QOS,
     POSE_TOPIC: RELIABLE_QOS,
     NAV_SAT_FIX_TOPIC: RELIABLE_QOS,
 }
 """Offered QoS of the topics we know; any other topic is written as reliable."""
+
+
+def relative_name(topic: str) -> str:
+    """A topic of :data:`NAMESPACE` as a node's relative name: ``/deepsync/cell_timing`` -> ``cell_timing``."""
+    prefix = NAMESPACE + "/"
+    if not topic.startswith(prefix):
+        raise ValueError(f"topic {topic!r} is not in the {NAMESPACE} namespace")
+    return topic[len(prefix):]
