@@ -17,6 +17,7 @@ from deepsync.sources import (
     RawFileSource,
     SampleFormat,
     SigmfSource,
+    SimulatorSource,
     Source,
     bag_frontend,
     envelope_codes,
@@ -484,3 +485,26 @@ def test_non_finite_samples_are_an_error_naming_the_file_and_the_sample(tmp_path
     assert next(chunks).end_sample_index == FRAME
     with pytest.raises(ValueError, match=f"sample {FRAME + 17} is not finite"):
         next(chunks)
+
+
+def test_the_live_simulator_streams_what_the_recorded_bag_holds():
+    """A scenario opened as a source is the simulator run live: its first frames are the campus
+    bag's samples, stamps and indices exactly (same twin, seed and receiver clock epoch)."""
+    live = open_source(REPO / "config" / "scenarios" / "campus.yaml")
+    recorded = BagSource(REPO / "bags" / "campus")
+    assert isinstance(live, SimulatorSource)
+    assert live.frontend == recorded.frontend
+    assert "campus" in live.description
+    for got, want, _ in zip(live.chunks(), recorded.chunks(), range(3)):
+        assert (got.stamp_ns, got.first_sample_index, got.sample_rate) == (
+            want.stamp_ns, want.first_sample_index, want.sample_rate)
+        np.testing.assert_array_equal(got.samples, want.samples)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(sample_format="cu8"), "does not apply"),
+    (dict(sample_rate=2.4e6), "1.92e\\+06 Hz"),
+])
+def test_a_scenario_source_refuses_what_it_decides_itself(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        open_source(REPO / "config" / "scenarios" / "campus.yaml", **kwargs)

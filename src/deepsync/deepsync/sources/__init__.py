@@ -8,6 +8,7 @@ which receiver chain made them (``frontend``: the sync templates are built from 
   ``cf32_le`` I/Q; ``ri16_le``, ``rf32_le`` envelopes), format and rate given by the user;
 * :class:`SigmfSource`: SigMF recordings, format, rate, centre frequency and time from metadata;
 * :class:`BagSource`: rosbag2 bags of the envelope topic, front end from their provenance;
+* :class:`SimulatorSource`: the live simulator, a scenario's stream computed as it is read;
 * :func:`open_source`: the right one for a path.
 
 Complex I/Q becomes an envelope as a square-law detector would make it, ``|x - zero|^2``, under
@@ -21,12 +22,14 @@ from .formats import SampleFormat
 from .opener import open_source
 from .rawfile import RawFileSource, read_iq
 from .sigmf_recording import SigmfSource
+from .simulated import SimulatorSource
 
 __all__ = [
     "BagSource",
     "RawFileSource",
     "SampleFormat",
     "SigmfSource",
+    "SimulatorSource",
     "Source",
     "bag_frontend",
     "envelope_codes",

@@ -10,6 +10,7 @@ from .base import Source
 from .formats import SampleFormat, is_sigmf_path
 from .rawfile import RawFileSource
 from .sigmf_recording import SigmfSource
+from .simulated import SimulatorSource, is_scenario_path
 
 
 def _same_rate(given: float, known: float) -> bool:
@@ -27,6 +28,8 @@ def open_source(
     * a rosbag2 bag (a directory with ``metadata.yaml``, or an ``.mcap`` file):
       :class:`BagSource`; it carries ADC codes, so a format or a scale is an error, and a rate
       must agree with the bag's;
+    * a scenario file (``.yaml``): :class:`SimulatorSource`, the live simulator; it makes ADC
+      codes at the scenario's rate, so a format, a scale or another rate is an error;
     * a SigMF recording (``.sigmf-meta``, ``.sigmf-data``, ``.sigmf`` archive):
       :class:`SigmfSource`; a format or a rate given must agree with its metadata;
     * anything else: a raw file, :class:`RawFileSource`, in the format given or named by its
@@ -47,6 +50,14 @@ def open_source(
         return bag
     if os.path.isdir(name):
         raise ValueError(f"{name}: a directory, but not a rosbag2 bag (no metadata.yaml)")
+    if is_scenario_path(name):
+        if sample_format is not None or scale is not None:
+            raise ValueError(f"{name}: a scenario is simulated into ADC codes; a sample format or a scale does not apply")
+        simulated = SimulatorSource(name)
+        if sample_rate is not None and not _same_rate(sample_rate, simulated.frontend.adc_rate_hz):
+            raise ValueError(f"{name}: sample rate {sample_rate:g} Hz given, but the scenario's front end samples "
+                             f"at {simulated.frontend.adc_rate_hz:g} Hz")
+        return simulated
     if is_sigmf_path(name):
         sigmf = SigmfSource(name, scale=scale)
         if sample_format is not None and SampleFormat.parse(sample_format) is not sigmf.sample_format:
