@@ -4,7 +4,9 @@ matrix).
 
 Outcome class here: a clear one-line error naming the cause, exit status 2 (argparse's own
 usage errors are 2 as well), no traceback, and nothing written; an interrupt (Ctrl-C, SIGTERM)
-exits with 130 within a second, leaves no partial bag and no worker process behind.
+exits with 130 within a second, leaves no partial bag and no worker process behind. Replay adds
+one class: a damaged input (cut short, a corrupt chunk) is replayed up to the damage into a valid
+bag, the damage named, exit status 1; stage events (gaps, resets) are counted per kind.
 """
 
 from __future__ import annotations
@@ -217,3 +219,121 @@ def test_info_says_where_metadata_yaml_disagrees_with_the_file(tmp_path, capsys)
     out = capsys.readouterr().out
     assert "630 messages" in out and "9999" in out and "the file's value is used" in out
     assert "integrity: CRCs on all" in out
+
+
+# -- replay: refused at the door, or replayed as far as the input allows ------------------------
+
+
+def campus_bag(out: Path, n_chunks: int, *, drop: range = range(0)) -> Path:
+    """The first ``n_chunks`` envelope messages of the campus bag (less those whose index is in
+    ``drop``) and the truth up to them, with the campus provenance (its front end)."""
+    from deepsync.bag import ENVELOPE_TOPIC, TRUTH_POSE_TOPIC, BagReader, BagWriter
+
+    with BagReader(BAG) as reader, BagWriter(out, provenance=reader.provenance) as writer:
+        for k, item in enumerate(reader.messages([ENVELOPE_TOPIC])):
+            if k == n_chunks:
+                break
+            if k not in drop:
+                writer.write(ENVELOPE_TOPIC, item.message)
+            last = item.log_time_ns
+        for item in reader.messages([TRUTH_POSE_TOPIC]):
+            if item.log_time_ns <= last:
+                writer.write(TRUTH_POSE_TOPIC, item.message)
+    return out
+
+
+def replay_args(bag: Path, out: Path, *more: str) -> list[str]:
+    return ["replay", "--in", str(bag), "--out", str(out), "--quiet", *more]
+
+
+def test_replay_refuses_what_it_cannot_start_on_and_writes_nothing(tmp_path, capsys):
+    from deepsync.bag import BagWriter, cell_timing_array_to_msg
+    from deepsync.types import CellTiming, StackArrivals
+
+    out = tmp_path / "out"
+    fails(replay_args(Path("/nonexistent/bag"), out), capsys, "/nonexistent/bag")
+    fails(replay_args(BAG, out, "--towers", "/nonexistent/towers.yaml"), capsys, "file not found")
+    fails(replay_args(BAG, out, "--stages", "fusion,sync"), capsys, "contiguous part of the chain")
+    wrong = tmp_path / "wrong"
+    arrivals = StackArrivals(10**18, 0, 1.92e6, (CellTiming(56, 10.0, 0.1, 0.0, "ml"),))
+    with BagWriter(wrong) as bag:
+        bag.write("/deepsync/envelope", cell_timing_array_to_msg(arrivals))
+    fails(replay_args(wrong, out), capsys, "/deepsync/envelope carries deepsync_msgs/msg/CellTimingArray, but the "
+                                           "sync stage reads deepsync_msgs/msg/EnvelopeSamples there")
+    fails(replay_args(wrong, out, "--stages", "fusion"), capsys, "no /deepsync/cell_timing")
+    timing = tmp_path / "timing"
+    with BagWriter(timing) as bag:
+        bag.write("/deepsync/cell_timing", cell_timing_array_to_msg(arrivals))
+    fails(replay_args(timing, out, "--stages", "fusion"), capsys, "fusion alone, but no tower database")
+    assert not out.exists()
+
+
+def test_replay_of_a_bag_with_a_corrupt_chunk_keeps_what_came_before_it(tmp_path, capsys):
+    """The bag opens (its summary is intact); the reading meets the corrupt chunk halfway: what
+    came before is replayed into a valid bag, the damage named, exit status 1."""
+    from deepsync.bag import CELL_TIMING_TOPIC, BagReader
+
+    from test_bad_input_bags import chunk_indexes, compressed_span, copy_bag, flip, mcap_of
+
+    bag = copy_bag(BAG, tmp_path / "corrupt")
+    chunks = chunk_indexes(mcap_of(bag))
+    start, end = compressed_span(chunks[len(chunks) // 2])
+    flip(mcap_of(bag), (start + end) // 2)
+    out = tmp_path / "out"
+    assert main(replay_args(bag, out, "--towers", str(TOWERS))) == 1
+    captured = capsys.readouterr()
+    assert "the input is damaged" in captured.err and str(mcap_of(bag)) in captured.err
+    with BagReader(out) as reader:
+        assert reader.verify().complete
+        assert 3 <= reader.message_counts[CELL_TIMING_TOPIC] < 30
+
+
+def test_replay_without_a_tower_database_searches_blind_and_skips_fusion(tmp_path, capsys):
+    from deepsync.bag import BagReader, sync_window_array_from_msg
+
+    bag = campus_bag(tmp_path / "short", 40)
+    out = tmp_path / "out"
+    assert main(replay_args(bag, out)) == 0
+    printed = capsys.readouterr().out
+    assert "fusion skipped: no tower database" in printed and "runs blind" in printed
+    with BagReader(out) as reader:
+        assert "/deepsync/pose" not in reader.topics and reader.message_counts["/deepsync/cell_timing"] == 4
+        found = {w.pci for m in reader.messages(["/deepsync/sync_windows"])
+                 for w in sync_window_array_from_msg(m.message).windows}
+    assert 56 in found and found <= {56, 120, 121, 301}  # the campus cells, found without their list
+
+
+def test_replay_with_a_database_that_lists_none_of_the_heard_cells_says_so(tmp_path, capsys):
+    bag = campus_bag(tmp_path / "short", 40)
+    foreign = tmp_path / "foreign.yaml"
+    text = TOWERS.read_text()
+    for pci in ("120", "121", "122", "301", "302", "300", "56", "57"):
+        text = text.replace(f"pci: {pci},", f"pci: {int(pci) + 100},")
+    foreign.write_text(text)
+    assert main(replay_args(bag, tmp_path / "out", "--towers", str(foreign))) == 0
+    assert "no cell of tower database 'campus' was found in 4 stacks" in capsys.readouterr().out
+
+
+def test_replay_fusion_names_the_heard_cells_the_database_cannot_place(tmp_path, capsys):
+    """Fusion alone from a CellTimingArray bag (the truth's, here) with a database that lacks PCI 301."""
+    from deepsync.bag import TRUTH_CELL_TIMING_TOPIC, BagReader, BagWriter
+
+    bag = tmp_path / "timing"
+    with BagReader(BAG) as reader, BagWriter(bag) as writer:
+        for k, item in enumerate(reader.messages([TRUTH_CELL_TIMING_TOPIC])):
+            if k % 10 == 0:
+                writer.write("/deepsync/cell_timing", item.message)
+    lacking = tmp_path / "lacking.yaml"
+    lacking.write_text(TOWERS.read_text().replace("{pci: 301, earfcn: 2000}", "{pci: 309, earfcn: 2000}"))
+    assert main(replay_args(bag, tmp_path / "out", "--towers", str(lacking), "--stages", "fusion")) == 0
+    printed = capsys.readouterr().out
+    assert "heard but not in tower database 'campus', so left out of the fixes: PCI 301" in printed
+    assert "unanchored 30" in printed  # the fusion stage's health, counted per kind
+
+
+def test_replay_counts_the_stream_events_per_kind(tmp_path, capsys):
+    """A gap in the envelope (5 chunks lost) is the sync stage's to report: replay prints the count."""
+    bag = campus_bag(tmp_path / "gappy", 60, drop=range(30, 35))
+    assert main(replay_args(bag, tmp_path / "out", "--towers", str(TOWERS))) == 0
+    health = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  health")]
+    assert health and "gap 1" in health[0]

@@ -104,6 +104,7 @@ print(json.dumps({
     "build_type": pkg.get_build_type(),
     "groups": [g.name for g in pkg.member_of_groups],
     "exec_depends": [d.name for d in pkg.exec_depends],
+    "test_depends": [d.name for d in pkg.test_depends],
     "warnings": warnings,
 }))
 """
@@ -136,6 +137,24 @@ def test_msgs_package_is_an_interface_package() -> None:
 def test_ros_package_depends_on_core_and_msgs() -> None:
     info = catkin_parse(REPO / "src" / "deepsync_ros")
     assert {"rclpy", "deepsync", "deepsync_msgs"} <= set(info["exec_depends"])
+
+
+@needs_catkin
+def test_ros_package_declares_what_nodes_and_launch_use() -> None:
+    """Messages, diagnostic_updater, /clock, parameter descriptors, the launch file, its test."""
+    info = catkin_parse(REPO / "src" / "deepsync_ros")
+    assert {"std_msgs", "geometry_msgs", "sensor_msgs", "diagnostic_msgs", "diagnostic_updater",
+            "rosgraph_msgs", "rcl_interfaces", "launch", "launch_ros", "ament_index_python"} <= set(info["exec_depends"])
+    assert {"launch_testing", "launch_testing_ros", "python3-pytest"} <= set(info["test_depends"])
+
+
+@needs_catkin
+def test_core_python_dependencies_are_rosdep_keys() -> None:
+    """The core's dependencies that have rosdep keys (ros/rosdistro rosdep/python.yaml) are declared;
+    rosbags, mcap, sigmf and threadpoolctl have none and come from pip (docs/ros.md)."""
+    info = catkin_parse(REPO / "src" / "deepsync")
+    assert {"python3-numpy", "python3-scipy", "python3-yaml", "python3-pyproj", "python3-tqdm",
+            "python3-matplotlib"} <= set(info["exec_depends"])
 
 
 @pytest.mark.parametrize("name", PYTHON_PACKAGES)

@@ -30,8 +30,8 @@ from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS
 
 REPO = Path(__file__).resolve().parents[3]
-DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus.yaml"
-DEMO_BAG = REPO / "bags" / "campus"
+DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus_route.yaml"
+DEMO_BAG = REPO / "bags" / "campus_route"
 DEMO_TOWERS = REPO / "config" / "towers" / "campus.yaml"
 MAX_WORKERS = 64
 
@@ -190,34 +190,95 @@ def _cmd_detect(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    print(f"== the bundled recording {DEMO_BAG.relative_to(REPO)}")
-    describe_bag(DEMO_BAG)
-    print("\n== cell search and classical sub-sample timing")
-    source = BagSource(DEMO_BAG)
-    truth = source.truth_arrivals()
-    stacks = run_cell_search(source, DEMO_TOWERS, 10, truth, verbose=args.verbose)
-    summary = summarize(stacks, truth)
-    _print_summary(summary)
-    out.mkdir(parents=True, exist_ok=True)
-    report = out / "cell_search.json"
-    report.write_text(json.dumps({"bag": str(DEMO_BAG.relative_to(REPO)), "summary": summary, "stacks": stacks},
-                                 indent=1))
-    print(f"  per-stack results in {report}")
-    from deepsync.eval.route import evaluate_route
+    from deepsync.eval.route import method_summary, read_truth_track, score_stacks, summarize_route, write_route_report
+    from deepsync.fusion.anchors import Anchors
+    from deepsync.replay import replay_bag
 
-    print("\n== TDOA fusion: snapshot and tracked positions against the truth")
-    route, paths = evaluate_route(source, load_tower_database(DEMO_TOWERS), out, progress=False)
-    _print_route(route)
-    print("  written: " + ", ".join(str(p) for p in paths))
+    out = Path(args.out)
+    bag = DEMO_BAG
     if args.simulate:
         from deepsync.recording import record_scenario
 
         bag = out / "recording"
-        print(f"\n== simulating {args.simulate:g} s of {DEMO_SCENARIO.relative_to(REPO)} into {bag}")
+        print(f"== simulating {args.simulate:g} s of {_shown(DEMO_SCENARIO)} into {bag}")
         _print_recording(record_scenario(DEMO_SCENARIO, args.simulate, bag, workers=args.workers, overwrite=True,
                                          progress=not args.quiet))
+    towers = load_tower_database(DEMO_TOWERS)
+    truth = read_truth_track(bag)
+    true_arrivals = BagSource(bag).truth_arrivals()
+    print(f"== {_shown(bag)} through sync, timing and fusion (tower database {_shown(DEMO_TOWERS)})")
+    fused = []
+
+    def keep(timed, pipeline: Pipeline) -> None:
+        fused.append((timed.arrivals, timed.fusion, pipeline.fusion.reference_ns))
+
+    replayed = replay_bag(bag, out / "replay", towers, overwrite=True, progress=not args.quiet, say=_say,
+                          on_stack=keep)
+    if not fused:
+        raise ValueError(f"no stack of {bag} was completed: nothing to show")
+    run = score_stacks(str(bag), fused, truth, true_arrivals, interrupted=replayed.damage is not None)
+    summary = summarize_route(run)
+    paths = write_route_report(run, summary, Anchors(towers), out)
+    shown = method_summary([fusion.published for _, fusion, _ in fused], [epoch.truth_enu for epoch in run.epochs])
+    if args.verbose:
+        for epoch in run.epochs:
+            print(f"  {(epoch.stamp_ns - run.epochs[0].stamp_ns) * 1e-9:5.2f} s  {epoch.cells} cells  sites "
+                  f"{','.join(site.site for site in epoch.sites) or '-':6s}  "
+                  + "  ".join(f"{name} {_answer(answer, epoch.truth_enu)}" for name, answer in
+                              (("tracked", epoch.tracked), ("snapshot", epoch.snapshot))))
+    pcis = sorted({cell.pci for arrivals, _, _ in fused for cell in arrivals.cells})
+    heard = summary["sites_heard_per_stack"]
+    walked = float(np.sum(np.linalg.norm(np.diff(truth.positions[:, :2], axis=0), axis=1)))
+    print(f"\n  recording   {replayed.signal_seconds:.1f} s of ADC stream, {walked:.1f} m walked (ground truth included)")
+    print(f"  heard       {len(pcis)} cells (PCI {', '.join(map(str, pcis))}) on {len(summary['sites_heard'])} sites "
+          f"({', '.join(summary['sites_heard'])}); sites per stack: "
+          + ", ".join(f"{k}: {n}" for k, n in heard.items()))
+    print(f"  {'':11s} {'fix rate':>8s} {'median':>7s} {'p90':>7s}   horizontal error against the truth, m")
+    rows = [("published", shown), ("tracked", summary["methods"]["tracked"]),
+            ("snapshot", summary["methods"]["snapshot"])]
+    for name, method in rows:
+        print(f"  {name:11s} {method['fix_rate']:8.0%} {_metres(method['median_m'])} {_metres(method['p90_m'])}")
+    bound = summary["position_bound"]
+    print(f"  {'bound':11s} {'':8s} {_metres(bound['median_m'])} {_metres(bound['p90_m'])}   "
+          "(position Cramer-Rao bound, stacks with >= 3 sites)")
+    print(f"  speed       {replayed.signal_seconds:.1f} s of signal in {replayed.wall_seconds:.1f} s: "
+          f"{replayed.realtime_factor:.1f}x real time (one process: read, sync, timing, fusion, write)")
+    _print_health(replayed.health)
+    print(f"  written     {replayed.out} (MCAP: {', '.join(f'{t} {n}' for t, n in replayed.written.items())}; "
+          "opens in Foxglove, plays with ros2 bag play)")
+    print("              " + ", ".join(str(p) for p in paths))
+    if replayed.damage:
+        print(f"  the recording is damaged: {replayed.damage}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _shown(path: Path) -> str:
+    """A path inside the repository relative to it, others as given."""
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+
+
+def _answer(answer, truth_enu: np.ndarray) -> str:
+    from deepsync.eval.route import horizontal_error
+    from deepsync.types import Fix
+
+    if isinstance(answer, Fix):
+        return f"{horizontal_error(answer, truth_enu):6.1f} m"
+    return "no fix" if answer is None else f"no fix ({answer.reason.value})"
+
+
+def _say(text: str) -> None:
+    from tqdm import tqdm
+
+    tqdm.write(f"  note: {text}")
+
+
+def _print_health(health: dict[str, int]) -> None:
+    if health:
+        print("  health      " + ", ".join(f"{kind} {n}" for kind, n in health.items())
+              + "  (stream and stage events, see README: What happens when input is bad)")
+    else:
+        print("  health      no stage reported a problem")
 
 
 def _pipeline_config(frames: int) -> PipelineConfig:
@@ -261,14 +322,22 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from deepsync.replay import replay_bag
+    from deepsync.replay import parse_stages, replay_bag
 
-    source = BagSource(args.bag)
-    print(f"replay of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
-    summary = replay_bag(source, load_tower_database(args.towers), args.out, _pipeline_config(args.frames),
-                         overwrite=args.overwrite, progress=not args.quiet)
-    print(f"  {summary.stacks} stacks: {summary.stacks} CellTimingArray, {summary.poses} PoseWithCovarianceStamped "
-          f"and NavSatFix, {summary.truth_poses} ground-truth poses written to {summary.out}")
+    stages = parse_stages(args.stages)
+    towers = None if args.towers is None else load_tower_database(args.towers)
+    print(f"replay of {args.bag} through {', '.join(stages)}; "
+          + (f"tower database {args.towers}" if towers else "no tower database") + f", {args.frames}-frame stacks")
+    summary = replay_bag(args.bag, args.out, towers, _pipeline_config(args.frames), stages=stages,
+                         copy_inputs=args.copy_inputs, overwrite=args.overwrite, progress=not args.quiet, say=_say)
+    print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
+          f"{summary.wall_seconds:.1f} s ({summary.realtime_factor:.1f}x real time)")
+    print(f"  written to {summary.out}: " + (", ".join(f"{t} {n}" for t, n in summary.written.items()) or "nothing"))
+    _print_health(summary.health)
+    if summary.damage:
+        print(f"deepsync replay: the input is damaged, replayed up to the damage: {summary.damage}; "
+              f"{summary.out} holds everything produced before it", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -302,10 +371,11 @@ def _print_route(summary: dict) -> None:
         print(f"    site {site}: {row['stacks']} stacks, {text}; claimed sigma {row['median_claimed_std_samples']:.2f}")
 
 
-def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_help: str) -> None:
+def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_help: str, *,
+                      bag_options: Sequence[str] = ("--bag",), towers_required: bool = True) -> None:
     """What every command that replays a bag through the whole chain takes."""
-    command.add_argument("--bag", required=True, help=bag_help)
-    command.add_argument("--towers", required=True, help=towers_help)
+    command.add_argument(*bag_options, dest="bag", required=True, help=bag_help)
+    command.add_argument("--towers", required=towers_required, help=towers_help)
     command.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -347,10 +417,17 @@ def build_parser() -> argparse.ArgumentParser:
     route.add_argument("--out", default=str(REPO / "out" / "route"), help="where route.json and the PNGs go")
     route.set_defaults(run=_cmd_evaluate_route)
 
-    replay = commands.add_parser("replay", help="run the chain over a bag and write what the nodes publish "
-                                 "(cell timing, pose with covariance, NavSatFix) into a new bag")
-    _replay_arguments(replay, "bag with /deepsync/envelope", "tower database YAML with origin, positions and timing")
+    replay = commands.add_parser("replay", help="run the chain's stages over a bag and write what the nodes publish "
+                                 "(sync windows, cell timing, pose with covariance, NavSatFix) into a new bag")
+    _replay_arguments(replay, "bag (directory or .mcap) with the first stage's input topic (--bag: the old spelling)",
+                      "tower database YAML (origin, positions and timing for fusion); without it the cell search "
+                      "runs blind and fusion is skipped", bag_options=("--in", "--bag"), towers_required=False)
     replay.add_argument("--out", required=True, help="bag directory to create")
+    replay.add_argument("--stages", default="sync,timing,fusion",
+                        help="a contiguous part of sync,timing,fusion (default all); timing starts from "
+                             "/deepsync/sync_windows, fusion from /deepsync/cell_timing")
+    replay.add_argument("--copy-inputs", action="store_true",
+                        help="also copy every input topic (the envelope too); the truth is always copied")
     replay.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     replay.set_defaults(run=_cmd_replay)
 
@@ -365,11 +442,12 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--bag", required=True)
     info.set_defaults(run=_cmd_info)
 
-    demo = commands.add_parser("demo", help="the main job on the bundled data (no ROS needed)")
-    demo.add_argument("--out", default=str(REPO / "out" / "demo_campus"), help="where the demo writes")
-    demo.add_argument("--verbose", action="store_true", help="print every stack's cells")
+    demo = commands.add_parser("demo", help="the main job on the bundled walk (no ROS needed): replay it through "
+                               "every stage into an MCAP bag, a route map, an error CDF and a table")
+    demo.add_argument("--out", default=str(REPO / "out" / "demo"), help="where the demo writes")
+    demo.add_argument("--verbose", action="store_true", help="print every stack: cells, sites, fix errors")
     demo.add_argument("--simulate", type=_positive_float, metavar="SECONDS",
-                      help="also simulate a fresh recording of the demo scenario this long")
+                      help="simulate a fresh recording of the demo's scenario this long and use it instead")
     demo.add_argument("--workers", type=_workers, default=workers)
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(run=_cmd_demo)

@@ -10,6 +10,13 @@ Each completed stack gives one :class:`StackResult`: the sync stage's cells, eve
 the timing stage's arrivals and, with a tower database that places its sites (an ``origin``,
 positions, timing offsets), fusion's fixes. Nothing in the chain raises on a bad stream; what
 went wrong is in :attr:`StackResult.health`.
+
+The chain can also be entered later, where a bag or a node hands over a stage's output instead
+of ADC chunks: :meth:`Pipeline.time_stack` takes a stack's cells (``SyncWindowArray``) through
+timing and fusion, :meth:`Pipeline.fuse_arrivals` a stack's arrivals (``CellTimingArray``)
+through fusion. :meth:`Pipeline.process` runs through the very same two methods, so a replay that
+starts at timing or fusion makes what the whole chain makes. Without a front end there is no
+sync or timing stage (fusion needs none).
 """
 
 from __future__ import annotations
@@ -22,7 +29,7 @@ from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
 from deepsync.sync.stage import SyncConfig, SyncResult, SyncStage
 from deepsync.timing.stage import TimingConfig, TimingResult, TimingStage
 from deepsync.towers import TowerDatabase
-from deepsync.types import EnvelopeChunk, Health, StackArrivals
+from deepsync.types import EnvelopeChunk, Health, StackArrivals, StackWindows
 
 
 @dataclass(frozen=True)
@@ -40,13 +47,47 @@ class PipelineConfig:
 
 
 @dataclass(frozen=True)
-class StackResult:
-    """What the chain made of one stack of frames."""
+class TimedStack:
+    """What timing and fusion made of one stack's cells (:meth:`Pipeline.time_stack`)."""
 
-    sync: SyncResult
+    windows: StackWindows
     timing: TimingResult
     arrivals: StackArrivals
     fusion: FusionResult | None = None  # None without a tower database that places its sites
+
+    @property
+    def stamp_ns(self) -> int:
+        """Receiver time of the stack's first sample."""
+        return self.windows.stamp_ns
+
+    @property
+    def health(self) -> tuple[Health, ...]:
+        """Cells that could not be timed, weak arrivals and cells fusion could not place."""
+        weak = tuple(flag for cell in self.timing.cells for flag in cell.flags)
+        fusion = () if self.fusion is None else self.fusion.events
+        return self.timing.events + weak + fusion
+
+
+@dataclass(frozen=True)
+class StackResult:
+    """What the chain made of one stack of frames: the sync stage's result and what timing and
+    fusion made of its cells."""
+
+    sync: SyncResult
+    timed: TimedStack
+
+    @property
+    def timing(self) -> TimingResult:
+        return self.timed.timing
+
+    @property
+    def arrivals(self) -> StackArrivals:
+        return self.timed.arrivals
+
+    @property
+    def fusion(self) -> FusionResult | None:
+        """None without a tower database that places its sites."""
+        return self.timed.fusion
 
     @property
     def stamp_ns(self) -> int:
@@ -56,31 +97,51 @@ class StackResult:
     @property
     def health(self) -> tuple[Health, ...]:
         """Everything the stages reported on this stack: stream events since the previous
-        stack, the stack's flags, cells that could not be timed and weak arrivals."""
-        weak = tuple(flag for cell in self.timing.cells for flag in cell.flags)
-        fusion = () if self.fusion is None else self.fusion.events
-        return self.sync.events + self.sync.flags + self.timing.events + weak + fusion
+        stack, the stack's flags, cells that could not be timed, weak arrivals and cells fusion
+        could not place."""
+        return self.sync.events + self.sync.flags + self.timed.health
 
 
 class Pipeline:
-    """Sync, timing and fusion stages for one front end (and one tower database, if any)."""
+    """Sync, timing and fusion stages for one front end (and one tower database, if any).
 
-    def __init__(self, frontend: FrontendConfig, config: PipelineConfig | None = None,
+    ``frontend`` None builds no sync or timing stage: a pipeline that only fuses arrivals (a
+    bag of ``CellTimingArray``) needs no templates and so no front end.
+    """
+
+    def __init__(self, frontend: FrontendConfig | None, config: PipelineConfig | None = None,
                  towers: TowerDatabase | None = None) -> None:
         self.config = config or PipelineConfig()
         self.frontend = frontend
-        self.sync = SyncStage(frontend, self.config.sync, towers)
-        self.timing = TimingStage(frontend, self.config.timing)
+        self.sync = None if frontend is None else SyncStage(frontend, self.config.sync, towers)
+        self.timing = None if frontend is None else TimingStage(frontend, self.config.timing)
         self.fusion = FusionStage(towers, self.config.fusion) if places_sites(towers) else None
 
     def process(self, chunk: EnvelopeChunk) -> list[StackResult]:
         """Feed one chunk; a result for every stack it completes."""
-        return [self._fuse(result, self.timing.process(result.windows)) for result in self.sync.process(chunk)]
+        if self.sync is None:
+            raise ValueError("this pipeline has no front end, so no sync stage: it cannot take ADC chunks")
+        return [StackResult(sync, self.time_stack(sync.stack_windows)) for sync in self.sync.process(chunk)]
 
-    def _fuse(self, sync: SyncResult, timing: TimingResult) -> StackResult:
-        arrivals = sync.stack_windows.arrivals(timing.cells)
-        fusion = None if self.fusion is None else self.fusion.process(arrivals)
-        return StackResult(sync, timing, arrivals, fusion)
+    def time_stack(self, windows: StackWindows) -> TimedStack:
+        """One stack's cells (what the sync stage, or a ``SyncWindowArray``, gives) through timing
+        and fusion."""
+        if self.timing is None:
+            raise ValueError("this pipeline has no front end, so no timing stage: it cannot time windows")
+        timing = self.timing.process(windows.windows)
+        arrivals = windows.arrivals(timing.cells)
+        return TimedStack(windows, timing, arrivals, self.fuse_arrivals(arrivals))
+
+    def fuse_arrivals(self, arrivals: StackArrivals) -> FusionResult | None:
+        """One stack's arrivals (the timing stage's, or a ``CellTimingArray``'s) through fusion;
+        None without a tower database that places its sites."""
+        return None if self.fusion is None else self.fusion.process(arrivals)
+
+    def pending_events(self) -> tuple[Health, ...]:
+        """Stream events the sync stage has seen since its last completed stack: they travel
+        with the next stack, so at the end of a stream (a gap or a reset in its last frames)
+        this is the only place they are."""
+        return () if self.sync is None else tuple(self.sync.stacker.events)
 
     def run(self, chunks: Iterable[EnvelopeChunk]) -> Iterator[StackResult]:
         """Results stack by stack as the chunks (a source's ``chunks()``, a bag) stream in."""

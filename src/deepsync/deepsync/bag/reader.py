@@ -15,6 +15,10 @@ single ``.mcap`` file is one of them, not an error.
 CRCs (see :mod:`deepsync.bag.mcapfile`): the summary CRC is checked when a bag is opened, each
 chunk's CRC when the chunk is read, and :meth:`BagReader.verify` checks everything. A CRC of 0
 means "not computed" (other writers, DeepSync bags written before the CRCs) and passes.
+
+:class:`SalvageReader` is the exception to refusing: it reads a damaged bag (cut short, a
+corrupt chunk or summary) from its start up to the damage, for bag replay, which processes what
+was recorded before the damage and says where it stopped.
 """
 
 from __future__ import annotations
@@ -27,6 +31,9 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import yaml
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.serde import SerdeError
@@ -433,12 +440,7 @@ class BagReader:
     @staticmethod
     def _embedded_fields(conn: Any) -> Any:
         """Field layout of ``conn``'s type as recorded in the bag, or None if unreadable."""
-        text = getattr(conn.msgdef, "data", "") or ""
-        try:
-            own = text.split("=" * 80)[0]  # the type itself precedes its dependencies
-            return get_types_from_msg(own, conn.msgtype).get(conn.msgtype)
-        except _READ_ERRORS:
-            return None
+        return _embedded_fields(getattr(conn.msgdef, "data", "") or "", conn.msgtype)
 
     def close(self) -> None:
         """Close the bag (idempotent)."""
@@ -600,6 +602,128 @@ class BagReader:
                         f"cannot decode the {conn.msgtype} message on {conn.topic} at {log_time_ns} ns", error
                     ) from error
                 yield BagMessage(conn.topic, conn.msgtype, log_time_ns, message)
+
+
+def _embedded_fields(text: str, msgtype: str) -> Any:
+    """Field layout of ``msgtype`` from a definition embedded in a bag, or None if unreadable."""
+    try:
+        own = text.split("=" * 80)[0]  # the type itself precedes its dependencies
+        return get_types_from_msg(own, msgtype).get(msgtype)
+    except _READ_ERRORS:
+        return None
+
+
+class SalvageReader:
+    """What can still be read of a damaged MCAP bag, for replay: its records in file order, from
+    the start up to the damage (a file cut short, a chunk whose CRC or compression fails, junk
+    where a record should be). Summary, index and footer are not needed, so a bag that
+    :class:`BagReader` refuses at the door (truncated, corrupt summary) still gives the chunks
+    written before the damage.
+
+    ``bag_dir`` is a bag directory holding one ``.mcap`` file, or the file. :attr:`topics` and
+    :attr:`custom_data` are what the readable part says (custom data from ``metadata.yaml``
+    when it is usable: the copy inside the ``.mcap`` sits at its end, lost when it is cut).
+    :meth:`messages` stops at the damage instead of raising, and :attr:`damage` then says where
+    and why. Messages come in file order, which for a bag recorded live is log-time order.
+    """
+
+    def __init__(self, bag_dir: str | Path, *, store: Typestore | None = None) -> None:
+        self.path = Path(bag_dir)
+        self._store = store
+        self.file = self._locate()
+        self.custom_data: dict[str, str] = {}
+        meta = self.path / "metadata.yaml"
+        if self.path.is_dir() and meta.is_file():
+            info, _ = _load_metadata(meta)
+            if info is not None:
+                custom = info["rosbag2_bagfile_information"].get("custom_data") or {}
+                self.custom_data = {str(k): str(v) for k, v in custom.items()}
+        self.damage: str | None = None
+        self._types: dict[int, str] = {}  # schema id -> message type
+        self._definitions: dict[str, str] = {}  # message type -> definition embedded in the bag
+        self.topics: dict[str, str] = {}
+        """Topic name -> message type, of the channels in the readable part of the file."""
+        for record in self._records():
+            if isinstance(record, Channel) and record.topic not in self.topics:
+                self.topics[record.topic] = self._types.get(record.schema_id, "")
+        self.damage = None  # found again, in order, by messages()
+        self._check_definitions()
+
+    @property
+    def store(self) -> Typestore:
+        return typestore() if self._store is None else self._store
+
+    @property
+    def provenance(self) -> str | None:
+        return self.custom_data.get(PROVENANCE_KEY)
+
+    def _locate(self) -> Path:
+        p = self.path
+        if p.is_file() and p.suffix.lower() == ".mcap":
+            return p
+        if p.is_dir():
+            mcaps = sorted(x for x in p.iterdir() if x.suffix.lower() == ".mcap" and x.is_file())
+            if len(mcaps) == 1:
+                return mcaps[0]
+            raise BagError(f"{p}: {len(mcaps)} .mcap files; a damaged bag is salvaged from a single one")
+        raise BagError(f"{p}: not an MCAP bag to salvage")
+
+    def _records(self) -> Iterator[Any]:
+        """Records in file order, up to the damage (then :attr:`damage` says what it was); the
+        schemas are noted on the way (their type names and embedded definitions)."""
+        try:
+            f = self.file.open("rb")
+        except OSError as error:
+            raise BagError(f"{self.file}: cannot read: {error}") from error
+        with f:
+            if f.read(len(mcapfile.MAGIC)) != mcapfile.MAGIC:
+                raise BagError(f"{self.file}: does not start with the MCAP magic: nothing to salvage")
+            f.seek(0)
+            reader = StreamReader(f, validate_crcs=True)
+            try:
+                for record in reader.records:
+                    if isinstance(record, Schema):
+                        self._types[record.id] = record.name
+                        self._definitions[record.name] = record.data.decode("utf-8", "replace")
+                    yield record
+            except (McapError, *_READ_ERRORS) as error:
+                # the stream reader's EndOfFile, or a struct.error on a partial record: the file
+                # ends inside a record; anything else is bytes that do not make the record they should
+                cut = isinstance(error, (EndOfFile, struct.error))
+                why = "cut short" if cut else f"damaged ({type(error).__name__}: {error})"
+                self.damage = f"{self.file}: {why} at byte {f.tell()}; read up to the last whole chunk before it"
+
+    def _check_definitions(self) -> None:
+        """As :meth:`BagReader._check_definitions`, from the schemas of the readable part."""
+        store = self.store
+        for topic, msgtype in self.topics.items():
+            if not msgtype.startswith(f"{PACKAGE}/"):
+                continue
+            if msgtype not in store.types:
+                raise BagError(f"{self.file}: {topic}: unknown type {msgtype}")
+            if _embedded_fields(self._definitions.get(msgtype, ""), msgtype) != store.fielddefs[msgtype]:
+                raise BagError(f"{self.file}: {topic}: {msgtype} in the bag differs from the current definition; "
+                               "regenerate the bag or check out matching msgs")
+
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+        """Messages (of ``topics``, all of them if None) in file order, up to the damage."""
+        wanted = None if topics is None else set(topics)
+        store = self.store
+        channels: dict[int, tuple[str, str]] = {}
+        for record in self._records():
+            if isinstance(record, Channel):
+                channels[record.id] = (record.topic, self._types.get(record.schema_id, ""))
+            elif isinstance(record, Message) and record.channel_id in channels:
+                topic, msgtype = channels[record.channel_id]
+                if wanted is not None and topic not in wanted:
+                    continue
+                try:
+                    message = store.deserialize_cdr(record.data, msgtype)
+                except _READ_ERRORS as error:
+                    self.damage = (f"{self.file}: cannot decode the {msgtype} message on {topic} at "
+                                   f"{record.log_time} ns: {error}")
+                    return
+                yield BagMessage(topic, msgtype, record.log_time, message)
 
 
 def read_messages(bag_dir: str | Path, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:

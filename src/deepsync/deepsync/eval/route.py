@@ -141,9 +141,19 @@ def replay(source: BagSource, towers: TowerDatabase, config: PipelineConfig | No
 def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None) -> RouteRun:
     """Fusion over a replay's arrivals with ``towers``, every stack paired with the truth."""
     stage = FusionStage(towers, config)
-    epochs = [_epoch(arrivals, stage.process(arrivals), stage.reference_ns, recorded)
-              for arrivals in recorded.arrivals]
-    return RouteRun(str(recorded.source.path), epochs, stage.reference_ns, recorded.interrupted)
+    fused = []
+    for arrivals in recorded.arrivals:
+        fusion = stage.process(arrivals)
+        fused.append((arrivals, fusion, stage.reference_ns))
+    return score_stacks(str(recorded.source.path), fused, recorded.truth, recorded.true_arrivals, recorded.interrupted)
+
+
+def score_stacks(bag: str, fused: Sequence[tuple[StackArrivals, FusionResult, int]], truth: TruthTrack,
+                 true_arrivals: dict[int, np.ndarray], interrupted: bool = False) -> RouteRun:
+    """Every stack's arrivals and fusion result, with the fusion stage's time origin after it
+    (``FusionStage.reference_ns``), paired with the truth: what fusion did along a route."""
+    epochs = [_epoch(arrivals, fusion, reference_ns, truth, true_arrivals) for arrivals, fusion, reference_ns in fused]
+    return RouteRun(bag, epochs, fused[-1][2] if fused else None, interrupted)
 
 
 def replay_route(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
@@ -153,14 +163,15 @@ def replay_route(source: BagSource, towers: TowerDatabase, config: PipelineConfi
     return fuse_route(replay(source, towers, config, progress), towers, config.fusion)
 
 
-def _epoch(arrivals: StackArrivals, fusion: FusionResult, reference_ns: int, recorded: Replay) -> RouteEpoch:
-    site_truth = {site.site: recorded.truth.at(reference_ns + site.time_s * 1e9) for site in fusion.sites}
+def _epoch(arrivals: StackArrivals, fusion: FusionResult, reference_ns: int, truth: TruthTrack,
+           true_arrivals: dict[int, np.ndarray]) -> RouteEpoch:
+    site_truth = {site.site: truth.at(reference_ns + site.time_s * 1e9) for site in fusion.sites}
     cells = {cell.pci: cell for cell in arrivals.cells}
     errors = {}
     for site in fusion.sites:
         cell = min((cells[pci] for pci in site.pcis), key=lambda c: c.toa_std)
-        errors[site.site] = (timing_error(cell.toa, recorded.true_arrivals.get(cell.pci, np.empty(0))), cell.toa_std)
-    here = recorded.truth.at(arrivals.stamp_ns)
+        errors[site.site] = (timing_error(cell.toa, true_arrivals.get(cell.pci, np.empty(0))), cell.toa_std)
+    here = truth.at(arrivals.stamp_ns)
     return RouteEpoch(arrivals.stamp_ns, here, len(arrivals.cells), fusion.sites, fusion.snapshot,
                       fusion.tracked, _bound(arrivals, fusion.sites, here), site_truth, errors)
 

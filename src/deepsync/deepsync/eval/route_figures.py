@@ -66,6 +66,7 @@ def plot_map(run: RouteRun, anchors: Anchors, path: Path) -> None:
                              vmax=np.percentile(errors, 95), label="tracked fixes")
         fig.colorbar(scatter, ax=ax, shrink=0.7, label="horizontal error (m)")
     ax.set_aspect("equal")
+    _zoom_on_route(ax, truth, points if fixes else np.empty((0, 2)))
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     ax.set_title("Route, sites (red: heard) and tracked fixes")
@@ -73,6 +74,31 @@ def plot_map(run: RouteRun, anchors: Anchors, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _zoom_on_route(ax: plt.Axes, truth: np.ndarray, fixes: np.ndarray) -> None:
+    """An inset on the route and its fixes when the sites, kilometres apart, shrink them to a dot
+    (a short walk): the fixes' scatter around the truth is what the map is for."""
+    near = np.vstack([truth[:, :2], fixes]) if fixes.size else truth[:, :2]
+    centre = np.median(near, axis=0)
+    near = near[np.linalg.norm(near - centre, axis=1) < 200]  # fixes far off stay on the main map only
+    span = float(np.ptp(near, axis=0).max()) if len(near) else 0.0
+    x0, x1 = ax.get_xlim()
+    if span > 0.1 * (x1 - x0):
+        return
+    half = max(span, 10.0) * 0.6
+    inset = ax.inset_axes((0.58, 0.04, 0.38, 0.38))
+    for line in ax.get_lines()[:1]:  # the true route
+        inset.plot(*line.get_data(), "k-", lw=1.5)
+    for collection in ax.collections:  # the fixes
+        inset.scatter(*collection.get_offsets().T, c=collection.get_array(), s=10, cmap=collection.get_cmap(),
+                      norm=collection.norm)
+    inset.set_xlim(centre[0] - half, centre[0] + half)
+    inset.set_ylim(centre[1] - half, centre[1] + half)
+    inset.set_aspect("equal")
+    inset.tick_params(labelsize=7)
+    inset.set_title(f"zoom: {2 * half:.0f} m across", fontsize=8)
+    ax.indicate_inset_zoom(inset, edgecolor="0.4")
 
 
 def plot_timeline(run: RouteRun, path: Path) -> None:

@@ -65,6 +65,12 @@ class FusionResult:
     sites: tuple[SiteArrival, ...]
     events: tuple[Health, ...] = ()
 
+    @property
+    def published(self) -> Fix | NoFix:
+        """What a node publishes for this stack: the tracker's fix when it has one, else the
+        snapshot's answer (whose :class:`NoFix` says why the stack alone gave none)."""
+        return self.tracked if isinstance(self.tracked, Fix) else self.snapshot
+
 
 class FusionStage:
     """Site ranges, snapshot solver and tracker for one tower database."""

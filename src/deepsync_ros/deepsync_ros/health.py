@@ -1,0 +1,319 @@
+"""What the nodes' diagnostics say, computed without ROS.
+
+Every node feeds one of two accumulators and hands its :class:`Report` (a level, a message for
+people, key/value strings) to a ``diagnostic_updater`` task:
+
+* :class:`StageHealth`, for the nodes that process stacks (``cell_sync``, ``cell_timing``,
+  ``tdoa_fusion``, the pipeline): stacks seen, the cells and sites heard in the last stack and
+  over a window of stacks, the fix rate over that window and why the last stack had no fix,
+  processing latency, the stream's typed :class:`~deepsync.types.Health` events counted by kind
+  (with the last message of each), and input messages that could not be converted;
+* :class:`Playback`, for the nodes that play a source (``envelope_adc``, the pipeline): the
+  recording played on, looped if asked, paced by the chunks' own stamps on a steady clock, and
+  whether the source keeps up with that pace (the live simulator does not on one core).
+
+The level is the worst of what happened *recently* (within the window), so a node that recovers
+from a gap goes back to OK while its counts keep the history.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import statistics
+from collections import Counter, deque
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from typing import NamedTuple
+
+from deepsync.pipeline import StackResult
+from deepsync.sources import Source
+from deepsync.sources.base import stamp_at
+from deepsync.types import EnvelopeChunk, Fix, Health, HealthKind, NoFix, Severity
+
+# 50 stacks of 10 frames are 5 s: long enough for a rate to mean something, short enough to
+# follow a walk into and out of coverage.
+WINDOW_STACKS = 50
+# Steady-clock seconds a paced chunk may be published late before the source counts as not
+# keeping up: far above a timer's jitter (ms), well below what a consumer notices (a stack, 0.1 s,
+# takes several).
+MAX_LAG_S = 0.5
+# Wall-clock span over which the real-time factor is measured.
+RATE_WINDOW_S = 5.0
+
+
+class Report(NamedTuple):
+    """One diagnostic status: its level, a line for people and the details as strings."""
+
+    level: Severity
+    message: str
+    values: list[tuple[str, str]]
+
+
+@dataclass(frozen=True)
+class _Stack:
+    pcis: tuple[int, ...]
+    sites: tuple[str, ...] | None  # None: no fusion behind this node
+    fix: Fix | NoFix | None
+
+
+def _ms(values: Iterable[float]) -> str:
+    return f"{statistics.median(values) * 1e3:.1f}"
+
+
+class StageHealth:
+    """What a stack-processing node reports (see the module docstring)."""
+
+    def __init__(self, window: int = WINDOW_STACKS) -> None:
+        if window < 1:
+            raise ValueError(f"window must be >= 1 stack, got {window!r}")
+        self.window = window
+        self.stacks = 0
+        self.fixes = 0
+        self.rejected = 0
+        self.last_rejection: str | None = None
+        self.last_no_fix: NoFix | None = None
+        self.event_counts: Counter[HealthKind] = Counter()
+        self.last_event: dict[HealthKind, str] = {}
+        self._recent: deque[_Stack] = deque(maxlen=window)
+        # (stack count when it happened, severity, kind, text): recent while the count is within the window
+        self._problems: deque[tuple[int, Severity, str, str]] = deque(maxlen=16 * window)
+        self._latency_s: deque[float] = deque(maxlen=window)
+        self._stage_s: deque[float] = deque(maxlen=window)
+
+    def stack(self, pcis: Iterable[int], *, events: Iterable[Health] = (), sites: Iterable[str] | None = None,
+              fix: Fix | NoFix | None = None, latency_s: float | None = None, stage_s: float | None = None) -> None:
+        """One stack processed: the cells heard in it, what the stages reported, the sites and
+        fix (nodes with fusion), the time from the input's arrival to publishing, and the time
+        the stage itself took (s)."""
+        self.stacks += 1
+        self._recent.append(_Stack(tuple(pcis), None if sites is None else tuple(sites), fix))
+        for event in events:
+            self.event_counts[event.kind] += 1
+            self.last_event[event.kind] = event.message
+            self._problems.append((self.stacks, event.severity, event.kind.value, str(event)))
+        if isinstance(fix, Fix):
+            self.fixes += 1
+        elif isinstance(fix, NoFix):
+            self.last_no_fix = fix
+        if latency_s is not None:
+            self._latency_s.append(latency_s)
+        if stage_s is not None:
+            self._stage_s.append(stage_s)
+
+    def result(self, result: StackResult, *, latency_s: float | None = None, stage_s: float | None = None) -> None:
+        """One stack of the whole chain (the pipeline node)."""
+        fusion = result.fusion
+        self.stack(result.sync.pcis, events=result.health,
+                   sites=None if fusion is None else [site.site for site in fusion.sites],
+                   fix=None if fusion is None else fusion.published, latency_s=latency_s, stage_s=stage_s)
+
+    def reject(self, error: Exception | str) -> None:
+        """An input message that could not be used (it failed conversion to core types)."""
+        self.rejected += 1
+        self.last_rejection = str(error)
+        self._problems.append((self.stacks, Severity.WARN, "rejected", f"input rejected: {error}"))
+
+    def _recent_problems(self) -> list[tuple[Severity, str]]:
+        """The latest problem of each kind within the window."""
+        latest: dict[str, tuple[Severity, str]] = {}
+        for count, severity, label, text in reversed(self._problems):
+            if count <= self.stacks - self.window:
+                break
+            latest.setdefault(label, (severity, text))
+        return list(latest.values())
+
+    def report(self) -> Report:
+        values = [("stacks", str(self.stacks))]
+        problems = self._recent_problems()
+        recent = list(self._recent)
+        summary = []
+        if not recent:
+            problems.append((Severity.WARN, "no stack yet: waiting for input"))
+        else:
+            heard = sorted({pci for stack in recent for pci in stack.pcis})
+            values += [("cells heard (last stack)", " ".join(map(str, recent[-1].pcis)) or "none"),
+                       (f"cells heard (last {len(recent)} stacks)", " ".join(map(str, heard)) or "none")]
+            summary.append(f"{len(recent[-1].pcis)} cells")
+            if not heard:
+                problems.append((Severity.WARN, f"no cell heard in the last {len(recent)} stacks"))
+            with_sites = [stack for stack in recent if stack.sites is not None]
+            if with_sites:
+                sites = sorted({site for stack in with_sites for site in stack.sites})
+                values += [("sites heard (last stack)", " ".join(with_sites[-1].sites) or "none"),
+                           (f"sites heard (last {len(with_sites)} stacks)", " ".join(sites) or "none")]
+                summary.append(f"{len(with_sites[-1].sites)} sites")
+            decided = [stack.fix for stack in recent if stack.fix is not None]
+            if decided:
+                rate = sum(isinstance(fix, Fix) for fix in decided) / len(decided)
+                values += [(f"fix rate (last {len(decided)} stacks)", f"{rate:.2f}"), ("fixes", str(self.fixes))]
+                summary.append(f"fix rate {rate:.0%}")
+                if rate == 0:
+                    reason = decided[-1]
+                    problems.append((Severity.WARN, f"no fix in the last {len(decided)} stacks "
+                                                    f"({reason.reason.value}: {reason.message})"))
+        if self.last_no_fix is not None:
+            values.append(("last no-fix reason", f"{self.last_no_fix.reason.value}: {self.last_no_fix.message}"))
+        if self._latency_s:
+            values += [("latency median (ms)", _ms(self._latency_s)),
+                       ("latency max (ms)", f"{max(self._latency_s) * 1e3:.1f}")]
+        if self._stage_s:
+            values.append(("stage time median (ms)", _ms(self._stage_s)))
+        values.append(("rejected input messages", str(self.rejected)))
+        if self.last_rejection is not None:
+            values.append(("last rejection", self.last_rejection))
+        for kind in HealthKind:
+            if self.event_counts[kind]:
+                values += [(f"events: {kind.value}", str(self.event_counts[kind])),
+                           (f"last {kind.value}", self.last_event[kind])]
+        level = max((severity for severity, _ in problems), default=Severity.OK)
+        worst = [text for severity, text in problems if severity == level]
+        return Report(level, "; ".join(worst) if worst else ", ".join(summary), values)
+
+
+def chunk_end_ns(chunk: EnvelopeChunk) -> int:
+    """Receiver time just after a chunk's last sample: when the ADC has finished it."""
+    return stamp_at(chunk.stamp_ns, len(chunk.samples), chunk.sample_rate)
+
+
+@dataclass(frozen=True)
+class PlaybackConfig:
+    """``realtime``: pace the chunks by their stamps (else as fast as they come); ``rate``: the
+    speed of that pace; ``loop``: at the end, start over as one continuous stream."""
+
+    realtime: bool = True
+    rate: float = 1.0
+    loop: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.rate, bool) or not isinstance(self.rate, (int, float)) or not (
+                math.isfinite(self.rate) and self.rate > 0):
+            raise ValueError(f"rate must be a positive number (1 = real time), got {self.rate!r}")
+
+
+class Playback:
+    """A source played as a stream: looped, paced, and watched (see the module docstring).
+
+    Steady-clock times (``now_s``, e.g. ``time.monotonic()``) are passed in, never read here, so
+    the pacing follows no ROS clock (a player that publishes ``/clock`` cannot wait on it).
+    A loop keeps ``first_sample_index`` and the stamps going on by the recording's length, so a
+    consumer sees one stream; what the recording's end joins to its start is its business.
+    """
+
+    def __init__(self, source: Source, config: PlaybackConfig | None = None, *, max_lag_s: float = MAX_LAG_S,
+                 window_s: float = RATE_WINDOW_S) -> None:
+        self.source = source
+        self.config = config or PlaybackConfig()
+        self.max_lag_s = max_lag_s
+        self.window_s = window_s
+        self.published = 0
+        self.unpublishable = 0
+        self.last_unpublishable: str | None = None
+        self.loops = 0
+        self.ended = False
+        self.error: str | None = None
+        self.lag_s = 0.0
+        self._chunks: Iterator[EnvelopeChunk] | None = None
+        self._pass: tuple[EnvelopeChunk, EnvelopeChunk] | None = None  # first and last chunk of this pass
+        self._shift = (0, 0)  # (samples, ns) added to this pass
+        self._anchor: tuple[float, int] | None = None  # (steady s, stamp ns) the pace is counted from
+        self._history: deque[tuple[float, int]] = deque()  # (steady s, stream ns) of recent chunks
+
+    def reconfigure(self, config: PlaybackConfig) -> None:
+        """New settings at runtime; the pace starts again from the next chunk."""
+        self.config = config
+        self._anchor = None
+        self._history.clear()
+
+    def next_chunk(self) -> EnvelopeChunk | None:
+        """The next chunk of the stream; None at its end (or when the source failed: ``error``)."""
+        while not self.ended:
+            if self._chunks is None:
+                self._chunks = iter(self.source.chunks())
+            try:
+                chunk = next(self._chunks, None)
+            except (ValueError, OSError) as error:  # a recording unreadable beyond some point
+                self.error = f"{type(error).__name__}: {error}"
+                self.ended = True
+                return None
+            if chunk is not None:
+                self._pass = (chunk if self._pass is None else self._pass[0], chunk)
+                samples, ns = self._shift
+                if samples or ns:
+                    chunk = dataclasses.replace(chunk, first_sample_index=chunk.first_sample_index + samples,
+                                                stamp_ns=chunk.stamp_ns + ns)
+                return chunk
+            if not self.config.loop or self._pass is None:
+                self.ended = True
+                return None
+            first, last = self._pass
+            samples, ns = self._shift
+            self._shift = (samples + last.end_sample_index - first.first_sample_index,
+                           ns + chunk_end_ns(last) - first.stamp_ns)
+            self._chunks = None
+            self._pass = None
+            self.loops += 1
+        return None
+
+    def due_in(self, chunk: EnvelopeChunk, now_s: float) -> float:
+        """Seconds until ``chunk`` is due (<= 0: publish now); the first chunk is due at once."""
+        if not self.config.realtime:
+            return 0.0
+        if self._anchor is None:
+            self._anchor = (now_s, chunk.stamp_ns)
+        start_s, start_ns = self._anchor
+        return start_s + (chunk.stamp_ns - start_ns) * 1e-9 / self.config.rate - now_s
+
+    def mark_published(self, chunk: EnvelopeChunk, now_s: float) -> None:
+        """``chunk`` went out at ``now_s``."""
+        self.published += 1
+        self.lag_s = max(0.0, -self.due_in(chunk, now_s))
+        self._history.append((now_s, chunk_end_ns(chunk)))
+        while self._history and self._history[0][0] < now_s - self.window_s:
+            self._history.popleft()
+
+    def mark_unpublishable(self, chunk: EnvelopeChunk, error: Exception) -> None:
+        """``chunk`` could not become a message (a stamp beyond what a ROS time holds, ...)."""
+        self.unpublishable += 1
+        self.last_unpublishable = f"chunk at sample {chunk.first_sample_index}: {error}"
+
+    def realtime_factor(self) -> float | None:
+        """Seconds of signal published per steady second over the last ``window_s``."""
+        if len(self._history) < 2:
+            return None
+        (first_s, first_ns), (last_s, last_ns) = self._history[0], self._history[-1]
+        return (last_ns - first_ns) * 1e-9 / (last_s - first_s) if last_s > first_s else None
+
+    @property
+    def behind(self) -> bool:
+        """Chunks fall due faster than the source makes them."""
+        return self.config.realtime and not self.ended and self.lag_s > self.max_lag_s
+
+    def report(self) -> Report:
+        factor = self.realtime_factor()
+        values = [
+            ("source", self.source.description),
+            ("chunks published", str(self.published)),
+            ("loops", str(self.loops)),
+            ("paced", f"{self.config.realtime} (rate {self.config.rate:g})"),
+            ("real-time factor", "n/a" if factor is None else f"{factor:.2f}"),
+            ("lag (s)", f"{self.lag_s:.3f}"),
+            ("end of source", str(self.ended)),
+            ("unpublishable chunks", str(self.unpublishable)),
+        ]
+        if self.last_unpublishable is not None:
+            values.append(("last unpublishable chunk", self.last_unpublishable))
+        if self.error is not None:
+            return Report(Severity.ERROR, f"source failed after {self.published} chunks: {self.error}", values)
+        if self.behind:
+            made = "" if factor is None else f" (it makes {factor:.2f} s of signal per second)"
+            return Report(Severity.WARN, f"cannot keep up with real time x {self.config.rate:g}: the source is "
+                                         f"{self.lag_s:.1f} s late{made}", values)
+        if self.unpublishable:
+            return Report(Severity.WARN, f"{self.unpublishable} chunks could not be published", values)
+        if self.ended:
+            return Report(Severity.OK, f"end of source: {self.published} chunks published", values)
+        if not self.published:
+            return Report(Severity.OK, "waiting for the first chunk", values)
+        speed = "" if factor is None else f" at {factor:.2f} x real time"
+        return Report(Severity.OK, f"publishing{speed}", values)

@@ -1,0 +1,231 @@
+"""The rclpy side the five DeepSync nodes share: parameters, diagnostics, playback, startup.
+
+A node subclasses :class:`DeepSyncNode` with its name and :mod:`deepsync_ros.params` specs,
+and builds its stage, publishers and subscriptions in ``setup(values)``. Parameters are declared
+with descriptors (description, range, read-only); a value the node cannot run with raises
+:class:`~deepsync_ros.params.ParameterError` (or rclpy's own parameter exception for a wrong type
+or a value out of range), and :func:`run` logs it as one line and exits 1: a launch file then
+shows the cause instead of a traceback, and nothing restarts a node that cannot start.
+Writable parameters are checked by the same builders when changed at runtime and refused with
+the reason. Input that does not convert is counted, logged (throttled) and dropped.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_updater import DiagnosticStatusWrapper, Updater
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import NavSatFix
+
+from deepsync.bag.convert import ns_to_stamp
+from deepsync.bag.topics import NAV_SAT_FIX_TOPIC, POSE_TOPIC, relative_name
+from deepsync.geo import LocalFrame
+from deepsync.types import EnvelopeChunk, Fix, Severity
+
+from .conversions import RCLPY_TYPES, fix_to_navsat_msg, fix_to_pose_msg
+from .health import Playback, Report, StageHealth, chunk_end_ns
+from .params import ParameterError, ParamSpec, ParamValue, checked
+
+RESULTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+"""Stacks, arrivals and fixes: every message counts (what the bags record them with)."""
+# SensorDataQoS (best effort, volatile) with 2 s of chunks instead of its 5: the first search
+# takes about a second and later ones tens of ms, while chunks keep coming every 10 ms, and a
+# chunk dropped from the reader's queue drops every stack that spans it.
+ENVELOPE_SUBSCRIBER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
+                                     reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+# What rclcpp's ClockQoS and rosbag2's player offer on /clock.
+CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+CLOCK_TOPIC = "/clock"
+
+REJECTION_LOG_PERIOD_S = 5.0
+# Steady-clock pacing: the tick bounds how late a due chunk goes out; the burst bounds how long
+# one callback publishes before the executor serves the others (diagnostics, parameters).
+TICK_S = 0.002
+BURST_S = 0.05
+
+_LEVELS = {Severity.OK: DiagnosticStatus.OK, Severity.WARN: DiagnosticStatus.WARN,
+           Severity.ERROR: DiagnosticStatus.ERROR}
+
+
+def descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    """The rcl_interfaces descriptor of a parameter spec."""
+    described = ParameterDescriptor(description=spec.description, additional_constraints=spec.constraints,
+                                    read_only=spec.read_only)
+    if spec.range is not None and spec.type is float:
+        described.floating_point_range = [FloatingPointRange(from_value=float(spec.range[0]),
+                                                             to_value=float(spec.range[1]), step=0.0)]
+    elif spec.range is not None and spec.type is int:
+        described.integer_range = [IntegerRange(from_value=int(spec.range[0]), to_value=int(spec.range[1]), step=1)]
+    return described
+
+
+class DeepSyncNode(Node):
+    """A node with DeepSync's parameter, diagnostics and bad-input conventions."""
+
+    NAME: str
+    SPECS: tuple[ParamSpec, ...]
+
+    def __init__(self, **node_options: Any) -> None:
+        """``node_options``: rclpy Node keywords (``parameter_overrides``, ``namespace``, ...)."""
+        super().__init__(self.NAME, **node_options)
+        try:
+            declared = {spec.name: self.declare_parameter(spec.name, spec.default, descriptor(spec)).value
+                        for spec in self.SPECS}
+            self.values = checked(self.SPECS, declared, self.NAME)
+            self.updater = Updater(self)
+            self.updater.setHardwareID("none")  # software: no device of its own
+            self.setup(self.values)
+        except BaseException:
+            self.destroy_node()
+            raise
+        if any(not spec.read_only for spec in self.SPECS):
+            self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def setup(self, values: Mapping[str, ParamValue]) -> None:
+        """Build the stage, publishers and subscriptions; ParameterError for a value it cannot use."""
+        raise NotImplementedError
+
+    def reconfigure(self, values: Mapping[str, ParamValue]) -> None:
+        """Apply new values of the writable parameters; ParameterError (nothing applied) to refuse."""
+        raise NotImplementedError
+
+    def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        changed = {p.name: p.value for p in parameters if any(spec.name == p.name for spec in self.SPECS)}
+        if not changed:  # another part of the node's (use_sim_time, diagnostic_updater.period)
+            return SetParametersResult(successful=True)
+        try:
+            values = checked(self.SPECS, {**self.values, **changed}, self.NAME)
+            self.reconfigure(values)
+        except ParameterError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        self.values = values
+        return SetParametersResult(successful=True)
+
+    def add_diagnostic(self, name: str, report: Callable[[], Report]) -> None:
+        """A diagnostic_updater task publishing ``report()`` each update period."""
+        def task(stat: DiagnosticStatusWrapper) -> DiagnosticStatusWrapper:
+            level, message, values = report()
+            stat.summary(_LEVELS[level], message)
+            for key, value in values:
+                stat.add(key, value)
+            return stat
+        self.updater.add(name, task)
+
+    def reject(self, health: StageHealth, error: Exception) -> None:
+        """An input message that failed conversion: counted in diagnostics, logged, dropped."""
+        health.reject(error)
+        self.get_logger().warning(f"input rejected ({health.rejected} so far): {error}",
+                                  throttle_duration_sec=REJECTION_LOG_PERIOD_S)
+
+
+class FixPublisher:
+    """A fix on ``pose`` (PoseWithCovarianceStamped in ``map_frame``) and ``fix`` (NavSatFix in
+    ``antenna_frame``, through the map origin ``frame``)."""
+
+    def __init__(self, node: Node, map_frame: str, antenna_frame: str) -> None:
+        self.map_frame = map_frame
+        self.antenna_frame = antenna_frame
+        self.pose = node.create_publisher(PoseWithCovarianceStamped, relative_name(POSE_TOPIC), RESULTS_QOS)
+        self.navsat = node.create_publisher(NavSatFix, relative_name(NAV_SAT_FIX_TOPIC), RESULTS_QOS)
+
+    def publish(self, fix: Fix, frame: LocalFrame) -> None:
+        """Both messages, or ValueError (a stamp beyond builtin_interfaces/Time) and neither."""
+        pose = fix_to_pose_msg(fix, self.map_frame)
+        navsat = fix_to_navsat_msg(fix, frame, self.antenna_frame)
+        self.pose.publish(pose)
+        self.navsat.publish(navsat)
+
+
+class PacedPlayer:
+    """Plays a :class:`~deepsync_ros.health.Playback` into ``consume`` from a steady-clock timer
+    (a ROS-time timer would wait on the very /clock this player may publish), optionally
+    publishing /clock at each chunk's end: the receiver time at which its last sample exists."""
+
+    def __init__(self, node: DeepSyncNode, playback: Playback, consume: Callable[[EnvelopeChunk, float], None],
+                 publish_clock: bool) -> None:
+        self.node = node
+        self.playback = playback
+        self.consume = consume
+        self.clock_publisher = node.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS) if publish_clock else None
+        self._pending: EnvelopeChunk | None = None
+        self.timer = node.create_timer(TICK_S, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _tick(self) -> None:
+        deadline = time.monotonic() + BURST_S
+        while True:
+            chunk = self._pending if self._pending is not None else self.playback.next_chunk()
+            if chunk is None:
+                self.timer.cancel()
+                self._log_end()
+                return
+            now = time.monotonic()
+            if self.playback.due_in(chunk, now) > 0:
+                self._pending = chunk
+                return
+            self._pending = None
+            if self._publish_clock(chunk):
+                self.consume(chunk, now)
+            if now >= deadline:
+                return
+
+    def _publish_clock(self, chunk: EnvelopeChunk) -> bool:
+        """/clock at the chunk's end (if asked); False for a chunk no ROS time can stamp."""
+        if self.clock_publisher is None:
+            return True
+        try:
+            message = ClockMsg(clock=ns_to_stamp(chunk_end_ns(chunk), RCLPY_TYPES))
+        except ValueError as error:
+            self.playback.mark_unpublishable(chunk, error)
+            return False
+        self.clock_publisher.publish(message)
+        return True
+
+    def _log_end(self) -> None:
+        logger = self.node.get_logger()
+        if self.playback.error is not None:
+            logger.error(f"source failed after {self.playback.published} chunks: {self.playback.error}")
+        else:
+            logger.info(f"end of source: {self.playback.published} chunks; diagnostics go on")
+
+
+def run(node_class: type[DeepSyncNode], args: list[str] | None = None) -> int:
+    """rclpy.init, build the node, spin until shutdown; 1 (after one error line) when the node
+    cannot start with its parameters, else 0."""
+    rclpy.init(args=args)
+    try:
+        node = node_class()
+    except ParameterError as error:
+        get_logger(node_class.NAME).error(str(error))
+        rclpy.try_shutdown()
+        return 1
+    except ParameterException as error:  # rclpy's: a value of the wrong type or out of its range
+        get_logger(node_class.NAME).error(f"{node_class.NAME}: invalid parameter: {error}")
+        rclpy.try_shutdown()
+        return 1
+    except KeyboardInterrupt:
+        rclpy.try_shutdown()
+        return 0
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,312 @@
+"""Every node's parameters, and what their values become: core configs, a source, a database.
+
+Pure Python (no rclpy): the nodes declare :class:`ParamSpec` s through rcl_interfaces
+descriptors and hand the values they get to the builders here, which the tests run without ROS.
+A value the core's own configs refuse is reported as :class:`ParameterError` naming the
+parameter, ``cell_sync.towers: no such file 'x.yaml'``: each parameter is first tried alone
+against the defaults, so the core's message (which names its field) is pinned to the parameter
+that caused it, and only what no single value explains is reported for the node.
+
+Descriptor ranges are what ``ros2 param describe`` shows and rclpy enforces; the builders check
+them too, so a value refused here is refused the same way with or without ROS. A range is
+inclusive, so an open bound (``false_alarm_rate`` in (0, 0.5)) is left to the core's check.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TypeVar
+
+from deepsync.bag.convert import ANTENNA_FRAME_ID, ENVELOPE_FRAME_ID, MAP_FRAME_ID
+from deepsync.configio import build_dataclass, load_yaml
+from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
+from deepsync.fusion.snapshot import SnapshotConfig
+from deepsync.fusion.stage import FusionConfig
+from deepsync.pipeline import PipelineConfig, places_sites
+from deepsync.sources import SampleFormat, Source, bag_frontend, open_source
+from deepsync.sources.bagfile import is_bag_path
+from deepsync.sync.search import SearchConfig
+from deepsync.sync.stacking import StackConfig
+from deepsync.sync.stage import SyncConfig
+from deepsync.timing.stage import Estimator, TimingConfig
+from deepsync.towers import TowerDatabase, load_tower_database
+
+from .health import PlaybackConfig
+
+ParamValue = bool | int | float | str
+T = TypeVar("T")
+
+
+_KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+
+
+class ParameterError(ValueError):
+    """A parameter value the node cannot run with; the message starts with ``node.parameter``."""
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter: its name, default (whose type is the parameter's), what it means, the
+    inclusive range of a number, the values a string may take, and whether it may change
+    while the node runs (``read_only``: the stage it configures is built once)."""
+
+    name: str
+    default: ParamValue
+    description: str
+    range: tuple[float, float] | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = True
+
+    @property
+    def type(self) -> type:
+        return type(self.default)
+
+    @property
+    def constraints(self) -> str:
+        """The rule a person reads in ``ros2 param describe``."""
+        if self.choices:
+            return "one of: " + ", ".join(repr(choice) for choice in self.choices)
+        if self.range is not None:
+            return f"{self.range[0]:g} to {self.range[1]:g}"
+        return ""
+
+    def check(self, value: object, node: str) -> ParamValue:
+        """``value`` as this parameter's type, or ParameterError: wrong type, out of range, not a choice."""
+        where = f"{node}.{self.name}"
+        kind = self.type
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if type(value) is not kind:
+            raise ParameterError(f"{where}: expected {_KINDS[kind]}, got {value!r}")
+        if kind is float and not math.isfinite(value):
+            raise ParameterError(f"{where}: must be a finite number, got {value!r}")
+        if self.range is not None and not self.range[0] <= value <= self.range[1]:
+            raise ParameterError(f"{where}: {value!r} is outside {self.constraints}")
+        if self.choices and value not in self.choices:
+            raise ParameterError(f"{where}: {value!r} is not {self.constraints}")
+        return value
+
+
+# --- the specs -----------------------------------------------------------------------------
+
+_STACK = StackConfig()
+_SEARCH = SearchConfig()
+_SYNC = SyncConfig()
+_TIMING = TimingConfig()
+_FUSION = FusionConfig()
+_SNAPSHOT = SnapshotConfig()
+
+SOURCE = (
+    ParamSpec("source", "", "Recording to publish: a rosbag2 bag (directory or .mcap), a SigMF recording, a raw "
+              "I/Q or envelope file, or a scenario YAML (the live simulator). Required."),
+    ParamSpec("sample_format", "", "Sample format of a raw file; empty: from its extension or metadata.",
+              choices=("", *(f.value for f in SampleFormat))),
+    ParamSpec("sample_rate", 0.0, "Sample rate of a raw file [Hz]; 0: from the recording.",
+              range=(0.0, FRONTEND_RANGES["adc_rate_hz"][1])),
+    ParamSpec("realtime", True, "Pace the chunks by their stamps on a steady clock (true) or publish them as "
+              "fast as they come (false).", read_only=False),
+    ParamSpec("rate", 1.0, "Playback speed: 1 = real time, 2 = twice as fast (with realtime).",
+              range=(0.01, 100.0), read_only=False),
+    ParamSpec("loop", False, "At the end, start over as one continuous stream (sample indices and stamps go on).",
+              read_only=False),
+    ParamSpec("publish_clock", False, "Publish /clock (rosgraph_msgs/Clock) from the ADC stamps, for nodes "
+              "running with use_sim_time."),
+)
+SOURCE_FRAME = ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the stream's headers (the ADC's frame).")
+
+TOWERS = ParamSpec("towers", "", "Tower database YAML; empty: blind search over all 504 PCIs (and no fix).")
+FRONTEND = ParamSpec("frontend", "", "Receiver chain the stream went through, for the templates: a bag "
+                     "(its recorded front end), a YAML of FrontendConfig fields, or empty: the default chain.")
+SYNC = (
+    ParamSpec("n_frames", _STACK.n_frames, "LTE frames (10 ms) stacked per search; the timing stage needs 2 to "
+              "measure the noise.", range=(2, 1000)),
+    ParamSpec("clock_ppm", _STACK.clock_ppm, "Initial receiver clock error, compensated [ppm].",
+              range=FRONTEND_RANGES["clock_offset_ppm"][:2]),
+    ParamSpec("track_clock", _STACK.track_clock, "Follow the receiver clock drift measured on each stack."),
+    ParamSpec("confirm_stacks", _SYNC.confirm_stacks, "Stacks in a row a cell must be found in, where its code "
+              "should be, before it is reported.", range=(1, 100)),
+    ParamSpec("false_alarm_rate", _SEARCH.false_alarm_rate, "Chance of a false timing peak anywhere in one stack.",
+              range=(0.0, 0.5)),
+    ParamSpec("max_cells", _SEARCH.max_cells, "Most cells searched for per stack.", range=(1, 64)),
+    ParamSpec("full_code_timing", _SEARCH.full_code_timing, "With a tower database, time known cells by their "
+              "whole codes (about +9 dB, slower)."),
+)
+TIMING = (
+    ParamSpec("estimator", _TIMING.estimator.value, "Sub-sample timing estimator.",
+              choices=tuple(e.value for e in Estimator), read_only=False),
+    ParamSpec("weak_std_samples", _TIMING.weak_std_samples, "Flag an arrival whose 1-sigma exceeds this "
+              "[samples] (1 sample = 156 m at 1.92 MS/s).", range=(0.0, 1e3), read_only=False),
+)
+FUSION = (
+    ParamSpec("tracking", _FUSION.track, "Run the tracker besides the snapshot solver; the published fix is the "
+              "tracker's when it has one."),
+    ParamSpec("multipath_std_m", _FUSION.multipath_std_m, "Range bias multipath and NLOS add to a site, beyond "
+              "the timing sigma [m].", range=(0.0, 1e4)),
+    ParamSpec("min_std_m", _FUSION.min_std_m, "Floor of each arrival's 1-sigma [m].", range=(0.0, 1e4)),
+    ParamSpec("receiver_height_m", _SNAPSHOT.receiver_height_m, "Antenna height above the map origin's ground "
+              "in a 2-D fix [m].", range=(-500.0, 1e4)),
+)
+OUTPUT_FRAMES = (
+    ParamSpec("map_frame", MAP_FRAME_ID, "frame_id of the pose (REP-105 map: ENU at the database's origin)."),
+    ParamSpec("antenna_frame", ANTENNA_FRAME_ID, "frame_id of the NavSatFix (the receiver antenna)."),
+)
+FUSION_TOWERS = ParamSpec("towers", "", "Tower database YAML placing the sites (origin, positions, timing "
+                          "offsets). Required.")
+
+ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME)
+CELL_SYNC = (TOWERS, FRONTEND, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the published "
+                                                "windows (the stream's frame)."))
+CELL_TIMING = (FRONTEND, *TIMING)
+TDOA_FUSION = (FUSION_TOWERS, *FUSION, *OUTPUT_FRAMES)
+DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, *SYNC, *TIMING, *FUSION, *OUTPUT_FRAMES)
+
+NODES: dict[str, tuple[ParamSpec, ...]] = {
+    "envelope_adc": ENVELOPE_ADC,
+    "cell_sync": CELL_SYNC,
+    "cell_timing": CELL_TIMING,
+    "tdoa_fusion": TDOA_FUSION,
+    "deepsync_pipeline": DEEPSYNC_PIPELINE,
+}
+"""Node name -> its parameters, in the order they are declared."""
+
+
+# --- values -> what the node runs with -----------------------------------------------------
+
+def checked(specs: tuple[ParamSpec, ...], values: Mapping[str, object], node: str) -> dict[str, ParamValue]:
+    """Every parameter of ``specs``: the given value (checked) or the default; an unknown name
+    is an error (a typo must not fall back to a default)."""
+    known = {spec.name: spec for spec in specs}
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise ParameterError(f"{node}.{unknown[0]}: no such parameter (known: {', '.join(known)})")
+    return {name: spec.check(values[name], node) if name in values else spec.default for name, spec in known.items()}
+
+
+def _config(build: Callable[..., T], specs: tuple[ParamSpec, ...], values: Mapping[str, ParamValue],
+            node: str) -> T:
+    """``build(**values of specs)``; the core's ValueError pinned on the parameter that alone
+    causes it (tried against the defaults), else reported for the node."""
+    defaults = {spec.name: spec.default for spec in specs}
+    chosen = {name: values[name] for name in defaults}
+    for name in defaults:
+        try:
+            build(**{**defaults, name: chosen[name]})
+        except ValueError as error:
+            raise ParameterError(f"{node}.{name}: {error}") from None
+    try:
+        return build(**chosen)
+    except ValueError as error:
+        raise ParameterError(f"{node}: {error}") from None
+
+
+def _sync(n_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int, false_alarm_rate: float,
+          max_cells: int, full_code_timing: bool) -> SyncConfig:
+    return SyncConfig(
+        stack=StackConfig(n_frames=n_frames, clock_ppm=clock_ppm, track_clock=track_clock),
+        search=SearchConfig(false_alarm_rate=false_alarm_rate, max_cells=max_cells, full_code_timing=full_code_timing),
+        confirm_stacks=confirm_stacks)
+
+
+def _timing(estimator: str, weak_std_samples: float) -> TimingConfig:
+    try:
+        kind = Estimator(estimator)
+    except ValueError:
+        choices = ", ".join(e.value for e in Estimator)
+        raise ValueError(f"estimator must be one of {choices}, got {estimator!r}") from None
+    return TimingConfig(estimator=kind, weak_std_samples=weak_std_samples)
+
+
+def _fusion(tracking: bool, multipath_std_m: float, min_std_m: float, receiver_height_m: float) -> FusionConfig:
+    return FusionConfig(snapshot=SnapshotConfig(receiver_height_m=receiver_height_m), track=tracking,
+                        min_std_m=min_std_m, multipath_std_m=multipath_std_m)
+
+
+def sync_config(values: Mapping[str, ParamValue], node: str = "cell_sync") -> SyncConfig:
+    return _config(_sync, SYNC, values, node)
+
+
+def timing_config(values: Mapping[str, ParamValue], node: str = "cell_timing") -> TimingConfig:
+    return _config(_timing, TIMING, values, node)
+
+
+def fusion_config(values: Mapping[str, ParamValue], node: str = "tdoa_fusion") -> FusionConfig:
+    return _config(_fusion, FUSION, values, node)
+
+
+def pipeline_config(values: Mapping[str, ParamValue], node: str = "deepsync_pipeline") -> PipelineConfig:
+    sync, timing, fusion = sync_config(values, node), timing_config(values, node), fusion_config(values, node)
+    try:
+        return PipelineConfig(sync=sync, timing=timing, fusion=fusion)
+    except ValueError as error:
+        raise ParameterError(f"{node}: {error}") from None
+
+
+def playback_config(values: Mapping[str, ParamValue], node: str = "envelope_adc") -> PlaybackConfig:
+    return _config(PlaybackConfig, tuple(s for s in SOURCE if s.name in ("realtime", "rate", "loop")), values, node)
+
+
+def _existing(path: str, node: str, name: str) -> str:
+    if not os.path.exists(path):
+        raise ParameterError(f"{node}.{name}: no such file {path!r}")
+    return path
+
+
+def towers(values: Mapping[str, ParamValue], node: str, *, required: bool = False) -> TowerDatabase | None:
+    """The tower database ``towers`` names; None for "" unless ``required``, which also needs a
+    database that places its sites (a map origin, positions and timing offsets): fusion's anchors."""
+    path = str(values["towers"])
+    if not path:
+        if required:
+            raise ParameterError(f"{node}.towers: required: a tower database YAML with the sites' origin, "
+                                 "positions and timing offsets")
+        return None
+    _existing(path, node, "towers")
+    try:
+        database = load_tower_database(path)
+    except ValueError as error:
+        raise ParameterError(f"{node}.towers: {error}") from None
+    if required and not places_sites(database):
+        raise ParameterError(f"{node}.towers: database {database.name!r} ({path}) places no site: fixes need a map "
+                             "origin and sites with position and timing_offset_us")
+    return database
+
+
+def load_frontend(path: str | os.PathLike) -> FrontendConfig:
+    """The receiver chain a ``frontend`` parameter names: "" the default chain; a bag (directory
+    or ``.mcap``) the chain it was recorded with; a YAML mapping of FrontendConfig fields.
+    ValueError naming the path otherwise."""
+    name = os.fspath(path)
+    if not name:
+        return FrontendConfig()
+    if not os.path.exists(name):
+        raise ValueError(f"no such file {name!r}")
+    if is_bag_path(name):
+        return bag_frontend(name)
+    if Path(name).suffix.lower() in (".yaml", ".yml"):
+        return build_dataclass(FrontendConfig, load_yaml(name), name)
+    raise ValueError(f"{name}: neither a bag (directory or .mcap) nor a YAML of front-end fields")
+
+
+def frontend(values: Mapping[str, ParamValue], node: str) -> FrontendConfig:
+    try:
+        return load_frontend(str(values["frontend"]))
+    except ValueError as error:
+        raise ParameterError(f"{node}.frontend: {error}") from None
+
+
+def source(values: Mapping[str, ParamValue], node: str = "envelope_adc") -> Source:
+    """The source ``source`` names, read with ``sample_format`` and ``sample_rate`` (unset: "" and 0)."""
+    path = str(values["source"])
+    if not path:
+        raise ParameterError(f"{node}.source: required: a bag, a SigMF or raw recording, or a scenario YAML")
+    _existing(path, node, "source")
+    sample_format = str(values["sample_format"]) or None
+    sample_rate = float(values["sample_rate"]) or None
+    try:
+        return open_source(path, sample_format, sample_rate)
+    except ValueError as error:
+        raise ParameterError(f"{node}.source: {error}") from None

@@ -1,0 +1,81 @@
+"""``deepsync_pipeline``: the whole chain in one process, for a tracker too small to move ADC
+samples through DDS.
+
+Plays a source as ``envelope_adc`` does (same parameters, pacing and /clock) straight into
+:class:`deepsync.pipeline.Pipeline`, and publishes what the separate nodes would: ``cell_timing``
+for every stack, ``pose`` and ``fix`` for every stack with a fix. Without a tower database that
+places its sites there is no fusion, and only ``cell_timing`` is published.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+
+from deepsync_msgs.msg import CellTimingArray
+
+from deepsync.bag.topics import CELL_TIMING_TOPIC, relative_name
+from deepsync.pipeline import Pipeline
+from deepsync.types import EnvelopeChunk, Fix
+
+from . import params
+from .conversions import cell_timing_array_to_msg
+from .health import Playback, StageHealth
+from .node_base import RESULTS_QOS, DeepSyncNode, FixPublisher, PacedPlayer, run
+from .params import ParameterError, ParamValue
+
+
+class PipelineNode(DeepSyncNode):
+    NAME = "deepsync_pipeline"
+    SPECS = params.DEEPSYNC_PIPELINE
+
+    def setup(self, values: Mapping[str, ParamValue]) -> None:
+        towers = params.towers(values, self.NAME)
+        config = params.pipeline_config(values, self.NAME)
+        source = params.source(values, self.NAME)
+        try:
+            self.pipeline = Pipeline(source.frontend, config, towers)
+        except ValueError as error:  # no templates for the recording's front end (its rate)
+            raise ParameterError(f"{self.NAME}.source: {error}") from None
+        self.frame_id = str(values["frame_id"])
+        self.health = StageHealth()
+        self.playback = Playback(source, params.playback_config(values, self.NAME))
+        self.timing_publisher = self.create_publisher(CellTimingArray, relative_name(CELL_TIMING_TOPIC), RESULTS_QOS)
+        self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
+        self.updater.setHardwareID(str(values["source"]))  # the recording stands in for the ADC
+        self.add_diagnostic("source", self.playback.report)
+        self.add_diagnostic("localization", self.health.report)
+        self.player = PacedPlayer(self, self.playback, self._process, bool(values["publish_clock"]))
+        self.get_logger().info(f"running the chain on {source.description}")
+        if self.pipeline.fusion is None:
+            self.get_logger().warning("no tower database that places its sites (origin, positions, timing "
+                                      "offsets): publishing cell_timing only, no pose")
+
+    def reconfigure(self, values: Mapping[str, ParamValue]) -> None:
+        timing = params.timing_config(values, self.NAME)
+        playback = params.playback_config(values, self.NAME)
+        # the timing stage reads its config at every cell; its template cache does not depend on it
+        self.pipeline.timing.config = timing
+        self.playback.reconfigure(playback)
+
+    def _process(self, chunk: EnvelopeChunk, now_s: float) -> None:
+        results = self.pipeline.process(chunk)
+        stage_s = time.monotonic() - now_s
+        self.playback.mark_published(chunk, now_s)
+        for result in results:
+            try:
+                self.timing_publisher.publish(cell_timing_array_to_msg(result.arrivals, self.frame_id))
+                fix = None if result.fusion is None else result.fusion.published
+                if isinstance(fix, Fix):
+                    self.fixes.publish(fix, self.pipeline.fusion.frame)
+            except ValueError as error:  # a stamp beyond what builtin_interfaces/Time holds
+                self.reject(self.health, error)
+            self.health.result(result, latency_s=time.monotonic() - now_s, stage_s=stage_s)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(PipelineNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

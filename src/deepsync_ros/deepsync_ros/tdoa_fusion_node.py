@@ -1,0 +1,69 @@
+"""``tdoa_fusion``: each stack's arrivals in, the receiver's position out.
+
+Subscribes ``cell_timing`` (CellTimingArray) and runs the core's
+:class:`~deepsync.fusion.stage.FusionStage` against the tower database; the fix (the tracker's
+when it has one, else the stack's own snapshot) goes out on ``pose``
+(PoseWithCovarianceStamped in ``map_frame``, reliable) and ``fix`` (NavSatFix in
+``antenna_frame``), stamped with the stack's ADC time. A stack without a fix publishes nothing;
+the diagnostics say why (too few sites, unknown PCIs, geometry, ...).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+
+from deepsync_msgs.msg import CellTimingArray
+
+from deepsync.bag.topics import CELL_TIMING_TOPIC, relative_name
+from deepsync.fusion.stage import FusionStage
+from deepsync.types import Fix
+
+from . import params
+from .conversions import cell_timing_array_from_msg
+from .health import StageHealth
+from .node_base import RESULTS_QOS, DeepSyncNode, FixPublisher, run
+from .params import ParamValue
+
+
+class TdoaFusionNode(DeepSyncNode):
+    NAME = "tdoa_fusion"
+    SPECS = params.TDOA_FUSION
+
+    def setup(self, values: Mapping[str, ParamValue]) -> None:
+        towers = params.towers(values, self.NAME, required=True)
+        self.stage = FusionStage(towers, params.fusion_config(values, self.NAME))
+        self.health = StageHealth()
+        self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
+        self.subscription = self.create_subscription(CellTimingArray, relative_name(CELL_TIMING_TOPIC),
+                                                     self._on_arrivals, RESULTS_QOS)
+        self.add_diagnostic("position fix", self.health.report)
+        self.get_logger().info(f"fixes against tower database {towers.name!r} ({len(towers.sites)} sites)")
+
+    def _on_arrivals(self, message: CellTimingArray) -> None:
+        arrived = time.monotonic()
+        try:
+            arrivals = cell_timing_array_from_msg(message)
+        except ValueError as error:
+            self.reject(self.health, error)
+            return
+        started = time.monotonic()
+        result = self.stage.process(arrivals)
+        stage_s = time.monotonic() - started
+        fix = result.published
+        if isinstance(fix, Fix):
+            try:
+                self.fixes.publish(fix, self.stage.frame)
+            except ValueError as error:
+                self.reject(self.health, error)
+        self.health.stack([cell.pci for cell in arrivals.cells], events=result.events,
+                          sites=[site.site for site in result.sites], fix=fix,
+                          latency_s=time.monotonic() - arrived, stage_s=stage_s)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(TdoaFusionNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

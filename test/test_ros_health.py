@@ -1,0 +1,214 @@
+"""deepsync_ros.health: what the nodes' diagnostics report, on what the chain really produces.
+
+The stack results come from running :class:`deepsync.pipeline.Pipeline` over the bundled campus
+bag with its tower database (its first stacks hear nothing yet, then three sites, then fewer),
+once as recorded and once with a chunk lost in the middle; the source reports come from playing
+that bag against a steady clock that the test drives.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from deepsync.pipeline import Pipeline, StackResult
+from deepsync.sources import BagSource
+from deepsync.towers import load_tower_database
+from deepsync.types import EnvelopeChunk, Fix, HealthKind, NoFix, NoFixReason, Severity
+from deepsync_ros.health import (
+    MAX_LAG_S,
+    Playback,
+    PlaybackConfig,
+    StageHealth,
+    chunk_end_ns,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+CAMPUS_BAG = REPO / "bags" / "campus"
+CAMPUS_TOWERS = REPO / "config" / "towers" / "campus.yaml"
+LOST_CHUNK = 150  # of 300: a stack in the middle of the recording spans it
+
+
+def run_campus(chunks: list[EnvelopeChunk]) -> list[StackResult]:
+    source = BagSource(CAMPUS_BAG)
+    pipeline = Pipeline(source.frontend, None, load_tower_database(CAMPUS_TOWERS))
+    return list(pipeline.run(chunks))
+
+
+@pytest.fixture(scope="module")
+def campus_chunks() -> list[EnvelopeChunk]:
+    return list(BagSource(CAMPUS_BAG).chunks())
+
+
+@pytest.fixture(scope="module")
+def campus(campus_chunks: list[EnvelopeChunk]) -> list[StackResult]:
+    return run_campus(campus_chunks)
+
+
+@pytest.fixture(scope="module")
+def campus_with_gap(campus_chunks: list[EnvelopeChunk]) -> list[StackResult]:
+    return run_campus(campus_chunks[:LOST_CHUNK] + campus_chunks[LOST_CHUNK + 1:])
+
+
+def values(report) -> dict[str, str]:
+    return dict(report.values)
+
+
+def fed(results: list[StackResult], window: int = 50) -> StageHealth:
+    health = StageHealth(window)
+    for result in results:
+        health.result(result)
+    return health
+
+
+def test_the_campus_run_has_fixes_and_stacks_without(campus: list[StackResult]) -> None:
+    fixes = [isinstance(result.fusion.published, Fix) for result in campus]
+    assert any(fixes) and not all(fixes)  # what the tests below rely on
+
+
+def test_fix_rate_cells_and_sites_over_the_window(campus: list[StackResult]) -> None:
+    report = fed(campus).report()
+    expected_rate = sum(isinstance(r.fusion.published, Fix) for r in campus) / len(campus)
+    got = values(report)
+    assert got["stacks"] == str(len(campus))
+    assert got[f"fix rate (last {len(campus)} stacks)"] == f"{expected_rate:.2f}"
+    assert got["fixes"] == str(round(expected_rate * len(campus)))
+    last = campus[-1]
+    assert got["cells heard (last stack)"] == " ".join(map(str, last.sync.pcis))
+    heard = sorted({pci for result in campus for pci in result.sync.pcis})
+    assert got[f"cells heard (last {len(campus)} stacks)"] == " ".join(map(str, heard))
+    assert got["sites heard (last stack)"] == " ".join(site.site for site in last.fusion.sites)
+    sites = sorted({site.site for result in campus for site in result.fusion.sites})
+    assert got[f"sites heard (last {len(campus)} stacks)"] == " ".join(sites)
+    assert report.level is Severity.OK
+    assert f"fix rate {expected_rate:.0%}" in report.message
+
+
+def test_the_last_no_fix_reason(campus: list[StackResult]) -> None:
+    last_without = [r for r in campus if not isinstance(r.fusion.published, Fix)][-1]
+    reason = last_without.fusion.published
+    assert isinstance(reason, NoFix)
+    health = fed(campus[: campus.index(last_without) + 1])
+    assert values(health.report())["last no-fix reason"] == f"{reason.reason.value}: {reason.message}"
+
+
+def test_a_window_without_a_fix_warns_why(campus: list[StackResult]) -> None:
+    start = [r for r in campus[:2]]
+    assert not any(isinstance(r.fusion.published, Fix) for r in start)
+    report = fed(start).report()
+    assert report.level is Severity.WARN
+    assert f"no fix in the last 2 stacks ({NoFixReason.TOO_FEW_SITES.value}: " in report.message
+    assert "no cell heard in the last 2 stacks" in report.message
+    # once the window has moved past them, fixes make it OK again
+    assert fed(campus, window=5).report().level is Severity.OK
+
+
+def test_a_lost_chunk_is_counted_and_warns_until_the_window_passes(campus_with_gap: list[StackResult]) -> None:
+    gaps = [(i, event) for i, result in enumerate(campus_with_gap) for event in result.health
+            if event.kind is HealthKind.GAP]
+    assert len(gaps) == 1
+    index, gap = gaps[0]
+    health = fed(campus_with_gap[: index + 1], window=5)
+    report = health.report()
+    assert report.level is Severity.WARN
+    assert report.message == str(gap)
+    assert values(report)["events: gap"] == "1"
+    assert values(report)["last gap"] == gap.message
+    for result in campus_with_gap[index + 1: index + 6]:
+        health.result(result)
+    later = health.report()
+    assert later.level is Severity.OK  # five stacks on, the gap is history
+    assert values(later)["events: gap"] == "1"
+
+
+def test_rejected_input_is_counted_and_warns(campus: list[StackResult]) -> None:
+    health = fed(campus[:5])
+    health.reject(ValueError("SyncWindow of PCI 56: 3 window values, but n_frames x window_length = 10 x 301"))
+    report = health.report()
+    assert report.level is Severity.WARN
+    assert "input rejected: SyncWindow of PCI 56" in report.message
+    assert values(report)["rejected input messages"] == "1"
+
+
+def test_nothing_yet_is_a_warning() -> None:
+    report = StageHealth().report()
+    assert report.level is Severity.WARN
+    assert "waiting for input" in report.message
+
+
+def test_latency_median_and_max(campus: list[StackResult]) -> None:
+    health = StageHealth()
+    for result, seconds in zip(campus[:3], (0.010, 0.030, 0.020)):
+        health.result(result, latency_s=seconds, stage_s=seconds / 2)
+    got = values(health.report())
+    assert got["latency median (ms)"] == "20.0"
+    assert got["latency max (ms)"] == "30.0"
+    assert got["stage time median (ms)"] == "10.0"
+
+
+def test_the_tracker_fix_is_published_before_the_snapshot(campus: list[StackResult]) -> None:
+    both = [r.fusion for r in campus if isinstance(r.fusion.tracked, Fix) and isinstance(r.fusion.snapshot, Fix)]
+    snapshot_only = [r.fusion for r in campus if isinstance(r.fusion.snapshot, Fix) and
+                     not isinstance(r.fusion.tracked, Fix)]
+    assert both and snapshot_only
+    assert all(f.published is f.tracked for f in both)
+    assert all(f.published is f.snapshot for f in snapshot_only)
+
+
+def play(playback: Playback, source_speed: float) -> int:
+    """Publish each chunk when it is both made and due, from a source that makes
+    ``source_speed`` seconds of signal per steady second; the number of chunks published."""
+    start_ns = None
+    while (chunk := playback.next_chunk()) is not None:
+        start_ns = chunk.stamp_ns if start_ns is None else start_ns
+        made_s = (chunk_end_ns(chunk) - start_ns) * 1e-9 / source_speed
+        playback.mark_published(chunk, made_s + max(0.0, playback.due_in(chunk, made_s)))
+    return playback.published
+
+
+def test_a_source_at_half_real_time_cannot_keep_up() -> None:
+    playback = Playback(BagSource(CAMPUS_BAG), PlaybackConfig(realtime=True), max_lag_s=MAX_LAG_S)
+    chunks = [playback.next_chunk() for _ in range(120)]  # 1.2 s of signal, made in 2.4 s
+    for chunk in chunks:
+        now = 2 * (chunk_end_ns(chunk) - chunks[0].stamp_ns) * 1e-9
+        assert playback.due_in(chunk, now) <= 0  # overdue as soon as it is made
+        playback.mark_published(chunk, now)
+    report = playback.report()
+    assert playback.behind
+    assert report.level is Severity.WARN
+    assert report.message.startswith("cannot keep up with real time")
+    assert values(report)["real-time factor"] == "0.50"
+    assert float(values(report)["lag (s)"]) > MAX_LAG_S
+
+
+def test_a_source_that_keeps_up_is_paced_at_real_time() -> None:
+    playback = Playback(BagSource(CAMPUS_BAG), PlaybackConfig(realtime=True, rate=2.0))
+    published = play(playback, source_speed=10.0)
+    report = playback.report()
+    assert published == 300 and playback.ended
+    assert report.level is Severity.OK and report.message.startswith("end of source: 300 chunks")
+    assert values(report)["real-time factor"] == "2.00"  # paced by the stamps, at the rate asked
+    assert playback.lag_s == 0.0
+
+
+def test_a_loop_is_one_continuous_stream(campus_chunks: list[EnvelopeChunk]) -> None:
+    playback = Playback(BagSource(CAMPUS_BAG), PlaybackConfig(loop=True))
+    stream = [playback.next_chunk() for _ in range(2 * len(campus_chunks) + 1)]
+    assert playback.loops == 2 and not playback.ended
+    for before, after in zip(stream, stream[1:]):
+        assert after.first_sample_index == before.end_sample_index
+        assert after.stamp_ns == chunk_end_ns(before)
+    second = stream[len(campus_chunks):]
+    assert all((a.samples == b.samples).all() for a, b in zip(second, campus_chunks))
+
+
+def test_without_a_loop_the_source_ends() -> None:
+    playback = Playback(BagSource(CAMPUS_BAG), PlaybackConfig(realtime=False))
+    assert sum(1 for _ in iter(playback.next_chunk, None)) == 300
+    assert playback.ended and playback.next_chunk() is None
+
+
+def test_a_rate_must_be_positive() -> None:
+    with pytest.raises(ValueError, match="rate must be a positive number"):
+        PlaybackConfig(rate=0.0)
