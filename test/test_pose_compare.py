@@ -49,3 +49,16 @@ def test_positions_are_compared_in_metres(tmp_path):
     result = compare_poses(tmp_path / "a", tmp_path / "b")
     assert result.max_difference_m == pytest.approx(0.05)
     assert result.same(tolerance_m=0.1) and not result.same(tolerance_m=0.01)
+
+
+def test_the_command_says_same_or_not_by_its_exit_status(tmp_path, capsys):
+    from deepsync.cli import main
+
+    write(tmp_path / "a", [fix(i) for i in range(3)])
+    write(tmp_path / "b", [fix(i, shift_m=0.5) for i in range(3)])
+    assert main(["compare-poses", "--reference", str(tmp_path / "a"), "--other", str(tmp_path / "a")]) == 0
+    assert "the same poses" in capsys.readouterr().out
+    assert main(["compare-poses", "--reference", str(tmp_path / "a"), "--other", str(tmp_path / "b")]) == 1
+    assert "NOT the same" in capsys.readouterr().out
+    assert main(["compare-poses", "--reference", str(tmp_path / "a"), "--other", str(tmp_path / "b"),
+                 "--tolerance", "1"]) == 0

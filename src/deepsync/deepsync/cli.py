@@ -18,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from deepsync.bag import TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg
+from deepsync.bag import POSE_TOPIC, TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg
 from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import stack_record, summarize
+from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, SampleFormat, Source, open_source
 from deepsync.sync.stacking import StackConfig
@@ -341,6 +342,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_compare_poses(args: argparse.Namespace) -> int:
+
+    result = compare_poses(args.reference, args.other, args.topic)
+    print(f"{args.topic}: {result.matched} poses at the same stamps, {result.only_reference} only in "
+          f"{args.reference}, {result.only_other} only in {args.other}")
+    if result.matched:
+        print(f"  position difference: median {result.median_difference_m:.3g} m, largest "
+              f"{result.max_difference_m:.3g} m; horizontal sigmas within a factor {result.max_sigma_ratio:.4g}")
+    same = result.same(args.tolerance)
+    print("  the same poses" if same else f"  NOT the same poses (tolerance {args.tolerance:g} m)")
+    return 0 if same else 1
+
+
 def _metres(value: float | None) -> str:
     return "    -" if value is None else f"{value:7.1f}"
 
@@ -437,6 +451,15 @@ def build_parser() -> argparse.ArgumentParser:
                       "tower database YAML to start from")
     calibrate.add_argument("--out", required=True, help="calibrated tower database YAML to write")
     calibrate.set_defaults(run=_cmd_calibrate)
+
+    compare = commands.add_parser("compare-poses", help="do two bags hold the same poses (matched by stamp)? "
+                                  "E.g. a live run recorded with ros2 bag record against deepsync replay")
+    compare.add_argument("--reference", required=True, help="bag with the expected poses (deepsync replay's)")
+    compare.add_argument("--other", required=True, help="bag to check (e.g. recorded from the nodes)")
+    compare.add_argument("--topic", default=POSE_TOPIC, help="PoseWithCovarianceStamped topic (default %(default)s)")
+    compare.add_argument("--tolerance", type=_positive_float, default=DEFAULT_TOLERANCE_M, metavar="METRES",
+                         help="largest position difference still the same (default %(default)s m)")
+    compare.set_defaults(run=_cmd_compare_poses)
 
     info = commands.add_parser("info", help="describe a bag")
     info.add_argument("--bag", required=True)
