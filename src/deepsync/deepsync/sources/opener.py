@@ -17,6 +17,19 @@ def _same_rate(given: float, known: float) -> bool:
     return math.isclose(float(given), known, rel_tol=1e-9)
 
 
+def _coded(kind: type[BagSource] | type[SimulatorSource], name: str, why: str, rate_of: str,
+           sample_format: SampleFormat | str | None, sample_rate: float | None, scale: float | None) -> Source:
+    """A source that delivers ADC codes at its front end's rate: a format or a scale does not
+    apply, and a rate given must be that one."""
+    if sample_format is not None or scale is not None:
+        raise ValueError(f"{name}: {why}; a sample format or a scale does not apply")
+    source = kind(name)
+    if sample_rate is not None and not _same_rate(sample_rate, source.frontend.adc_rate_hz):
+        raise ValueError(f"{name}: sample rate {sample_rate:g} Hz given, but {rate_of} "
+                         f"at {source.frontend.adc_rate_hz:g} Hz")
+    return source
+
+
 def open_source(
     path: str | os.PathLike,
     sample_format: SampleFormat | str | None = None,
@@ -41,23 +54,13 @@ def open_source(
     if not os.path.exists(name):
         raise ValueError(f"{name}: no such file or directory")
     if is_bag_path(name):
-        if sample_format is not None or scale is not None:
-            raise ValueError(f"{name}: a bag carries ADC codes already; a sample format or a scale does not apply")
-        bag = BagSource(name)
-        if sample_rate is not None and not _same_rate(sample_rate, bag.frontend.adc_rate_hz):
-            raise ValueError(f"{name}: sample rate {sample_rate:g} Hz given, but the bag was recorded "
-                             f"at {bag.frontend.adc_rate_hz:g} Hz")
-        return bag
+        return _coded(BagSource, name, "a bag carries ADC codes already", "the bag was recorded", sample_format,
+                      sample_rate, scale)
     if os.path.isdir(name):
         raise ValueError(f"{name}: a directory, but not a rosbag2 bag (no metadata.yaml)")
     if is_scenario_path(name):
-        if sample_format is not None or scale is not None:
-            raise ValueError(f"{name}: a scenario is simulated into ADC codes; a sample format or a scale does not apply")
-        simulated = SimulatorSource(name)
-        if sample_rate is not None and not _same_rate(sample_rate, simulated.frontend.adc_rate_hz):
-            raise ValueError(f"{name}: sample rate {sample_rate:g} Hz given, but the scenario's front end samples "
-                             f"at {simulated.frontend.adc_rate_hz:g} Hz")
-        return simulated
+        return _coded(SimulatorSource, name, "a scenario is simulated into ADC codes",
+                      "the scenario's front end samples", sample_format, sample_rate, scale)
     if is_sigmf_path(name):
         sigmf = SigmfSource(name, scale=scale)
         if sample_format is not None and SampleFormat.parse(sample_format) is not sigmf.sample_format:
