@@ -23,6 +23,8 @@ setup(
         "matplotlib>=3.7",
         "sigmf>=1.14",
     ],
+    # the timing network; the classical estimators, the nodes and the rest of the chain need none
+    extras_require={"network": ["torch>=2.4"]},
     zip_safe=True,
     maintainer="DeepSync",
     maintainer_email="dev@deepsync.invalid",

@@ -1,0 +1,140 @@
+"""The DeepSync timing network: a cell's stacked windows and its template in, a sub-sample
+offset and an honest sigma out.
+
+The paper's architecture (Ghosh et al., ICML 2025, section 4), sized for a tracker:
+
+  windows (B, F, W) ──▶ signal encoder, the same on every frame ──▶ mean over frames ──▶ Z (B, W/p, C)
+  template (B, T)   ──▶ template encoder (its own weights)     ──────────────────────▶ H (B, T/p, C)
+  cross-attention: Z queries, H keys and values ──▶ (B, W/p, C) ──▶ flatten ──▶ 3 dense layers
+  ──▶ offset (B,) samples, log-variance (B,)
+
+Each encoder is three 1-D convolutions with decreasing kernels (14, 7, 5), batch norm and ReLU,
+with an average pool of ``pool`` samples after the first (fewer samples for the other two and
+fewer tokens for the attention, whose cost grows with their square). Averaging the frames' feature maps (temporal aggregation) rather than the frames
+themselves lets the encoder see each frame's own fading before they are combined. The offset is
+where the template's start lies in the windows, in samples from the windows' first sample,
+minus the margin (``window_length - template_length) / 2``), i.e. relative to the coarse code
+position the sync stage cut the windows at; the log-variance head gives the sigma the fusion
+stage weighs it by. Attention keeps the template's position information through a learned
+position embedding added to both token sequences.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class TimingNetConfig:
+    """Sizes of the network; ``window_length`` and ``template_length`` are the sync stage's."""
+
+    window_length: int = 296  # W: samples per frame window (template + 2 x margin at 1.92 MS/s)
+    template_length: int = 276  # T: samples of the cell's code template
+    channels: tuple[int, int, int] = (8, 16, 32)  # per convolution; the last is the token width C
+    kernels: tuple[int, int, int] = (14, 7, 5)  # decreasing: coarse shape first, then detail
+    pool: int = 2  # samples per token
+    heads: int = 4
+    hidden: tuple[int, int] = (64, 32)  # the dense layers before the two outputs
+    dropout: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("window_length", "template_length", "pool", "heads"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
+                raise ValueError(f"{name}: {getattr(self, name)!r} must be a positive integer")
+        if len(self.channels) != 3 or len(self.kernels) != 3 or min(self.channels + self.kernels) < 1:
+            raise ValueError(f"channels {self.channels!r} and kernels {self.kernels!r}: three positive integers each")
+        if self.channels[-1] % self.heads:
+            raise ValueError(f"heads: {self.heads} must divide the token width channels[-1] = {self.channels[-1]}")
+        if self.template_length > self.window_length:
+            raise ValueError(f"template_length {self.template_length} is longer than window_length {self.window_length}")
+        if not 0 <= self.dropout < 1:
+            raise ValueError(f"dropout: {self.dropout!r} must be in [0, 1)")
+
+    @property
+    def margin(self) -> float:
+        """Samples either side of the template in a window: the offset's zero."""
+        return (self.window_length - self.template_length) / 2
+
+    @property
+    def signal_tokens(self) -> int:
+        return self.window_length // self.pool
+
+    @property
+    def template_tokens(self) -> int:
+        return self.template_length // self.pool
+
+
+class Encoder(nn.Module):
+    """(N, L) traces -> (N, L // pool, C) tokens: three convolutions that keep the length (an even
+    kernel is padded one more sample after than before), each with batch norm and ReLU; the first
+    sees every sample, the pool after it halves what the other two (most of the cost) process."""
+
+    def __init__(self, config: TimingNetConfig) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        width = 1
+        for i, (channels, kernel) in enumerate(zip(config.channels, config.kernels)):
+            layers += [nn.ConstantPad1d(((kernel - 1) // 2, kernel // 2), 0.0),
+                       nn.Conv1d(width, channels, kernel, bias=False), nn.BatchNorm1d(channels), nn.ReLU()]
+            if i == 0:
+                layers.append(nn.AvgPool1d(config.pool))
+            width = channels
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, traces: torch.Tensor) -> torch.Tensor:
+        features = self.net(traces.unsqueeze(1))  # (N, C, L // pool)
+        return features.transpose(1, 2)  # (N, L // pool, C)
+
+
+class TimingNet(nn.Module):
+    """Offset (samples) and log-variance (samples^2) of a cell's code in its stacked windows."""
+
+    def __init__(self, config: TimingNetConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or TimingNetConfig()
+        c = self.config
+        width = c.channels[-1]
+        self.signal_encoder = Encoder(c)
+        self.template_encoder = Encoder(c)
+        self.signal_position = nn.Parameter(torch.zeros(c.signal_tokens, width))
+        self.template_position = nn.Parameter(torch.zeros(c.template_tokens, width))
+        self.attention = nn.MultiheadAttention(width, c.heads, batch_first=True)
+        layers: list[nn.Module] = []
+        inputs = c.signal_tokens * width
+        for hidden in c.hidden:
+            layers += [nn.Linear(inputs, hidden), nn.ReLU(), nn.Dropout(c.dropout)]
+            inputs = hidden
+        self.regression = nn.Sequential(*layers)
+        self.offset = nn.Linear(inputs, 1)
+        self.log_variance = nn.Linear(inputs, 1)
+
+    def forward(self, windows: torch.Tensor, template: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``windows`` (B, F, W) normalised volts, any number of frames F >= 1; ``template``
+        (B, T) normalised; -> offset (B,) and log-variance (B,)."""
+        batch, frames, length = windows.shape
+        tokens = self.signal_encoder(windows.reshape(batch * frames, length))  # (B*F, W/p, C)
+        signal = tokens.reshape(batch, frames, *tokens.shape[1:]).mean(dim=1)  # (B, W/p, C)
+        signal = signal + self.signal_position
+        code = self.template_encoder(template) + self.template_position  # (B, T/p, C)
+        aligned, _ = self.attention(signal, code, code, need_weights=False)  # (B, W/p, C)
+        hidden = self.regression(aligned.flatten(1))  # (B, hidden[-1])
+        return self.offset(hidden).squeeze(-1), self.log_variance(hidden).squeeze(-1)
+
+
+def count_flops(model: TimingNet, frames: int = 10) -> int:
+    """Floating-point operations of one inference (one cell, ``frames`` frames), by torch's counter
+    (a multiply-add counts 2)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    c = model.config
+    was_training = model.training
+    model.eval()
+    try:
+        with torch.no_grad(), FlopCounterMode(display=False) as counter:
+            model(torch.zeros(1, frames, c.window_length), torch.zeros(1, c.template_length))
+    finally:
+        model.train(was_training)
+    return int(counter.get_total_flops())

@@ -1,0 +1,96 @@
+"""The timing network's shape, cost and ability to learn (``deepsync.timing.model``)."""
+
+import dataclasses
+
+import pytest
+
+torch = pytest.importorskip("torch", reason="torch is not installed (scripts/setup.sh installs the CPU wheel)")
+
+from deepsync.timing.model import TimingNet, TimingNetConfig, count_flops  # noqa: E402
+
+CONFIG = TimingNetConfig()
+
+
+def inputs(batch: int, frames: int, seed: int = 0):
+    generator = torch.Generator().manual_seed(seed)
+    return (torch.randn(batch, frames, CONFIG.window_length, generator=generator),
+            torch.randn(batch, CONFIG.template_length, generator=generator))
+
+
+@pytest.mark.parametrize("batch, frames", [(1, 1), (3, 10), (2, 50)])
+def test_any_number_of_frames_gives_an_offset_and_a_log_variance_per_cell(batch, frames):
+    model = TimingNet().eval()
+    offset, log_variance = model(*inputs(batch, frames))
+    assert offset.shape == log_variance.shape == (batch,)
+    assert torch.isfinite(offset).all() and torch.isfinite(log_variance).all()
+
+
+def test_the_frames_are_aggregated_whatever_their_order():
+    model = TimingNet().eval()
+    windows, template = inputs(2, 10)
+    with torch.no_grad():
+        a = model(windows, template)
+        b = model(windows[:, torch.randperm(10)], template)
+    torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_the_cells_of_a_batch_do_not_mix():
+    model = TimingNet().eval()
+    windows, template = inputs(4, 10)
+    with torch.no_grad():
+        together = model(windows, template)[0]
+        alone = torch.cat([model(windows[i : i + 1], template[i : i + 1])[0] for i in range(4)])
+    torch.testing.assert_close(together, alone, rtol=1e-5, atol=1e-5)
+
+
+def test_one_inference_costs_at_most_the_papers_46_mflops():
+    model = TimingNet()
+    flops = count_flops(model, frames=10)
+    assert 1e6 < flops <= 46e6
+    assert count_flops(model, frames=20) > flops  # each frame goes through the encoder
+    assert model.training  # the count leaves the model as it found it
+
+
+@pytest.mark.parametrize("change, field", [
+    (dict(channels=(8, 16, 30)), "heads"),
+    (dict(template_length=400), "template_length"),
+    (dict(pool=0), "pool"),
+    (dict(dropout=1.0), "dropout"),
+    (dict(kernels=(14, 7)), "kernels"),
+])
+def test_a_config_that_cannot_be_built_names_the_field(change, field):
+    with pytest.raises(ValueError, match=field):
+        dataclasses.replace(CONFIG, **change)
+
+
+def test_it_learns_where_the_template_sits_in_the_windows():
+    """A seconds-long smoke training on a task with a known answer: noisy windows holding the
+    template at a random offset; the Huber loss must fall well below guessing the mean."""
+    torch.manual_seed(0)
+    model = TimingNet()
+    optimiser = torch.optim.Adam(model.parameters(), lr=3e-3)
+    margin = int(CONFIG.margin)
+    template = torch.zeros(CONFIG.template_length)
+    template[40:60], template[150:170] = 1.0, -1.0  # two pulses: a code-like shape with one alignment
+
+    def batch(size: int):
+        offsets = torch.randint(-margin, margin + 1, (size,))
+        windows = 0.3 * torch.randn(size, 4, CONFIG.window_length)
+        for i, offset in enumerate(offsets.tolist()):
+            windows[i, :, margin + offset : margin + offset + CONFIG.template_length] += template
+        return windows, template.expand(size, -1), offsets.float()
+
+    loss = torch.nn.HuberLoss(delta=1.0)
+    windows, templates, truth = batch(64)
+    with torch.no_grad():
+        guessing = loss(torch.full_like(truth, truth.mean().item()), truth).item()
+    for _ in range(60):
+        w, t, y = batch(32)
+        offset, _ = model(w, t)
+        optimiser.zero_grad()
+        loss(offset, y).backward()
+        optimiser.step()
+    model.eval()
+    with torch.no_grad():
+        trained = loss(model(windows, templates)[0], truth).item()
+    assert trained < 0.3 * guessing, (trained, guessing)
