@@ -10,6 +10,10 @@ Each bag is replayed once (cell search and timing, the expensive part; its wall 
   there), evaluated on the second half only (as are all variants, for one yardstick);
 * ``calibrated on all of it``: calibrated on the whole route, the same data it is scored on
   (optimistic: the calibration absorbs each site's multipath bias too);
+* ``reference station``: offsets and drifts calibrated on a fixed rooftop receiver that hears
+  the same sites in line of sight (``<route>_reference``, where a scenario for it exists), the
+  way a reference station serves LTE signals of opportunity: no NLOS bias, only the sites it
+  hears, and the multipath bias of its own fixed position;
 * ``site clock states``: the database as written, the tracker estimating each site's clock;
 * ``true clocks``: the simulation's true offsets and drifts (no calibration can beat it).
 
@@ -29,7 +33,7 @@ import pickle
 import time
 from pathlib import Path
 
-from deepsync.eval.calibrate import calibratable, oracle_database
+from deepsync.eval.calibrate import calibratable, calibrate_route, oracle_database
 from deepsync.eval.route import RouteRun, add_rssi_fixes, fuse_route, replay, summarize_route
 from deepsync.eval import route_figures
 from deepsync.fusion.anchors import Anchors
@@ -78,6 +82,11 @@ def evaluate(name: str) -> dict:
     whole, _ = calibratable(runs["database"].observations())
     runs["calibrated on all of it"] = fuse_route(
         recorded, calibrated_database(towers, calibrate_sites(whole), runs["database"].reference_ns))
+    station = None
+    reference = REPO / "bags" / "generated" / f"{name}_reference"
+    if reference.exists():
+        station = calibrate_route(BagSource(reference), towers, progress=False)
+        runs["reference station"] = fuse_route(recorded, station.database)
     runs["site clock states"] = fuse_route(recorded, towers, FusionConfig(tracker=TrackerConfig(site_clocks=True)))
     runs["true clocks"] = fuse_route(recorded, oracle_database(towers, source))
     table = {}
@@ -95,6 +104,10 @@ def evaluate(name: str) -> dict:
                             "residual_rms_before_m": calibration.residual_rms_before_m,
                             "residual_rms_after_m": calibration.residual_rms_after_m,
                             "sigma_scale": calibration.sigma_scale},
+            "reference_station": None if station is None else {
+                "bag": str(reference.relative_to(REPO)),
+                "sites": [dataclasses.asdict(s) for s in station.result.sites], "skipped": station.skipped,
+                "residual_rms_after_m": station.result.residual_rms_after_m},
             "variants": table}
 
 

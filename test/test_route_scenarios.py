@@ -83,3 +83,14 @@ def test_the_tower_database_lists_every_cell_at_its_site_plus_unheard_neighbours
     assert len(neighbours) >= 2
     for site in neighbours:  # on the air, not simulated: nothing of theirs is in the scenario
         assert not {(cell["pci"], cell["earfcn"]) for cell in site["cells"]} & scenario_cells
+
+
+def test_the_reference_station_hears_the_dense_routes_network_from_a_fixed_rooftop():
+    """route_dense_reference must share route_dense's sites and frame clocks exactly (else its
+    calibration is of another network) and stand still above the street, in line of sight."""
+    route = load_scenario(REPO / "config" / "scenarios" / "route_dense.yaml")
+    station = load_scenario(REPO / "config" / "scenarios" / "route_dense_reference.yaml")
+    assert station.sites == route.sites
+    assert (station.origin, station.seed) == (route.origin, route.seed)
+    assert station.receiver.route is None and station.receiver.height_m >= 10.0
+    assert station.environment.los == "los"
