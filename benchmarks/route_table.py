@@ -13,7 +13,8 @@ Each bag is replayed once (cell search and timing, the expensive part; its wall 
 * ``reference station``: offsets and drifts calibrated on a fixed rooftop receiver that hears
   the same sites in line of sight (``<route>_reference``, where a scenario for it exists), the
   way a reference station serves LTE signals of opportunity: no NLOS bias, only the sites it
-  hears, and the multipath bias of its own fixed position;
+  hears, and the multipath bias of its own fixed position; ``... + site clock states``: the
+  same database, the tracker going on estimating each site's clock from its sigmas;
 * ``site clock states``: the database as written, the tracker estimating each site's clock;
 * ``true clocks``: the simulation's true offsets and drifts (no calibration can beat it).
 
@@ -87,6 +88,8 @@ def evaluate(name: str) -> dict:
     if reference.exists():
         station = calibrate_route(BagSource(reference), towers, progress=False)
         runs["reference station"] = fuse_route(recorded, station.database)
+        runs["reference station + site clock states"] = fuse_route(
+            recorded, station.database, FusionConfig(tracker=TrackerConfig(site_clocks=True)))
     runs["site clock states"] = fuse_route(recorded, towers, FusionConfig(tracker=TrackerConfig(site_clocks=True)))
     runs["true clocks"] = fuse_route(recorded, oracle_database(towers, source))
     table = {}
@@ -121,13 +124,13 @@ def print_table(name: str, result: dict) -> None:
             print(f"   site {site}: {row['stacks']} stacks, timing error median {row['median_error_samples']:+.2f} "
                   f"samples, RMS {row['rms_error_samples']:.2f}, {row['beyond_1_sample']:.0%} beyond 1 sample, "
                   f"claimed {row['median_claimed_std_samples']:.2f}")
-    print(f"   {'variant':24s} {'method':9s} {'fix rate':>8s} {'median m':>9s} {'p90 m':>8s} {'NEES':>6s}")
+    print(f"   {'variant':38s} {'method':9s} {'fix rate':>8s} {'median m':>9s} {'p90 m':>8s} {'NEES':>6s}")
     for variant, summary in result["variants"].items():
         for method, row in summary["methods"].items():
             median = "-" if row["median_m"] is None else f"{row['median_m']:.1f}"
             p90 = "-" if row["p90_m"] is None else f"{row['p90_m']:.1f}"
             nees = "-" if row["nees_mean"] is None else f"{row['nees_mean']:.1f}"
-            print(f"   {variant:24s} {method:9s} {row['fix_rate']:8.0%} {median:>9s} {p90:>8s} {nees:>6s}")
+            print(f"   {variant:38s} {method:9s} {row['fix_rate']:8.0%} {median:>9s} {p90:>8s} {nees:>6s}")
     bound = database["position_bound"]
     if bound["median_m"] is not None:
         print(f"   position bound (stacks with >= 3 sites: {bound['stacks']}): median {bound['median_m']:.1f} m, "

@@ -67,7 +67,8 @@ class SiteArrival:
     ``time_s`` is the receiver time of the arrival after the fusion's reference instant;
     ``range_mod_m`` = c * (arrival - site timing - code offset), modulo :data:`FRAME_RANGE_M`;
     ``std_m`` its 1-sigma: the arrival's own (``timing_std_m``, white from stack to stack), the
-    site clock's uncertainty at that time (``clock_std_m``, the same error for every stack) and
+    site clock's uncertainty at that time (``clock_std_m``, the same error for every stack; it
+    grows at ``clock_drift_std_mps``, the uncertainty of the site clock's drift) and
     the range bias multipath and NLOS may add (``bias_std_m``, the same for a while: the
     envelope's peak lags a blocked first path by up to the channel's delay spread, which no
     timing sigma knows of). A tracker takes the last two into per-site states instead.
@@ -83,6 +84,7 @@ class SiteArrival:
     amplitude: float = math.nan  # the best sector's code amplitude (V), an RSSI
     snr_db: float = math.nan
     bias_std_m: float = 0.0
+    clock_drift_std_mps: float = 0.0
 
     @property
     def std_m(self) -> float:
@@ -174,7 +176,8 @@ class Anchors:
             clock_std_s = math.hypot(anchor.timing_offset_std_s, anchor.timing_drift_std * elapsed)
             out.append(SiteArrival(name, anchor.position_enu, time_s, range_mod,
                                    max(best.toa_std * metres_per_sample, min_std_m), tuple(sorted(c.pci for c in cells)),
-                                   SPEED_OF_LIGHT_M_S * clock_std_s, best.amplitude, best.snr_db, bias_std_m))
+                                   SPEED_OF_LIGHT_M_S * clock_std_s, best.amplitude, best.snr_db, bias_std_m,
+                                   SPEED_OF_LIGHT_M_S * anchor.timing_drift_std))
         return out, problems
 
 

@@ -51,7 +51,8 @@ filter sized at construction does not do. Sixty lines of numpy, no dependency.
   (simulated, constant N(0, 40 m) biases: 2-D NEES 2.1 with 2-3 sites per stack, 3.4 with 1-3).
 * site clocks (``site_clocks=True``): per site, next to ``m_s``, offset ``o_s`` (m) and drift
   ``r_s`` (m/s), the error of the tower database's frame timing, appended with the site's
-  bias state with the arrival's ``clock_std_m`` and ``site_clock_drift_std_mps`` as priors,
+  bias state with the arrival's ``clock_std_m`` and ``clock_drift_std_mps`` as priors (the
+  tower database's sigmas; a site without a drift in it gets ``anchors.UNKNOWN_DRIFT_STD``),
   and dropped with it (heard again, the database's priors once more). The offsets are not observable against ``b`` as a whole (adding a
   constant to ``b`` and taking it from every ``o_s`` changes no range), nor the drifts against
   ``d``: their priors hold that gauge, and what the data estimate is how sites disagree. Weakly
@@ -132,7 +133,6 @@ class TrackerConfig:
     height_correlation_s: float = 60.0  # 3-D: how long the receiver's height stays off the nominal
     bias_correlation_s: float = 30.0  # how long a site's multipath range bias stays (~40 m walked)
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
-    site_clock_drift_std_mps: float = 6.0  # drift prior of a site clock (20 ns/s)
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
 
     def __post_init__(self) -> None:
@@ -155,7 +155,6 @@ class TrackerConfig:
             "max_clock_ppm": 0 < self.max_clock_ppm <= 1000,
             "height_correlation_s": 0 < self.height_correlation_s <= 1e5,
             "bias_correlation_s": 0 < self.bias_correlation_s <= 1e5,
-            "site_clock_drift_std_mps": 0 < self.site_clock_drift_std_mps <= 1e4,
             "site_clock_wander_mps_per_sqrt_s": 0 <= self.site_clock_wander_mps_per_sqrt_s <= 1e3,
         }
         for name, ok in checks.items():
@@ -370,7 +369,7 @@ class Tracker:
         site = self._sites[arrival.site] = _Site(n, self._bias_variance(arrival), arrival.time_s)
         prior = [site.variance_m2]
         if c.site_clocks:
-            prior += [arrival.clock_std_m**2, c.site_clock_drift_std_mps**2]
+            prior += [arrival.clock_std_m**2, arrival.clock_drift_std_mps**2]
         self._x = np.append(self._x, np.zeros(self._width))
         P = np.zeros((n + self._width, n + self._width))
         P[:n, :n] = self._P
