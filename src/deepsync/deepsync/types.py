@@ -239,6 +239,15 @@ class CellTiming:
             raise ValueError(f"CellTiming.toa_std {self.toa_std!r} must be finite and >= 0")
 
 
+def _check_time_base(stack: StackArrivals | StackWindows) -> None:
+    """A stack's sample rate and measured clock drift: ValueError naming the type and field."""
+    name = type(stack).__name__
+    if not (math.isfinite(stack.sample_rate) and stack.sample_rate > 0):
+        raise ValueError(f"{name}.sample_rate {stack.sample_rate!r} must be > 0")
+    if stack.clock_drift_ppm is not None and not math.isfinite(stack.clock_drift_ppm):
+        raise ValueError(f"{name}.clock_drift_ppm {stack.clock_drift_ppm!r} must be finite or None")
+
+
 @dataclass(frozen=True)
 class StackArrivals:
     """The arrivals of one stack and the time base they are read on (``CellTimingArray``).
@@ -255,10 +264,7 @@ class StackArrivals:
     clock_drift_ppm: float | None = None
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.sample_rate) and self.sample_rate > 0):
-            raise ValueError(f"StackArrivals.sample_rate {self.sample_rate!r} must be > 0")
-        if self.clock_drift_ppm is not None and not math.isfinite(self.clock_drift_ppm):
-            raise ValueError(f"StackArrivals.clock_drift_ppm {self.clock_drift_ppm!r} must be finite or None")
+        _check_time_base(self)
         object.__setattr__(self, "cells", tuple(self.cells))
 
     def seconds_after_stamp(self, cell: CellTiming) -> float:
@@ -282,10 +288,7 @@ class StackWindows:
     clock_drift_ppm: float | None = None
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.sample_rate) and self.sample_rate > 0):
-            raise ValueError(f"StackWindows.sample_rate {self.sample_rate!r} must be > 0")
-        if self.clock_drift_ppm is not None and not math.isfinite(self.clock_drift_ppm):
-            raise ValueError(f"StackWindows.clock_drift_ppm {self.clock_drift_ppm!r} must be finite or None")
+        _check_time_base(self)
         object.__setattr__(self, "windows", tuple(self.windows))
 
     def arrivals(self, cells: Sequence[CellTiming]) -> StackArrivals:
