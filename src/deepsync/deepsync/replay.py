@@ -60,7 +60,7 @@ from deepsync.bag.reader import SalvageReader
 from deepsync.frontend.config import FrontendConfig
 from deepsync.fusion.stage import FusionResult
 from deepsync.pipeline import Pipeline, PipelineConfig, TimedStack, places_sites
-from deepsync.sources.bagfile import bag_dir
+from deepsync.sources.bagfile import bag_dir, recorded_frontend
 from deepsync.towers import TowerDatabase
 from deepsync.types import FRAME_SECONDS, Fix, Health, StackArrivals
 
@@ -136,20 +136,6 @@ def open_input(path: str | Path) -> tuple[BagReader | SalvageReader, str | None]
         if not salvage.topics:
             raise refused from None
         return salvage, str(refused)
-
-
-def recorded_frontend(provenance: str | None, sample_rate: float, where: str | Path) -> FrontendConfig:
-    """The front end the bag says its stream went through, else the default chain at the rate
-    of the stream's first message (BagError naming the bag when neither works)."""
-    if provenance:
-        try:
-            return FrontendConfig(**json.loads(provenance)["frontend"])
-        except (ValueError, KeyError, TypeError) as error:
-            raise BagError(f"{where}: unreadable front-end provenance ({error})") from None
-    try:
-        return FrontendConfig(adc_rate_hz=sample_rate)
-    except ValueError as error:
-        raise BagError(f"{where}: no default front end at {sample_rate:g} Hz: {error}") from None
 
 
 def _provenance(recorded: str | None, path: Path, stages: Sequence[str], towers: TowerDatabase | None,

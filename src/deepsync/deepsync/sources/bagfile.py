@@ -79,17 +79,25 @@ def bag_frontend(path: str | os.PathLike) -> FrontendConfig:
 
 def _frontend(where: Path, provenance: str | None) -> FrontendConfig:
     if provenance:
+        return recorded_frontend(provenance, None, where)
+    first = next(iter(read_envelope(where)), None)
+    if first is None:
+        raise BagError(f"{where}: no provenance and no {ENVELOPE_TOPIC} messages: the sample rate is unknown")
+    return recorded_frontend(None, first.sample_rate, where)
+
+
+def recorded_frontend(provenance: str | None, sample_rate: float | None, where: str | os.PathLike) -> FrontendConfig:
+    """The front end a bag's provenance names, else the default chain at ``sample_rate`` (the
+    stream's, from its first message); BagError naming the bag when neither works."""
+    if provenance:
         try:
             return FrontendConfig(**json.loads(provenance)["frontend"])
         except (ValueError, KeyError, TypeError) as error:
             raise BagError(f"{where}: unreadable front-end provenance ({error})") from None
-    first = next(iter(read_envelope(where)), None)
-    if first is None:
-        raise BagError(f"{where}: no provenance and no {ENVELOPE_TOPIC} messages: the sample rate is unknown")
     try:
-        return FrontendConfig(adc_rate_hz=first.sample_rate)
-    except ValueError as error:
-        raise BagError(f"{where}: no default front end at {first.sample_rate:g} Hz: {error}") from None
+        return FrontendConfig(adc_rate_hz=sample_rate)
+    except (TypeError, ValueError) as error:
+        raise BagError(f"{where}: no default front end at {sample_rate!r} Hz: {error}") from None
 
 
 @dataclass(frozen=True)
