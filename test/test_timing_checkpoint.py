@@ -77,6 +77,7 @@ def test_a_mismatched_or_tampered_checkpoint_is_refused_by_name(tmp_path, tamper
         load_checkpoint(path)
 
 
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol")  # torch's note on the plain pickle
 @pytest.mark.parametrize("content", [b"", b"not a checkpoint at all", pickle.dumps([1, 2, 3])],
                          ids=["empty", "text", "plain_pickle"])
 def test_what_is_not_a_checkpoint_says_so(tmp_path, content):
