@@ -247,3 +247,19 @@ def test_worker_processes_give_the_single_process_stream_bit_for_bit():
         return np.concatenate([chunk.samples for chunk in simulator.stream(2.2, workers=workers)])
 
     assert np.array_equal(stream(1), stream(3))  # three units on three processes, the last one short
+
+
+def test_the_analog_output_of_any_window_is_the_streams():
+    """``analog`` is a pure function of the sample range, noise included: a cell's code window
+    computed on its own (what a windowed training-example generator needs) equals the same
+    samples of the whole stream, bit for bit, wherever the window falls."""
+    from pathlib import Path
+
+    from deepsync.twin import build_twin
+    from deepsync.twin.scenario import load_scenario
+
+    twin = build_twin(load_scenario(Path(__file__).resolve().parents[1] / "config" / "scenarios" / "campus.yaml"))
+    whole = EnvelopeSimulator(twin.emitters, twin.channel, twin.frontend, 7).analog(0, 2 * 19200)
+    for start in (0, 5000, 16200, 19100, 30000):  # in a video block, across one (at 16336), across a frame
+        alone = EnvelopeSimulator(twin.emitters, twin.channel, twin.frontend, 7).analog(start, start + 296)
+        np.testing.assert_array_equal(alone, whole[start : start + 296])
