@@ -17,7 +17,7 @@ are a contiguous part of sync -> timing -> fusion; the first one's input topic m
 
 Written atomically: an interrupted replay (Ctrl-C, SIGTERM, an error) leaves nothing. A damaged
 B is the exception that still gives a bag: whatever can be read before the damage is replayed
-(:class:`~deepsync.bag.reader.SalvageReader` for a bag that cannot even be opened, cut short or with a
+(:class:`~deepsync.bag.SalvageReader` for a bag that cannot even be opened, cut short or with a
 corrupt summary), the output holds everything produced from it, and
 :attr:`ReplaySummary.damage` says where the reading stopped.
 """
@@ -47,6 +47,7 @@ from deepsync.bag import (
     BagMessage,
     BagReader,
     BagWriter,
+    SalvageReader,
     cell_timing_array_from_msg,
     cell_timing_array_to_msg,
     envelope_from_msg,
@@ -56,7 +57,6 @@ from deepsync.bag import (
     sync_window_array_to_msg,
 )
 from deepsync.bag.convert import CELL_TIMING_ARRAY, ENVELOPE_SAMPLES, SYNC_WINDOW_ARRAY
-from deepsync.bag.reader import SalvageReader
 from deepsync.frontend.config import FrontendConfig
 from deepsync.fusion.stage import FusionResult
 from deepsync.pipeline import Pipeline, PipelineConfig, TimedStack, places_sites

@@ -25,7 +25,7 @@ from .convert import (
 from .errors import BagError, BagExistsError, MsgDefsNotFoundError
 from .msgdefs import MSG_NAMES, find_msg_dir, load_typestore, msgtype, typestore
 from .mcapfile import CrcStatus
-from .reader import BagInconsistency, BagMessage, BagReader, read_envelope, read_messages
+from .reader import BagInconsistency, BagMessage, BagReader, SalvageReader, read_envelope, read_messages
 from .topics import (
     CELL_TIMING_TOPIC,
     ENVELOPE_TOPIC,
@@ -66,6 +66,7 @@ __all__ = [
     "BagWriter",
     "CrcStatus",
     "MsgDefsNotFoundError",
+    "SalvageReader",
     "cell_timing_array_from_msg",
     "cell_timing_array_to_msg",
     "envelope_from_msg",
