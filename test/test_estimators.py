@@ -266,3 +266,20 @@ def test_bad_input_is_refused(templates):
         noise_psd(good[:1])
     with pytest.raises(ValueError, match="numeric"):
         estimate_ml([["a"] * 3] * 2, template, MARGIN)
+
+
+def test_ml_within_an_interval_keeps_to_it_and_agrees_when_the_peak_is_inside():
+    from deepsync.timing.estimators import estimate_ml, noise_psd
+
+    rng = np.random.default_rng(5)
+    template = np.sin(np.linspace(0, 40, 276)) * np.hanning(276)
+    rows = rng.normal(size=(10, 296)) * 0.05
+    rows[:, 13 : 13 + 276] += template  # the code at offset +3
+    psd = noise_psd(rows)
+    free = estimate_ml(rows, template, 10, psd)
+    inside = estimate_ml(rows, template, 10, psd, within=(1.0, 5.0))
+    assert abs(free.offset - 3.0) < 0.05 and inside.offset == pytest.approx(free.offset, abs=1e-6)
+    elsewhere = estimate_ml(rows, template, 10, psd, within=(-8.0, -5.0))
+    assert -8.0 <= elsewhere.offset <= -5.0
+    with pytest.raises(ValueError, match="within"):
+        estimate_ml(rows, template, 10, psd, within=(2.0, 1.0))

@@ -13,10 +13,12 @@ from deepsync.timing.checkpoint import (  # noqa: E402
     load_checkpoint,
     save_checkpoint,
 )
+from deepsync.timing.inputs import Normalisation  # noqa: E402
 from deepsync.timing.model import TimingNet, TimingNetConfig  # noqa: E402
 
 RANGE = TrainingRange(sample_rate=1.92e6, min_frames=5, max_frames=40, min_snr_db=-30.0, max_snr_db=10.0,
                       cosited_pairs=True)
+SCALE = Normalisation(window_scale=1.7)
 
 
 def trained_looking(config: TimingNetConfig | None = None) -> TimingNet:
@@ -32,9 +34,10 @@ def test_a_checkpoint_gives_back_the_same_network(tmp_path):
     model = trained_looking(TimingNetConfig(channels=(8, 16, 16), heads=2))
     optimiser = torch.optim.Adam(model.parameters())
     path = tmp_path / "net.pt"
-    save_checkpoint(path, model, RANGE, step=123, optimiser=optimiser.state_dict(), meta={"seed": 7})
+    save_checkpoint(path, model, RANGE, SCALE, step=123, optimiser=optimiser.state_dict(), meta={"seed": 7})
     loaded = load_checkpoint(path)
     assert loaded.model.config == model.config and loaded.training_range == RANGE
+    assert loaded.normalisation == SCALE
     assert (loaded.step, loaded.meta) == (123, {"seed": 7})
     assert not loaded.model.training
     windows, template = torch.randn(3, 10, 296), torch.randn(3, 276)
@@ -65,11 +68,13 @@ def test_a_file_that_would_run_code_is_refused_without_running_it(tmp_path, caps
     (lambda p: p["state_dict"].pop("offset.bias"), "missing: offset.bias"),
     (lambda p: p["state_dict"]["offset.bias"].fill_(float("nan")), "NaN"),
     (lambda p: p.update(step="many"), "step"),
+    (lambda p: p["normalisation"].update(window_scale=-1.0), "window_scale"),
+    (lambda p: p.pop("normalisation"), "normalisation"),
 ], ids=["format", "version", "shapes", "config_value", "config_field", "range_field", "weight_missing",
-        "weight_nan", "step_type"])
+        "weight_nan", "step_type", "normalisation_value", "normalisation_missing"])
 def test_a_mismatched_or_tampered_checkpoint_is_refused_by_name(tmp_path, tamper, message):
     path = tmp_path / "net.pt"
-    save_checkpoint(path, trained_looking(), RANGE)
+    save_checkpoint(path, trained_looking(), RANGE, SCALE)
     payload = torch.load(path, weights_only=True)
     tamper(payload)
     torch.save(payload, path)
@@ -94,7 +99,7 @@ def test_a_missing_file_says_so(tmp_path):
 
 def test_a_truncated_checkpoint_is_refused(tmp_path):
     path = tmp_path / "net.pt"
-    save_checkpoint(path, trained_looking(), RANGE)
+    save_checkpoint(path, trained_looking(), RANGE, SCALE)
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
     with pytest.raises(CheckpointError, match="not a loadable checkpoint"):

@@ -6,6 +6,7 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    package_data={"deepsync.timing": ["timing_net.pt"]},  # the shipped network (a few hundred kB)
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -24,7 +25,7 @@ setup(
         "sigmf>=1.14",
     ],
     # the timing network; the classical estimators, the nodes and the rest of the chain need none
-    extras_require={"network": ["torch>=2.4"]},
+    extras_require={"network": ["torch>=2.4"], "onnx": ["onnx>=1.16", "onnxscript>=0.5", "onnxruntime>=1.18"]},
     zip_safe=True,
     maintainer="DeepSync",
     maintainer_email="dev@deepsync.invalid",

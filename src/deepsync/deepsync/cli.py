@@ -342,6 +342,63 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    try:
+        from deepsync.training.train import load_run_config, train
+    except ModuleNotFoundError as error:
+        raise ValueError(f"training needs {error.name}: pip install -e 'src/deepsync[network]' (scripts/setup.sh "
+                         "does it)") from None
+
+    run = load_run_config(args.config)
+    print(f"training the timing network from {args.config}: {run.training.steps} steps of "
+          f"{run.training.batch_size}, run directory {run.training.run_dir}")
+    path = train(run, args.config)
+    print(f"  best checkpoint: {path}")
+    return 0
+
+
+def _cmd_evaluate_timing(args: argparse.Namespace) -> int:
+    from deepsync.eval.timing import evaluate_timing
+
+    frames = tuple(int(f) for f in args.frames.split(","))
+    if args.bag:
+        from deepsync.eval.timing import evaluate_timing_bag
+
+        source = BagSource(args.bag)
+        towers = None if args.towers is None else load_tower_database(args.towers)
+        summary = evaluate_timing_bag(source, towers, args.out, args.checkpoint, frames[0], progress=not args.quiet)
+        print(f"timing side by side on {source.description}, {frames[0]} frames: {summary['cells_timed']} cells timed, "
+              f"{summary['fallbacks_to_ml']} of them by ML instead of the network")
+        for name in ("network", "network_ml", "ml", "fft_upsampled", "parabolic"):
+            stats = summary[name]
+            print(f"  {name:14s} median {stats['median']:.3f}  p90 {stats['p90']:.3f}  RMSE {stats['rmse']:.3f} samples, "
+                  f"{100 * stats['within_1_sigma']:.0f} % within 1 sigma")
+        print(f"  written: {Path(args.out) / 'timing_bag.json'}")
+        return 0
+    print(f"timing side by side on {args.data}/{args.split}, {', '.join(map(str, frames))} frames; "
+          f"network {args.checkpoint or 'shipped'}")
+    summary = evaluate_timing(args.data, args.out, args.checkpoint, frames, args.split, progress=not args.quiet)
+    for count, result in summary["frames"].items():
+        line = ", ".join(f"{name} {result['all'][name]['median']:.3f}/{result['all'][name]['rmse']:.3f}"
+                         for name in ("network", "network_ml", "ml", "fft_upsampled", "parabolic"))
+        print(f"  {count} frames, median/RMSE (samples): {line}; CRLB RMS {result['all']['crlb_rms']:.3f}")
+    for key, value in summary["headline"].items():
+        print(f"  {key}: {value}")
+    print(f"  written: {Path(args.out) / 'timing.json'}, {Path(args.out) / 'timing.png'}")
+    return 0
+
+
+def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    from deepsync.timing.checkpoint import load_checkpoint
+    from deepsync.timing.export import check_onnx, export_onnx
+    from deepsync.timing.network import DEFAULT_CHECKPOINT
+
+    checkpoint = load_checkpoint(args.checkpoint or DEFAULT_CHECKPOINT)
+    path = export_onnx(checkpoint, args.out)
+    print(f"written {path}: largest |onnxruntime - torch| on random inputs {check_onnx(path, checkpoint):.2e}")
+    return 0
+
+
 def _cmd_compare_poses(args: argparse.Namespace) -> int:
 
     result = compare_poses(args.reference, args.other, args.topic)
@@ -460,6 +517,29 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--tolerance", type=_positive_float, default=DEFAULT_TOLERANCE_M, metavar="METRES",
                          help="largest position difference still the same (default %(default)s m)")
     compare.set_defaults(run=_cmd_compare_poses)
+
+    training = commands.add_parser("train", help="train the timing network (makes its simulated examples first "
+                                   "if missing; resumes an interrupted run)")
+    training.add_argument("--config", required=True, help="run YAML (config/timing/timing_net.yaml)")
+    training.set_defaults(run=_cmd_train)
+
+    evaluate = commands.add_parser("evaluate-timing", help="network, ML, FFT-upsampled and parabolic timing side "
+                                   "by side against the true first path and the CRLB: JSON and a figure")
+    evaluate.add_argument("--data", default="data/timing", help="timing data directory (deepsync train makes it)")
+    evaluate.add_argument("--split", default="test", choices=("train", "val", "test"))
+    evaluate.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
+    evaluate.add_argument("--frames", default="5,10,12", help="stacked frames to evaluate, comma-separated "
+                          "(with --bag: the first)")
+    evaluate.add_argument("--bag", help="instead of the test set: a simulated bag with ground truth")
+    evaluate.add_argument("--towers", help="with --bag: tower database YAML (known-PCI cell search)")
+    evaluate.add_argument("--out", default=str(REPO / "out" / "timing"), help="where timing.json and timing.png go")
+    evaluate.add_argument("--quiet", action="store_true", help="no progress bar")
+    evaluate.set_defaults(run=_cmd_evaluate_timing)
+
+    onnx = commands.add_parser("export-onnx", help="write the timing network as ONNX and check it against torch")
+    onnx.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
+    onnx.add_argument("--out", required=True, help="the .onnx file to write")
+    onnx.set_defaults(run=_cmd_export_onnx)
 
     info = commands.add_parser("info", help="describe a bag")
     info.add_argument("--bag", required=True)

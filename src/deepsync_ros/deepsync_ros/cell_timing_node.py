@@ -3,8 +3,8 @@
 Subscribes ``sync_windows`` (SyncWindowArray) and runs the core's
 :class:`~deepsync.timing.stage.TimingStage`; the arrivals go out on ``cell_timing``
 (CellTimingArray, reliable) on the stack's time base, stamped and framed as the windows came.
-``estimator`` and ``weak_std_samples`` may change while the node runs (an A/B comparison on
-live data).
+``estimator``, ``checkpoint`` and ``weak_std_samples`` may change while the node runs (an A/B
+comparison on live data).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from deepsync_msgs.msg import CellTimingArray, SyncWindowArray
 
 from deepsync.bag.topics import CELL_TIMING_TOPIC, SYNC_WINDOWS_TOPIC, relative_name
-from deepsync.timing.stage import TimingStage
+from deepsync.timing.stage import Estimator, TimingStage
 
 from . import params
 from .conversions import cell_timing_array_to_msg, sync_window_array_from_msg
@@ -30,10 +30,12 @@ class CellTimingNode(DeepSyncNode):
 
     def setup(self, values: Mapping[str, ParamValue]) -> None:
         frontend = params.frontend(values, self.NAME)
+        config = params.timing_config(values, self.NAME)
         try:
-            self.stage = TimingStage(frontend, params.timing_config(values, self.NAME))
-        except ValueError as error:  # no templates for this front end (its ADC rate)
-            raise ParameterError(f"{self.NAME}.frontend: {error}") from None
+            self.stage = TimingStage(frontend, config)
+        except ValueError as error:  # no templates for this front end (its ADC rate), or no usable network
+            parameter = "estimator" if config.estimator is Estimator.NETWORK else "frontend"
+            raise ParameterError(f"{self.NAME}.{parameter}: {error}") from None
         self.health = StageHealth()
         self.publisher = self.create_publisher(CellTimingArray, relative_name(CELL_TIMING_TOPIC), RESULTS_QOS)
         self.subscription = self.create_subscription(SyncWindowArray, relative_name(SYNC_WINDOWS_TOPIC),
@@ -41,8 +43,10 @@ class CellTimingNode(DeepSyncNode):
         self.add_diagnostic("cell timing", self.health.report)
 
     def reconfigure(self, values: Mapping[str, ParamValue]) -> None:
-        # the stage reads its config at every cell; its template cache does not depend on it
-        self.stage.config = params.timing_config(values, self.NAME)
+        try:
+            self.stage = self.stage.with_config(params.timing_config(values, self.NAME))
+        except ValueError as error:  # a network that cannot be loaded: the running stage stays
+            raise ParameterError(f"{self.NAME}.estimator: {error}") from None
 
     def _on_windows(self, message: SyncWindowArray) -> None:
         arrived = time.monotonic()

@@ -140,6 +140,8 @@ TIMING = (
               choices=tuple(e.value for e in Estimator), read_only=False),
     ParamSpec("weak_std_samples", _TIMING.weak_std_samples, "Flag an arrival whose 1-sigma exceeds this "
               "[samples] (1 sample = 156 m at 1.92 MS/s).", range=(0.0, 1e3), read_only=False),
+    ParamSpec("checkpoint", "", "Timing-network checkpoint for estimator network; empty: the one shipped with "
+              "deepsync.", read_only=False),
 )
 FUSION = (
     ParamSpec("tracking", _FUSION.track, "Run the tracker besides the snapshot solver; the published fix is the "
@@ -211,13 +213,13 @@ def _sync(n_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: in
         confirm_stacks=confirm_stacks)
 
 
-def _timing(estimator: str, weak_std_samples: float) -> TimingConfig:
+def _timing(estimator: str, weak_std_samples: float, checkpoint: str) -> TimingConfig:
     try:
         kind = Estimator(estimator)
     except ValueError:
         choices = ", ".join(e.value for e in Estimator)
         raise ValueError(f"estimator must be one of {choices}, got {estimator!r}") from None
-    return TimingConfig(estimator=kind, weak_std_samples=weak_std_samples)
+    return TimingConfig(estimator=kind, weak_std_samples=weak_std_samples, checkpoint=checkpoint or None)
 
 
 def _fusion(tracking: bool, multipath_std_m: float, min_std_m: float, receiver_height_m: float) -> FusionConfig:

@@ -54,8 +54,10 @@ class PipelineNode(DeepSyncNode):
     def reconfigure(self, values: Mapping[str, ParamValue]) -> None:
         timing = params.timing_config(values, self.NAME)
         playback = params.playback_config(values, self.NAME)
-        # the timing stage reads its config at every cell; its template cache does not depend on it
-        self.pipeline.timing.config = timing
+        try:
+            self.pipeline.timing = self.pipeline.timing.with_config(timing)
+        except ValueError as error:  # a network that cannot be loaded: the running stage stays
+            raise ParameterError(f"{self.NAME}.estimator: {error}") from None
         self.playback.reconfigure(playback)
 
     def _process(self, chunk: EnvelopeChunk, now_s: float) -> None:

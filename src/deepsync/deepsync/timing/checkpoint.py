@@ -23,6 +23,7 @@ from typing import Any
 
 import torch
 
+from deepsync.timing.inputs import Normalisation
 from deepsync.timing.model import TimingNet, TimingNetConfig
 
 FORMAT = "deepsync-timing-net"
@@ -59,6 +60,7 @@ class TimingCheckpoint:
 
     model: TimingNet
     training_range: TrainingRange
+    normalisation: Normalisation  # how its inputs must be scaled (``timing.inputs``)
     step: int  # optimiser steps taken
     optimiser: dict[str, Any] | None  # Adam's state, to resume training
     meta: dict[str, Any]  # how it was made (config file, seed, command): strings and numbers
@@ -71,7 +73,8 @@ def _plain(value: object) -> object:
     return value
 
 
-def save_checkpoint(path: str | Path, model: TimingNet, training_range: TrainingRange, *, step: int = 0,
+def save_checkpoint(path: str | Path, model: TimingNet, training_range: TrainingRange,
+                    normalisation: Normalisation, *, step: int = 0,
                     optimiser: dict[str, Any] | None = None, meta: dict[str, Any] | None = None) -> None:
     """Write a checkpoint atomically (a crash leaves the previous file, or none)."""
     payload = {
@@ -79,6 +82,7 @@ def save_checkpoint(path: str | Path, model: TimingNet, training_range: Training
         "version": VERSION,
         "config": {k: _plain(v) for k, v in dataclasses.asdict(model.config).items()},
         "training_range": dataclasses.asdict(training_range),
+        "normalisation": dataclasses.asdict(normalisation),
         "state_dict": {name: tensor.detach().cpu() for name, tensor in model.state_dict().items()},
         "step": int(step),
         "optimiser": optimiser,
@@ -137,6 +141,8 @@ def load_checkpoint(path: str | Path) -> TimingCheckpoint:
     config = _dataclass(TimingNetConfig, _field(payload, "config", dict, where), f"{where}: config")
     training_range = _dataclass(TrainingRange, _field(payload, "training_range", dict, where),
                                 f"{where}: training_range")
+    normalisation = _dataclass(Normalisation, _field(payload, "normalisation", dict, where),
+                               f"{where}: normalisation")
     state = _field(payload, "state_dict", dict, where)
     model = TimingNet(config)
     expected = model.state_dict()
@@ -156,4 +162,4 @@ def load_checkpoint(path: str | Path) -> TimingCheckpoint:
     optimiser = payload.get("optimiser")
     if optimiser is not None and not isinstance(optimiser, dict):
         raise CheckpointError(f"{where}: 'optimiser' is a {type(optimiser).__name__}, expected a dict or None")
-    return TimingCheckpoint(model, training_range, step, optimiser, _field(payload, "meta", dict, where))
+    return TimingCheckpoint(model, training_range, normalisation, step, optimiser, _field(payload, "meta", dict, where))

@@ -289,7 +289,7 @@ class _Posterior:
     probability: np.ndarray  # posterior mass of each grid point (sums to 1)
 
 
-def _posterior(problem: _Problem, stacked_psd: np.ndarray) -> _Posterior | None:
+def _posterior(problem: _Problem, stacked_psd: np.ndarray, allowed: np.ndarray | None = None) -> _Posterior | None:
     """Where the code may be, given the data: the Whittle posterior over the search range.
 
     Log-likelihood at the measured amplitude A (the pedestal lives in the DC bin):
@@ -298,8 +298,8 @@ def _posterior(problem: _Problem, stacked_psd: np.ndarray) -> _Posterior | None:
     variance 1 / (2 E) (for pure noise u ~ N(0, E / 2) at every lag).
     The amplitude is held at its measured value rather than profiled lag by lag: a profile
     would treat "no code here" (A = 0) as a hypothesis at every lag and spread the posterior
-    far too wide at moderate SNR. Flat prior over lags 0..2*margin, integrated on a
-    ``GRID_STEP`` grid (trapezoid). None when the window carries no noise at all.
+    far too wide at moderate SNR. Flat prior over lags 0..2*margin (or over the ``allowed``
+    ones), integrated on a ``GRID_STEP`` grid (trapezoid). None when the window carries no noise at all.
     """
     k = problem.inner
     s = stacked_psd[k]
@@ -311,9 +311,11 @@ def _posterior(problem: _Problem, stacked_psd: np.ndarray) -> _Posterior | None:
     energy = float(np.sum(np.abs(problem.t_spec[k]) ** 2 / (length * s)))
     lags, phases = _phase_grid(length, problem.margin)
     u = np.real(phases @ z)
-    amplitude = float(u.max()) / energy  # ML amplitude at the best lag, var 1 / (2 E): bias-corrected
+    amplitude = float((u if allowed is None else u[allowed]).max()) / energy  # at the best lag, var 1 / (2 E): bias-corrected
     amplitude = math.sqrt(max(amplitude**2 - 1 / (2 * energy), 0.0)) if amplitude > 0 else 0.0
     log_like = 2 * amplitude * u
+    if allowed is not None:
+        log_like = np.where(allowed, log_like, -np.inf)
     mass = np.exp(log_like - log_like.max())
     mass[[0, -1]] *= 0.5
     return _Posterior(lags, mass / mass.sum())
@@ -464,7 +466,20 @@ def estimate_fft_upsampled(windows: np.ndarray, template: np.ndarray, margin: in
 # -- maximum likelihood ------------------------------------------------------------------------
 
 
-def _ml_lag(problem: _Problem, weights: np.ndarray) -> float:
+def _allowed_lags(problem: _Problem, within: tuple[float, float]) -> np.ndarray:
+    """Grid lags inside the offset interval ``within`` (clipped to the margin; at least the
+    grid point nearest its middle)."""
+    low, high = (float(v) for v in within)
+    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+        raise ValueError(f"within: {within!r} must be an increasing pair of finite offsets")
+    grid, _ = _phase_grid(problem.length, problem.margin)
+    allowed = (grid >= problem.margin + low) & (grid <= problem.margin + high)
+    if not allowed.any():
+        allowed[np.argmin(np.abs(grid - problem.margin - np.clip((low + high) / 2, -problem.margin, problem.margin)))] = True
+    return allowed
+
+
+def _ml_lag(problem: _Problem, weights: np.ndarray, allowed: np.ndarray | None = None) -> float:
     z = problem.cross[problem.inner] * weights
     omega = problem.omega
     top = 2.0 * problem.margin
@@ -473,8 +488,14 @@ def _ml_lag(problem: _Problem, weights: np.ndarray) -> float:
         return float(np.sum(np.real(z * np.exp(1j * omega * lag))))
 
     grid, phases = _phase_grid(problem.length, problem.margin)
-    best = float(grid[np.argmax(np.real(phases @ z))])
+    values = np.real(phases @ z)
+    if allowed is not None:  # a prior interval: the maximum inside it
+        values = np.where(allowed, values, -np.inf)
+    best = float(grid[np.argmax(values)])
     low, high = max(0.0, best - 2 * GRID_STEP), min(top, best + 2 * GRID_STEP)
+    if allowed is not None:
+        inside = grid[allowed]
+        low, high = max(low, float(inside[0])), min(high, float(inside[-1]))
     result = scipy.optimize.minimize_scalar(
         lambda lag: -correlation(lag), bounds=(low, high), method="bounded", options={"xatol": 1e-6}
     )
@@ -497,8 +518,13 @@ def estimate_ml(
     template: np.ndarray,
     margin: int,
     noise_psd: np.ndarray | float | None = None,
+    within: tuple[float, float] | None = None,
 ) -> TimingEstimate:
     """Maximum-likelihood fractional delay (band-limited correlation, maximised continuously).
+
+    ``within`` (low, high offsets, samples): a prior interval (the timing network's estimate
+    +- its uncertainty): the maximum is looked for inside it only, and the posterior of the
+    std is the flat prior over it rather than over the whole margin.
 
     Maximises r(tau) = sum_k Re(W_k conj(T_k) e^{j w_k (margin + tau)}) / P_k over the bins
     between DC and Nyquist (W, T: DFTs of the zero-mean stacked window and of the template
@@ -525,7 +551,8 @@ def estimate_ml(
         weights = 1 / given[problem.inner]
         weights = weights / weights.mean()
         stacked = given / problem.n_frames
-    lag = _ml_lag(problem, weights)
+    allowed = None if within is None else _allowed_lags(problem, within)
+    lag = _ml_lag(problem, weights, allowed)
     fit = _fit(problem, lag, weights, stacked)
-    std = _total_std(lag, fit.sandwich_std, _posterior(problem, stacked))
+    std = _total_std(lag, fit.sandwich_std, _posterior(problem, stacked, allowed))
     return TimingEstimate(lag - problem.margin, std, fit.snr_db, "ml")

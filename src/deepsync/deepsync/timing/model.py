@@ -3,15 +3,19 @@ offset and an honest sigma out.
 
 The paper's architecture (Ghosh et al., ICML 2025, section 4), sized for a tracker:
 
-  windows (B, F, W) ──▶ signal encoder, the same on every frame ──▶ mean over frames ──▶ Z (B, W/p, C)
-  template (B, T)   ──▶ template encoder (its own weights)     ──────────────────────▶ H (B, T/p, C)
+  windows (B, F, W) ──▶ [frame f, stack] ──▶ signal encoder, the same on every frame ──▶ mean over frames ──▶ Z (B, W/p, C)
+  template (B, T)   ──▶ template encoder (its own weights)     ───────────────────────────────────────▶ H (B, T/p, C)
   cross-attention: Z queries, H keys and values ──▶ (B, W/p, C) ──▶ flatten ──▶ 3 dense layers
   ──▶ offset (B,) samples, log-variance (B,)
 
 Each encoder is three 1-D convolutions with decreasing kernels (14, 7, 5), batch norm and ReLU,
 with an average pool of ``pool`` samples after the first (fewer samples for the other two and
-fewer tokens for the attention, whose cost grows with their square). Averaging the frames' feature maps (temporal aggregation) rather than the frames
-themselves lets the encoder see each frame's own fading before they are combined. The offset is
+fewer tokens for the attention, whose cost grows with their square). Averaging the frames' feature
+maps (temporal aggregation) rather than the frames themselves lets the encoder see each frame's
+own fading before they are combined; but a nonlinear encoder on a frame that noise dominates
+(the code sits at -20 dB per frame and below where ML breaks down) loses what coherent stacking
+gains, so each frame enters the encoder as two channels: the frame, and the stack (the mean of
+all frames, times sqrt(F) so it is in units of its own noise, as the frames are). The offset is
 where the template's start lies in the windows, in samples from the windows' first sample,
 minus the margin (``window_length - template_length) / 2``), i.e. relative to the coarse code
 position the sync stage cut the windows at; the log-variance head gives the sigma the fusion
@@ -25,6 +29,9 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
+
+
+LOG_VARIANCE_RANGE = (-12.0, 6.0)  # the sigma head's output is clamped to this: 0.0025 to 20 samples
 
 
 @dataclass(frozen=True)
@@ -67,15 +74,24 @@ class TimingNetConfig:
         return self.template_length // self.pool
 
 
+def sinusoids(tokens: int, width: int, pool: int) -> torch.Tensor:
+    """(tokens, width): sin and cos of each token's sample position at ``width // 2`` wavelengths
+    from 4 samples to the window length, geometrically spaced."""
+    position = torch.arange(tokens, dtype=torch.float32)[:, None] * pool
+    wavelengths = 4.0 * (tokens * pool / 4.0) ** (torch.arange(width // 2, dtype=torch.float32) / max(1, width // 2 - 1))
+    angle = 2 * torch.pi * position / wavelengths
+    return torch.cat([torch.sin(angle), torch.cos(angle)], dim=1)
+
+
 class Encoder(nn.Module):
-    """(N, L) traces -> (N, L // pool, C) tokens: three convolutions that keep the length (an even
+    """(N, inputs, L) traces -> (N, L // pool, C) tokens: three convolutions that keep the length (an even
     kernel is padded one more sample after than before), each with batch norm and ReLU; the first
     sees every sample, the pool after it halves what the other two (most of the cost) process."""
 
-    def __init__(self, config: TimingNetConfig) -> None:
+    def __init__(self, config: TimingNetConfig, inputs: int = 1) -> None:
         super().__init__()
         layers: list[nn.Module] = []
-        width = 1
+        width = inputs
         for i, (channels, kernel) in enumerate(zip(config.channels, config.kernels)):
             layers += [nn.ConstantPad1d(((kernel - 1) // 2, kernel // 2), 0.0),
                        nn.Conv1d(width, channels, kernel, bias=False), nn.BatchNorm1d(channels), nn.ReLU()]
@@ -85,7 +101,7 @@ class Encoder(nn.Module):
         self.net = nn.Sequential(*layers)
 
     def forward(self, traces: torch.Tensor) -> torch.Tensor:
-        features = self.net(traces.unsqueeze(1))  # (N, C, L // pool)
+        features = self.net(traces)  # (N, C, L // pool)
         return features.transpose(1, 2)  # (N, L // pool, C)
 
 
@@ -97,10 +113,12 @@ class TimingNet(nn.Module):
         self.config = config or TimingNetConfig()
         c = self.config
         width = c.channels[-1]
-        self.signal_encoder = Encoder(c)
+        self.signal_encoder = Encoder(c, inputs=2)  # each frame beside the coherent stack
         self.template_encoder = Encoder(c)
-        self.signal_position = nn.Parameter(torch.zeros(c.signal_tokens, width))
-        self.template_position = nn.Parameter(torch.zeros(c.template_tokens, width))
+        # the same sinusoids of the sample position in both: learnable, but from the start a
+        # signal token and a template token can tell their relative offset
+        self.signal_position = nn.Parameter(sinusoids(c.signal_tokens, width, c.pool))
+        self.template_position = nn.Parameter(sinusoids(c.template_tokens, width, c.pool))
         self.attention = nn.MultiheadAttention(width, c.heads, batch_first=True)
         layers: list[nn.Module] = []
         inputs = c.signal_tokens * width
@@ -113,15 +131,17 @@ class TimingNet(nn.Module):
 
     def forward(self, windows: torch.Tensor, template: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``windows`` (B, F, W) normalised volts, any number of frames F >= 1; ``template``
-        (B, T) normalised; -> offset (B,) and log-variance (B,)."""
+        (B, T) normalised; -> offset (B,) and log-variance (B,), within ``LOG_VARIANCE_RANGE``."""
         batch, frames, length = windows.shape
-        tokens = self.signal_encoder(windows.reshape(batch * frames, length))  # (B*F, W/p, C)
+        stack = windows.mean(dim=1, keepdim=True) * frames**0.5  # (B, 1, W), in units of its own noise
+        pairs = torch.stack([windows, stack.expand(-1, frames, -1)], dim=2)  # (B, F, 2, W)
+        tokens = self.signal_encoder(pairs.reshape(batch * frames, 2, length))  # (B*F, W/p, C)
         signal = tokens.reshape(batch, frames, *tokens.shape[1:]).mean(dim=1)  # (B, W/p, C)
         signal = signal + self.signal_position
-        code = self.template_encoder(template) + self.template_position  # (B, T/p, C)
+        code = self.template_encoder(template.unsqueeze(1)) + self.template_position  # (B, T/p, C)
         aligned, _ = self.attention(signal, code, code, need_weights=False)  # (B, W/p, C)
         hidden = self.regression(aligned.flatten(1))  # (B, hidden[-1])
-        return self.offset(hidden).squeeze(-1), self.log_variance(hidden).squeeze(-1)
+        return self.offset(hidden).squeeze(-1), self.log_variance(hidden).squeeze(-1).clamp(*LOG_VARIANCE_RANGE)
 
 
 def count_flops(model: TimingNet, frames: int = 10) -> int:

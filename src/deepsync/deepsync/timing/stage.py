@@ -14,6 +14,13 @@ Cramer-Rao bound at the measured amplitude and noise spectrum, so a consumer see
 estimate is from the best possible. A window that cannot be timed at all (no variation, a
 length that fits no template) is reported as ``UNTIMEABLE`` and skipped; the stage never raises
 on what it is fed.
+
+Estimators: the classical ones of ``timing.estimators``; ``network``, the DeepSync timing
+network (``timing.network``, all cells of a stack in one batch, its own sigma); and
+``network_ml``, ML's maximum inside the network's interval: the network says which lobe (where
+ML alone locks onto a wrong one below threshold or next to other cells' codes), ML says where in
+it. A cell outside the network's training range is timed by ML, and ``TimingResult.fallbacks``
+says which and why. torch is imported only when a network estimator is chosen.
 """
 
 from __future__ import annotations
@@ -27,8 +34,9 @@ import numpy as np
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates, code_template
-from deepsync.timing.crlb import delay_crlb, fit_amplitude
+from deepsync.timing.crlb import delay_crlb, fit_amplitude, snr_db
 from deepsync.timing.estimators import (
+    SNR_FLOOR_DB,
     TimingEstimate,
     estimate_fft_upsampled,
     estimate_ml,
@@ -36,6 +44,21 @@ from deepsync.timing.estimators import (
     noise_psd,
 )
 from deepsync.types import CellTiming, Health, HealthKind, SyncWindow
+
+# network_ml's sigma, added in quadrature: ML's own std covers noise and the lobe, not the
+# first path that multipath hides behind the envelope's peak. 0.2 samples (31 m) puts 60-72 %
+# of the errors within +-1 sigma in every SNR bin of the validation split (38.901 TDL-A..E).
+MULTIPATH_FLOOR_SAMPLES = 0.2
+
+
+def refine_with_ml(windows: np.ndarray, template: np.ndarray, margin: int, psd: np.ndarray, offset: float,
+                   std: float) -> TimingEstimate:
+    """``network_ml``: ML's maximum within the network's ``offset`` +- 2 ``std`` (at least a
+    sample; where the network is unsure, ML searches widely), its std with the multipath floor."""
+    half = max(1.0, 2 * std)
+    refined = estimate_ml(windows, template, margin, psd, within=(offset - half, offset + half))
+    return TimingEstimate(refined.offset, math.hypot(refined.std, MULTIPATH_FLOOR_SAMPLES), refined.snr_db,
+                          Estimator.NETWORK_ML.value)
 
 
 class Estimator(enum.Enum):
@@ -46,12 +69,15 @@ class Estimator(enum.Enum):
     ML_WHITE = "ml_white"  # maximum likelihood with white weights
     FFT_UPSAMPLED = "fft_upsampled"  # band-limited correlation on a 32x finer grid
     PARABOLIC = "parabolic"  # integer-lag correlation and a parabola through its peak
+    NETWORK = "network"  # the DeepSync timing network (``timing.network``; needs torch), ML outside its range
+    NETWORK_ML = "network_ml"  # ML's maximum inside the network's interval (estimate +- 2 sigma, >= 1 sample)
 
 
 @dataclass(frozen=True)
 class TimingConfig:
     estimator: Estimator = Estimator.ML
     weak_std_samples: float = 1.0  # flag an arrival whose 1-sigma exceeds this (1 sample = 156 m at 1.92 MHz)
+    checkpoint: str | None = None  # the network's checkpoint; None: the one shipped with deepsync
 
     def __post_init__(self) -> None:
         if not isinstance(self.estimator, Estimator):
@@ -66,50 +92,111 @@ class TimingResult:
 
     cells: tuple[CellTiming, ...]
     events: tuple[Health, ...] = field(default=())
+    fallbacks: tuple[tuple[int, str], ...] = field(default=())  # (PCI, why) timed by ML instead of the network
 
 
 class TimingStage:
-    """Times every detected cell with one classical estimator (``TimingConfig.estimator``)."""
+    """Times every detected cell with the configured estimator (``TimingConfig.estimator``)."""
 
     def __init__(self, frontend: FrontendConfig, config: TimingConfig | None = None) -> None:
         self.config = config or TimingConfig()
+        self.frontend = frontend
         self.templates = SyncTemplates(frontend)
         self.sample_rate = frontend.adc_rate_hz
         self._single: dict[int, np.ndarray] = {}  # PCI -> template: 3 ms to compute, the same every stack
+        self.network = None
+        if self.config.estimator in (Estimator.NETWORK, Estimator.NETWORK_ML):
+            try:
+                from deepsync.timing.network import NetworkEstimator  # torch is imported here only
+            except ModuleNotFoundError as error:
+                raise ValueError(f"the network estimator needs {error.name}: pip install -e "
+                                 "'src/deepsync[network]' (or choose a classical estimator)") from None
+            self.network = NetworkEstimator(self.config.checkpoint)
+
+    def with_config(self, config: TimingConfig) -> TimingStage:
+        """This stage with ``config`` (a parameter changed at run time): the same stage when only
+        read-per-cell fields change, a new one when another network must be loaded (ValueError
+        if it cannot be: the old stage is then still there)."""
+        if (config.estimator, config.checkpoint) == (self.config.estimator, self.config.checkpoint):
+            self.config = config
+            return self
+        return TimingStage(self.frontend, config)
 
     def process(self, windows: Sequence[SyncWindow]) -> TimingResult:
         """Arrivals of the given cells; what cannot be timed becomes an ``UNTIMEABLE`` event."""
-        cells, events = [], []
+        cells, events, fallbacks, for_network = [], [], [], []
         for window in windows:
+            reason = None if self.network is None else self.network.refusal(
+                window, self.sample_rate, len(self._template(window)))
+            if self.network is not None and reason is None:
+                for_network.append(window)
+                continue
+            if reason is not None:
+                fallbacks.append((window.pci, reason))
             try:
-                cells.append(self.time_cell(window))
+                cells.append(self.time_cell(window, Estimator.ML if reason else self.config.estimator))
             except ValueError as error:
-                events.append(Health(HealthKind.UNTIMEABLE, f"PCI {window.pci} at sample {window.coarse_index}: {error}",
-                                     window.coarse_index))
-        return TimingResult(tuple(cells), tuple(events))
+                events.append(self._untimeable(window, error))
+        if for_network:
+            templates = [self._template(w) for w in for_network]
+            estimates = self.network.estimate([w.windows for w in for_network], templates)
+            for window, template, (offset, std) in zip(for_network, templates, estimates):
+                try:
+                    cells.append(self._network_cell(window, template, offset, std))
+                except ValueError as error:
+                    events.append(self._untimeable(window, error))
+        return TimingResult(tuple(cells), tuple(events), tuple(fallbacks))
 
-    def time_cell(self, window: SyncWindow) -> CellTiming:
-        """One cell's arrival; ValueError if its windows cannot be timed."""
+    def _network_cell(self, window: SyncWindow, template: np.ndarray, offset: float, std: float) -> CellTiming:
+        psd = noise_psd(window.windows)
+        if self.config.estimator is Estimator.NETWORK:
+            return self._cell(window, template, psd, offset, std, Estimator.NETWORK)
+        refined = refine_with_ml(window.windows, template, self._margin(window, template), psd, offset, std)
+        return self._cell(window, template, psd, refined.offset, refined.std, Estimator.NETWORK_ML, refined.snr_db)
+
+    @staticmethod
+    def _untimeable(window: SyncWindow, error: ValueError) -> Health:
+        return Health(HealthKind.UNTIMEABLE, f"PCI {window.pci} at sample {window.coarse_index}: {error}",
+                      window.coarse_index)
+
+    def time_cell(self, window: SyncWindow, estimator: Estimator | None = None) -> CellTiming:
+        """One cell's arrival by a classical estimator (default: the configured one); ValueError if
+        its windows cannot be timed."""
+        estimator = estimator or self.config.estimator
+        if estimator in (Estimator.NETWORK, Estimator.NETWORK_ML):
+            raise ValueError("time_cell runs the classical estimators; the network times a stack in process()")
         template = self._template(window)
+        margin = self._margin(window, template)
+        psd = noise_psd(window.windows)
+        estimate = self._estimate(estimator, window.windows, template, margin, psd)
+        return self._cell(window, template, psd, estimate.offset, estimate.std, estimator, estimate.snr_db)
+
+    @staticmethod
+    def _margin(window: SyncWindow, template: np.ndarray) -> int:
         spare = window.window_length - len(template)
         if spare < 2 or spare % 2:
             raise ValueError(f"windows of {window.window_length} samples do not hold the {len(template)}-sample "
                              "template with an equal margin either side (another sample rate?)")
-        margin = spare // 2
-        psd = noise_psd(window.windows)
-        estimate = self._estimate(window.windows, template, margin, psd)
-        amplitude = fit_amplitude(window.windows.mean(axis=0), template, margin, estimate.offset, psd)
+        return spare // 2
+
+    def _cell(self, window: SyncWindow, template: np.ndarray, psd: np.ndarray, offset: float, std: float,
+              estimator: Estimator, snr: float | None = None) -> CellTiming:
+        """The CellTiming of an estimate: its amplitude, SNR and Cramer-Rao bound measured here."""
+        margin = self._margin(window, template)
+        amplitude = fit_amplitude(window.windows.mean(axis=0), template, margin, offset, psd)
         bound = delay_crlb(template, amplitude, psd, window.n_frames, self.sample_rate, window.window_length)
+        if snr is None:  # the estimators' definition: the fitted code against the stacked noise
+            snr = max(snr_db(amplitude, template, float(np.mean(psd)) / window.n_frames), SNR_FLOOR_DB)
         flags = ()
-        if estimate.std > self.config.weak_std_samples:
-            flags = (Health(HealthKind.WEAK_TIMING, f"PCI {window.pci}: 1-sigma {estimate.std:.2f} samples, beyond "
+        if std > self.config.weak_std_samples:
+            flags = (Health(HealthKind.WEAK_TIMING, f"PCI {window.pci}: 1-sigma {std:.2f} samples, beyond "
                             "the estimator's threshold: the arrival may be far off", window.coarse_index),)
         return CellTiming(
             pci=window.pci,
-            toa=window.coarse_index + estimate.offset,
-            toa_std=estimate.std,
-            snr_db=estimate.snr_db,
-            estimator=self.config.estimator.value,
+            toa=window.coarse_index + offset,
+            toa_std=std,
+            snr_db=snr,
+            estimator=estimator.value,
             crlb_std=bound.std_samples,
             flags=flags,
             earfcn=window.earfcn,
@@ -126,8 +213,9 @@ class TimingStage:
             self._single[window.pci] = code_template(self.templates, window.pci)
         return self._single[window.pci]
 
-    def _estimate(self, windows: np.ndarray, template: np.ndarray, margin: int, psd: np.ndarray) -> TimingEstimate:
-        estimator = self.config.estimator
+    @staticmethod
+    def _estimate(estimator: Estimator, windows: np.ndarray, template: np.ndarray, margin: int,
+                  psd: np.ndarray) -> TimingEstimate:
         if estimator is Estimator.ML:
             return estimate_ml(windows, template, margin, psd)
         if estimator is Estimator.ML_WHITE:

@@ -1,0 +1,283 @@
+"""Training data for the timing network: simulated cells' windows, cut as the cell search cuts
+them, labelled with the true first-path arrival.
+
+One *scene* is a short simulated recording: a target cell (random PCI, bandwidth 1.4-20 MHz,
+load, a TDL-A..E channel with a TR 38.901 UMa/UMi delay spread, Doppler of a receiver up to
+15 m/s, received power), up to two other sites on its carrier (their intermodulation lands in
+the same video band) and maybe a cell on another carrier, a receiver clock off by up to
++-0.5 ppm and site clocks drifting by up to +-50 ppb. The scene runs through the same
+:class:`~deepsync.frontend.simulator.EnvelopeSimulator` as every recording (square law, video
+filter, detector and RF noise, AC coupling, AGC, ADC); the stream goes through the cell search's
+own :class:`~deepsync.sync.stacking.FrameStacker` (with the receiver clock known to 0.02 ppm,
+as the stacker's tracking leaves it) and :func:`~deepsync.sync.windows.extract_windows`, cut
+``coarse error`` whole samples away from the true code start (the sync stage's coarse
+position is off by a few samples at low SNR). Every cell of a scene with a different PCI is
+an example, so one simulation gives up to four.
+
+Why whole scenes and not just the windows' symbols: the detector draws its noise per 8.5 ms
+block from the block's mean power, the AC coupling carries ~3 ms of state and the AGC is set
+from the first 10 ms, so a window alone is exact only as part of the stream it was cut from
+(``EnvelopeSimulator.analog`` gives any window exactly, test_frontend, but at the cost of its
+whole block). A scene is ``max_frames + 1`` frames long: the first settles the coupling.
+
+Label: ``offset`` = true code start (frame timing + sync code position + the geometric, i.e.
+first-path, delay, on the receiver clock, in stream samples) minus the window's coarse index,
+what the estimators return. Per-frame SNR (``sync_snr.json``'s definition): the energy of the
+code's mean-removed template at the received power per RE (all paths) over the per-frame
+interference energy in the code window, measured from the frame-to-frame fluctuation.
+
+Shards: ``<split>/shard_<k>.npz`` (``SHARD_KEYS``), shard k of a split drawn from
+``(seed, split, k)`` alone, so any shard is regenerated identically, missing shards are made
+by a rerun (resume) and workers may make them in any order.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+import tempfile
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from deepsync.frontend.channel import Emitter, FixedChannel, Paths
+from deepsync.frontend.config import FrontendConfig
+from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
+from deepsync.frontend.templates import SyncTemplates, code_template, sync_code_offset_seconds
+from deepsync.lte.cell import CellConfig
+from deepsync.sync.stacking import FrameStacker, StackConfig
+from deepsync.sync.windows import extract_windows
+from deepsync.timing.crlb import snr_db
+from deepsync.twin.propagation import delay_spread_lognormal
+from deepsync.twin.tdl import TDL_PROFILES
+from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S
+
+PROFILES = ("TDL-A", "TDL-B", "TDL-C", "TDL-D", "TDL-E")  # index = the shards' ``profile`` code
+LOS_PROFILES = frozenset({"TDL-D", "TDL-E"})
+BANDWIDTHS_MHZ = (1.4, 3.0, 5.0, 10.0, 15.0, 20.0)
+SPLITS = {"train": 0, "val": 1, "test": 2}
+SHARD_KEYS = ("windows", "template", "offset", "snr_db", "bandwidth_mhz", "profile",
+              "delay_spread_ns", "re_power_dbm", "coarse_error", "pci", "other_cells")
+EIRP_PER_RE_W = 10 ** ((61 - 30) / 10) / 600  # a 61 dBm macro sector, per resource element
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """The training distribution; shards record nothing else, so a changed field means new data."""
+
+    seed: int = 2025
+    max_frames: int = 12  # frames per example: the model may take any first n of them
+    window_margin: int = 10  # the sync stage's default: windows of 276 + 2 x 10 samples
+    max_coarse_error: int = 8  # whole samples between the coarse and the true code start
+    re_power_dbm: tuple[float, float] = (-110.0, -68.0)  # target cell, per RE at the antenna
+    carrier_hz: float = 2.12e9
+    max_speed_mps: float = 15.0
+    max_clock_ppm: float = 0.5
+    max_site_drift_ppb: float = 50.0
+    examples_per_shard: int = 256
+
+    def __post_init__(self) -> None:
+        if not 2 <= self.max_frames <= 100:
+            raise ValueError(f"max_frames: {self.max_frames!r} must be 2..100")
+        if not 1 <= self.max_coarse_error < self.window_margin:
+            raise ValueError(f"max_coarse_error: {self.max_coarse_error!r} must be 1..window_margin-1 "
+                             f"({self.window_margin - 1}) so the true code stays inside the window")
+        low, high = self.re_power_dbm
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ValueError(f"re_power_dbm: {self.re_power_dbm!r} must be an increasing pair of numbers")
+        if not self.examples_per_shard >= 1:
+            raise ValueError(f"examples_per_shard: {self.examples_per_shard!r} must be a positive integer")
+
+
+@dataclass(frozen=True)
+class Example:
+    windows: np.ndarray  # (max_frames, W) volts, as SyncWindow.windows
+    template: np.ndarray  # (T,) the PCI's code template (volts per W per RE)
+    offset: float  # true first-path code start minus the coarse index (samples)
+    snr_db: float  # per-frame SNR of the code
+    bandwidth_mhz: float
+    profile: int  # index into PROFILES
+    delay_spread_ns: float
+    re_power_dbm: float
+    coarse_error: int
+    pci: int
+    other_cells: int
+
+
+# -- one scene ---------------------------------------------------------------------------------
+
+
+def _tdl_paths(rng: np.random.Generator, profile_name: str, delay_spread_s: float, bulk_delay_s: float,
+               received_w: float, max_doppler_hz: float) -> Paths:
+    """One static TDL realisation: Rayleigh taps (and the Ricean LOS tap) with their own Doppler."""
+    profile = TDL_PROFILES[profile_name]
+    scattered, los = profile.normalized_powers()
+    delays = list(np.asarray(profile.delays) * delay_spread_s)
+    gains = list(np.sqrt(scattered / 2) * (rng.standard_normal(scattered.size) + 1j * rng.standard_normal(scattered.size)))
+    if los > 0:
+        delays.append(0.0)
+        gains.append(math.sqrt(los) * np.exp(2j * np.pi * rng.random()))
+    gains = np.asarray(gains)
+    gains *= math.sqrt(received_w / EIRP_PER_RE_W)
+    doppler = max_doppler_hz * np.cos(2 * np.pi * rng.random(len(delays)))
+    return Paths(bulk_delay_s + np.asarray(delays), gains, doppler)
+
+
+def _draw_profile(rng: np.random.Generator, carrier_hz: float) -> tuple[str, float]:
+    """A TDL profile and a delay spread from the UMa or UMi distribution of its LOS state."""
+    name = PROFILES[int(rng.integers(len(PROFILES)))]
+    mu, sigma = delay_spread_lognormal(("UMa", "UMi")[int(rng.integers(2))], name in LOS_PROFILES, carrier_hz)
+    return name, float(min(10 ** rng.normal(mu, sigma), 1.5e-6))
+
+
+def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.random.Generator,
+                   templates: SyncTemplates) -> list[Example]:
+    """Every distinct-PCI cell of one random scene as an example (module docstring)."""
+    n_same = int(rng.integers(0, 3))  # other sites on the target's carrier
+    n_other_carrier = int(rng.integers(0, 2))
+    pcis = rng.choice(504, size=1 + n_same + n_other_carrier, replace=False)
+    emitters, paths, meta = [], [], []
+    doppler_max = config.max_speed_mps * config.carrier_hz / SPEED_OF_LIGHT_M_S
+    bandwidth = float(rng.choice(BANDWIDTHS_MHZ))
+    for k, pci in enumerate(pcis):
+        carrier = config.carrier_hz if k <= n_same else config.carrier_hz + 20e6 * (1 + int(rng.integers(2)))
+        cell_bandwidth = bandwidth if k <= n_same else float(rng.choice(BANDWIDTHS_MHZ))
+        load = float(rng.uniform(0.3, 1.0))
+        # the others near the target's level: far weaker ones change nothing, far stronger ones
+        # would bury it (the sync stage would not have found it)
+        power_dbm = float(rng.uniform(*config.re_power_dbm)) if k == 0 else meta[0][3] + float(rng.uniform(-20.0, 10.0))
+        profile, spread = _draw_profile(rng, config.carrier_hz)
+        drift = float(rng.uniform(-1, 1)) * config.max_site_drift_ppb * 1e-9
+        timing = float(rng.uniform(0, FRAME_SECONDS))
+        bulk = float(rng.uniform(0.2e-6, 3.3e-6))  # 60 m .. 1 km
+        emitters.append(Emitter(CellConfig(int(pci), cell_bandwidth, load), carrier, EIRP_PER_RE_W, timing,
+                                float(rng.normal(0, 50.0)), f"site{k}", drift))
+        received = 10 ** ((power_dbm - 30) / 10)
+        paths.append(_tdl_paths(rng, profile, spread, bulk, received, doppler_max * float(rng.random())))
+        meta.append((cell_bandwidth, PROFILES.index(profile), spread, power_dbm, received))
+    clock_ppm = float(rng.uniform(-1, 1)) * config.max_clock_ppm
+    frontend = replace(frontend, clock_offset_ppm=clock_ppm, clock_drift_ppm_per_s=0.0)
+    simulator = EnvelopeSimulator(emitters, FixedChannel(paths), frontend, seed=int(rng.integers(2**31)))
+    rate = frontend.adc_rate_hz
+    stats = SimulationStats()
+    chunks = list(simulator.stream((config.max_frames + 1) * FRAME_SECONDS, stats=stats))
+    gain = 10 ** (stats.gain_db / 20)  # ADC volts per diode volt
+    frame = round(rate * FRAME_SECONDS)
+    stacker = FrameStacker(rate, StackConfig(n_frames=config.max_frames,
+                                             clock_ppm=clock_ppm + float(rng.uniform(-0.02, 0.02)),
+                                             track_clock=False, max_drift_samples=10.0))
+    samples = np.concatenate([c.samples for c in chunks]).astype(np.float64) * frontend.volts_per_code
+    stacks = stacker.push_samples(samples[frame:], frame, rate)
+    if not stacks:
+        return []
+    stack = stacks[0]
+    first_s = float(simulator.clock.true_time(stack.first_sample_index / rate))
+    examples = []
+    for k, emitter in enumerate(emitters):
+        bandwidth_k, profile, spread, power_dbm, received = meta[k]
+        # the first subframe-0 code (first path) to arrive in the stack's first frame
+        travel = sync_code_offset_seconds() + paths[k].first_delay_s
+        sent = emitter.frame_start_s(emitter.frame_index_at(first_s - travel) + 1)
+        arrival = float(simulator.sample_index(sent + travel))
+        coarse_error = int(rng.integers(-config.max_coarse_error, config.max_coarse_error + 1))
+        cut = math.floor(arrival) - stack.first_sample_index + coarse_error
+        if cut < config.window_margin or cut + templates.length + config.window_margin > stack.frame_samples:
+            continue  # across the frame edge: the rows would be cut circularly (rare; keeps labels simple)
+        windows = extract_windows(stack, cut, templates.length, config.window_margin)
+        template = code_template(templates, emitter.cell.pci)
+        examples.append(Example(
+            windows=windows, template=template.astype(np.float32),
+            offset=arrival - (stack.first_sample_index + cut),
+            snr_db=_snr_db(windows, template, received * gain, config.window_margin),
+            bandwidth_mhz=bandwidth_k, profile=profile, delay_spread_ns=spread * 1e9,
+            re_power_dbm=power_dbm, coarse_error=coarse_error, pci=emitter.cell.pci,
+            other_cells=len(emitters) - 1))
+    return examples
+
+
+def _snr_db(windows: np.ndarray, template: np.ndarray, scale: float, margin: int) -> float:
+    """Per-frame SNR of the code at ``scale`` volts per (W per RE), against the frame-to-frame
+    interference in the code window (the definition of ``crlb.snr_db``)."""
+    inner = windows[:, margin : margin + len(template)].astype(np.float64)
+    residual = inner - inner.mean(axis=0)
+    residual -= residual.mean(axis=1, keepdims=True)
+    noise_variance = float(np.sum(residual**2)) / ((len(inner) - 1) * len(template))
+    return max(snr_db(scale, template, noise_variance), -99.0)
+
+
+# -- shards ------------------------------------------------------------------------------------
+
+
+def shard_path(root: Path, split: str, index: int) -> Path:
+    return Path(root) / split / f"shard_{index:05d}.npz"
+
+
+def make_shard(config: DatasetConfig, split: str, index: int, frontend: FrontendConfig | None = None) -> dict[str, np.ndarray]:
+    """Shard ``index`` of ``split``: ``examples_per_shard`` examples from ``(seed, split, index)``."""
+    frontend = frontend or FrontendConfig()
+    templates = SyncTemplates(frontend)
+    rng = np.random.default_rng([config.seed, SPLITS[split], index])
+    examples: list[Example] = []
+    while len(examples) < config.examples_per_shard:
+        examples += simulate_scene(config, frontend, rng, templates)
+    examples = examples[: config.examples_per_shard]
+    arrays = {key: np.asarray([getattr(e, key) for e in examples]) for key in SHARD_KEYS}
+    arrays["windows"] = arrays["windows"].astype(np.float32)
+    arrays["template"] = arrays["template"].astype(np.float32)
+    return arrays
+
+
+def _write_shard(job: tuple[DatasetConfig, Path, str, int]) -> int:
+    config, root, split, index = job
+    path = shard_path(root, split, index)
+    arrays = make_shard(config, split, index)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # atomic: an interrupted write leaves no shard, so a rerun makes it again
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
+        np.savez(handle, **arrays)
+    os.replace(handle.name, path)
+    return len(arrays["offset"])
+
+
+def generate(root: Path, shards: dict[str, int], config: DatasetConfig | None = None, workers: int = 1) -> int:
+    """Make every missing shard of ``shards`` (split -> count) under ``root``; returns how many
+    examples were made. Existing shards are kept: an interrupted run resumes."""
+    config = config or DatasetConfig()
+    jobs = [(config, Path(root), split, k) for split, count in shards.items() for k in range(count)
+            if not shard_path(root, split, k).exists()]
+    made = 0
+    with tqdm(total=len(jobs) * config.examples_per_shard, desc="timing examples", unit="ex") as bar:
+        if workers <= 1:
+            for job in jobs:
+                made += _write_shard(job)
+                bar.update(config.examples_per_shard)
+            return made
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_write_shard, job) for job in jobs]
+            try:
+                for future in as_completed(futures):
+                    made += future.result()
+                    bar.update(config.examples_per_shard)
+            except BaseException:  # Ctrl-C or a failure: finished shards stay, queued ones go
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
+    return made
+
+
+def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
+    """Every shard of a split, concatenated (``SHARD_KEYS``); ValueError when there is none."""
+    paths = sorted((Path(root) / split).glob("shard_*.npz"))
+    if not paths:
+        raise ValueError(f"no shards in {Path(root) / split}: make them with `deepsync make-timing-data`")
+    parts = []
+    for path in paths:
+        with np.load(path, allow_pickle=False) as shard:
+            missing = [key for key in SHARD_KEYS if key not in shard.files]
+            if missing:
+                raise ValueError(f"{path}: not a timing shard (missing {', '.join(missing)})")
+            parts.append({key: shard[key] for key in SHARD_KEYS})
+    return {key: np.concatenate([part[key] for part in parts]) for key in SHARD_KEYS}

@@ -1,0 +1,292 @@
+"""Training the timing network: ``deepsync train --config config/timing/timing_net.yaml``.
+
+Read top to bottom: the config (three sections: ``dataset``, ``model``, ``training``), the data
+(made first if shards are missing, then held in memory), the loss, the loop. Each step draws a
+batch and a number of frames F (``min_frames..max_frames``), and gives every example F of its
+frames picked at random (the model takes any F; a different subset each time is free
+augmentation). Loss: Huber (delta ``huber_delta`` samples) on the offset of the examples whose
+code is at least ``huber_min_stacked_snr_db`` after stacking, plus ``nll_weight``
+times the Gaussian negative log-likelihood of the error under the predicted variance, with the
+error detached there so the sigma head learns how wrong the offset is without pulling the offset
+towards easy examples. Adam with a linear warm-up and a cosine decay (the paper's 1e-4 constant
+rate needs far more steps than a CPU hour gives).
+
+Interrupt at any time: ``<run_dir>/last.pt`` (saved every ``eval_every`` steps, with the
+optimiser) is where a rerun resumes, and every batch is drawn from ``(seed, step, rank)``, so a
+resumed run takes the same path as an uninterrupted one. The best validation checkpoint is
+written to ``model_path`` (no optimiser: that is the file to ship), the curve to
+``<run_dir>/training_curve.png`` and ``history.json``.
+
+Devices: a GPU when there is one, else the CPU. Under ``torchrun`` every rank trains on its own
+batches and DistributedDataParallel averages the gradients; rank 0 evaluates and writes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from deepsync.configio import ConfigError, build_dataclass, load_yaml, require_mapping
+from deepsync.frontend.config import FrontendConfig
+from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_checkpoint
+from deepsync.training.dataset import DatasetConfig, generate, load_split
+from deepsync.timing.inputs import Normalisation, network_inputs, noise_normalised
+from deepsync.timing.model import TimingNet, TimingNetConfig
+
+@dataclass(frozen=True)
+class TrainConfig:
+    data_dir: str = "data/timing"
+    train_shards: int = 80
+    val_shards: int = 6
+    test_shards: int = 8
+    run_dir: str = "runs/timing"
+    model_path: str = "src/deepsync/deepsync/timing/timing_net.pt"
+    steps: int = 10000
+    batch_size: int = 128
+    learning_rate: float = 1e-3
+    final_learning_rate: float = 1e-5
+    warmup_steps: int = 200
+    min_frames: int = 4
+    max_frames: int = 12
+    huber_delta: float = 1.0
+    nll_weight: float = 0.5
+    # examples whose code is weaker than this after stacking carry no offset to learn (a random sign
+    # of Huber gradient per example, drowning the rest): they train the sigma head only
+    huber_min_stacked_snr_db: float = -15.0
+    eval_every: int = 250
+    seed: int = 7
+    threads: int = 0  # CPU threads for torch; 0: torch's default
+    workers: int = 2  # processes making missing shards
+
+    def __post_init__(self) -> None:
+        for name in ("train_shards", "val_shards", "steps", "batch_size", "eval_every", "min_frames"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: {getattr(self, name)!r} must be a positive integer")
+        if not 2 <= self.min_frames <= self.max_frames:
+            raise ValueError(f"min_frames {self.min_frames} and max_frames {self.max_frames}: 2 <= min <= max "
+                             "(the windows are normalised by their frame-to-frame noise)")
+        if not 0 < self.final_learning_rate <= self.learning_rate:
+            raise ValueError(f"learning rates: 0 < final_learning_rate {self.final_learning_rate!r} <= "
+                             f"learning_rate {self.learning_rate!r}")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    dataset: DatasetConfig
+    model: TimingNetConfig
+    training: TrainConfig
+
+    def __post_init__(self) -> None:
+        if self.training.max_frames > self.dataset.max_frames:
+            raise ValueError(f"training.max_frames {self.training.max_frames} exceeds the examples' "
+                             f"dataset.max_frames {self.dataset.max_frames}")
+        window = 2 * self.dataset.window_margin + self.model.template_length
+        if window != self.model.window_length:
+            raise ValueError(f"model.window_length {self.model.window_length} must be the examples' "
+                             f"template + 2 x dataset.window_margin = {window}")
+
+
+def load_run_config(path: str | Path) -> RunConfig:
+    """The YAML's three sections as typed configs; ConfigError naming the field."""
+    data = require_mapping(load_yaml(path), str(path))
+    unknown = sorted(set(data) - {"dataset", "model", "training"})
+    if unknown:
+        raise ConfigError(f"{path}: unknown section {', '.join(unknown)} (known: dataset, model, training)")
+    sections = {name: build_dataclass(cls, data.get(name, {}), f"{path}: {name}")
+                for name, cls in (("dataset", DatasetConfig), ("model", TimingNetConfig), ("training", TrainConfig))}
+    try:
+        return RunConfig(**sections)
+    except ValueError as error:
+        raise ConfigError(f"{path}: {error}") from None
+
+
+# -- data --------------------------------------------------------------------------------------
+
+
+class Examples:
+    """One split in memory: raw windows (N, max_frames, W), templates (N, T), offsets (N,)."""
+
+    def __init__(self, arrays: dict[str, np.ndarray]) -> None:
+        self.windows = torch.from_numpy(arrays["windows"])
+        self.template = torch.from_numpy(arrays["template"])
+        self.offset = torch.from_numpy(arrays["offset"].astype(np.float32))
+        self.snr_db = arrays["snr_db"]  # per frame
+
+    def __len__(self) -> int:
+        return len(self.offset)
+
+    def batch(self, rng: np.random.Generator, size: int, frames: int) -> tuple[torch.Tensor, ...]:
+        """``size`` random examples, each with ``frames`` of its frames picked at random: windows,
+        templates, offsets and the stacked SNR (dB)."""
+        index = rng.integers(len(self), size=size)
+        picks = np.argsort(rng.random((size, self.windows.shape[1])), axis=1)[:, :frames]
+        windows = self.windows[torch.from_numpy(index)[:, None], torch.from_numpy(picks)]
+        stacked_snr = torch.from_numpy(self.snr_db[index] + 10 * np.log10(frames)).float()
+        return windows, self.template[index], self.offset[index], stacked_snr
+
+
+def measure_normalisation(examples: Examples, frames: int) -> Normalisation:
+    """The global window scale: RMS of noise-normalised windows over (up to) 2000 examples."""
+    sample = noise_normalised(examples.windows[:2000, :frames])
+    return Normalisation(float(sample.pow(2).mean().sqrt()))
+
+
+def training_range(run: RunConfig, snr_db: np.ndarray) -> TrainingRange:
+    low, high = np.percentile(snr_db, [1, 99])
+    return TrainingRange(FrontendConfig().adc_rate_hz, run.training.min_frames, run.training.max_frames,
+                         float(low), float(high), cosited_pairs=False)
+
+
+# -- loss and schedule -----------------------------------------------------------------------
+
+
+def loss_terms(offset: torch.Tensor, log_variance: torch.Tensor, target: torch.Tensor, stacked_snr_db: torch.Tensor,
+               config: TrainConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """(Huber on the offset of the examples with a code to find, Gaussian NLL of every
+    example's detached error under its predicted variance)."""
+    useful = (stacked_snr_db >= config.huber_min_stacked_snr_db).float()
+    huber = (F.huber_loss(offset, target, delta=config.huber_delta, reduction="none") * useful).sum()
+    huber = huber / useful.sum().clamp_min(1.0)
+    error = (offset.detach() - target).pow(2)
+    nll = 0.5 * (log_variance + error * torch.exp(-log_variance)).mean()
+    return huber, nll
+
+
+def learning_rate(step: int, config: TrainConfig) -> float:
+    if step < config.warmup_steps:
+        return config.learning_rate * (step + 1) / config.warmup_steps
+    progress = min(1.0, (step - config.warmup_steps) / max(1, config.steps - config.warmup_steps))
+    cosine = 0.5 * (1 + math.cos(math.pi * progress))
+    return config.final_learning_rate + (config.learning_rate - config.final_learning_rate) * cosine
+
+
+@torch.no_grad()
+def evaluate(model: TimingNet, examples: Examples, normalisation: Normalisation, frames: int,
+             device: torch.device, batch: int = 512) -> dict[str, float]:
+    """Median / RMS error and sigma calibration on the first ``frames`` frames of every example."""
+    model.eval()
+    errors, sigmas = [], []
+    for start in range(0, len(examples), batch):
+        windows, template = network_inputs(examples.windows[start : start + batch, :frames],
+                                           examples.template[start : start + batch], normalisation)
+        offset, log_variance = model(windows.to(device), template.to(device))
+        errors.append(offset.cpu() - examples.offset[start : start + batch])
+        sigmas.append(torch.exp(0.5 * log_variance).cpu())
+    model.train()
+    error, sigma = torch.cat(errors).abs(), torch.cat(sigmas)
+    return {"median_abs_error": float(error.median()), "rmse": float(error.pow(2).mean().sqrt()),
+            "within_1_sigma": float((error <= sigma).float().mean())}
+
+
+# -- the loop ----------------------------------------------------------------------------------
+
+
+def train(run: RunConfig, config_path: str = "") -> Path:
+    """Train (or resume) as ``run`` says; returns the path of the best checkpoint."""
+    cfg = run.training
+    distributed = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1
+    rank = int(os.environ.get("RANK", 0))
+    if distributed:
+        torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if torch.cuda.is_available() else "cpu")
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+
+    root = Path(cfg.data_dir)
+    if rank == 0:
+        generate(root, {"train": cfg.train_shards, "val": cfg.val_shards, "test": cfg.test_shards}, run.dataset,
+                 workers=cfg.workers)
+    if distributed:
+        torch.distributed.barrier()
+    train_set, val_set = Examples(load_split(root, "train")), Examples(load_split(root, "val"))
+    normalisation = measure_normalisation(train_set, min(10, cfg.max_frames))
+    trained_on = training_range(run, train_set.snr_db)
+
+    torch.manual_seed(cfg.seed)
+    model = TimingNet(run.model).to(device)
+    optimiser = torch.optim.Adam(model.parameters(), lr=cfg.learning_rate)
+    run_dir = Path(cfg.run_dir)
+    last = run_dir / "last.pt"
+    history: list[dict] = []
+    step = 0
+    if last.exists():
+        resumed = load_checkpoint(last)
+        model.load_state_dict(resumed.model.state_dict())
+        optimiser.load_state_dict(resumed.optimiser)
+        step = resumed.step
+        history = json.loads((run_dir / "history.json").read_text()) if (run_dir / "history.json").exists() else []
+        if rank == 0:
+            print(f"resuming {last} at step {step}")
+    net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
+    meta = {"config": str(config_path), "run": json.dumps(asdict(run)), "examples": len(train_set),
+            "normalisation": json.dumps(asdict(normalisation))}
+    best = min((h["val_rmse"] for h in history), default=math.inf)
+    model.train()
+    started = time.monotonic()
+    with tqdm(total=cfg.steps, initial=step, desc="training", unit="step", disable=rank != 0) as bar:
+        while step < cfg.steps:
+            rng = np.random.default_rng([cfg.seed, step, rank])
+            torch.manual_seed(int(rng.integers(2**62)))  # dropout's draws: from the step too, for resuming
+            frames = int(rng.integers(cfg.min_frames, cfg.max_frames + 1))
+            windows, template, target, stacked_snr = train_set.batch(rng, cfg.batch_size, frames)
+            windows, template = network_inputs(windows, template, normalisation)
+            offset, log_variance = net(windows.to(device), template.to(device))
+            huber, nll = loss_terms(offset, log_variance, target.to(device), stacked_snr.to(device), cfg)
+            for group in optimiser.param_groups:
+                group["lr"] = learning_rate(step, cfg)
+            optimiser.zero_grad(set_to_none=True)
+            (huber + cfg.nll_weight * nll).backward()
+            optimiser.step()
+            step += 1
+            bar.update(1)
+            if rank == 0 and (step % cfg.eval_every == 0 or step == cfg.steps):
+                scores = evaluate(model, val_set, normalisation, min(10, cfg.max_frames), device)
+                history.append({"step": step, "huber": huber.item(), "nll": nll.item(), "lr": learning_rate(step, cfg),
+                                "seconds": time.monotonic() - started,
+                                **{f"val_{k}": v for k, v in scores.items()}})
+                bar.set_postfix(val_rmse=f"{scores['rmse']:.3f}", val_med=f"{scores['median_abs_error']:.3f}")
+                if scores["rmse"] < best:
+                    best = scores["rmse"]
+                    save_checkpoint(cfg.model_path, model, trained_on, normalisation, step=step, meta=meta)
+                save_checkpoint(last, model, trained_on, normalisation, step=step,
+                                optimiser=optimiser.state_dict(), meta=meta)
+                run_dir.mkdir(parents=True, exist_ok=True)
+                (run_dir / "history.json").write_text(json.dumps(history, indent=1))
+                plot_history(history, run_dir / "training_curve.png")
+    if distributed:
+        torch.distributed.destroy_process_group()
+    return Path(cfg.model_path)
+
+
+def plot_history(history: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [h["step"] for h in history]
+    figure, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    left.semilogy(steps, [h["huber"] for h in history], label="train Huber (last batch)")
+    left.semilogy(steps, [h["val_rmse"] for h in history], label="validation RMSE (samples, 10 frames)")
+    left.semilogy(steps, [h["val_median_abs_error"] for h in history], label="validation median |error|")
+    left.set_xlabel("step")
+    left.legend()
+    left.grid(True, which="both", alpha=0.3)
+    right.plot(steps, [h["val_within_1_sigma"] for h in history])
+    right.axhspan(0.60, 0.76, color="green", alpha=0.15, label="calibrated (60-76 %)")
+    right.set_xlabel("step")
+    right.set_ylabel("validation errors within 1 sigma")
+    right.legend()
+    right.grid(True, alpha=0.3)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)

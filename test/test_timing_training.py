@@ -1,0 +1,168 @@
+"""Training data and training of the timing network: labels that are right, shards that are
+reproducible and resumable, a seconds-long training that resumes where it stopped."""
+
+import json
+
+import numpy as np
+import pytest
+
+from deepsync.configio import ConfigError
+from deepsync.frontend.config import FrontendConfig
+from deepsync.frontend.templates import SyncTemplates
+from deepsync.timing.estimators import estimate_ml, noise_psd
+from deepsync.training.dataset import (
+    LOS_PROFILES,
+    PROFILES,
+    SHARD_KEYS,
+    DatasetConfig,
+    generate,
+    load_split,
+    make_shard,
+    shard_path,
+    simulate_scene,
+)
+
+TINY = DatasetConfig(max_frames=4, examples_per_shard=3)
+
+
+def test_labels_are_the_true_code_start_that_ml_finds_in_clean_line_of_sight():
+    """Where ML is unbiased (LOS, strong), it must agree with the label: a label off by a
+    sample, a sign or a clock term shows here."""
+    config = DatasetConfig(max_frames=6, re_power_dbm=(-85.0, -75.0))
+    frontend = FrontendConfig()
+    templates = SyncTemplates(frontend)
+    rng = np.random.default_rng(3)
+    checked = []
+    while len(checked) < 4:
+        for example in simulate_scene(config, frontend, rng, templates):
+            if PROFILES[example.profile] in LOS_PROFILES and example.snr_db > -8 and example.delay_spread_ns < 100:
+                estimate = estimate_ml(example.windows, example.template, config.window_margin,
+                                       noise_psd(example.windows))
+                checked.append(estimate.offset - example.offset)
+                assert abs(example.offset) <= config.max_coarse_error + 1
+    assert np.max(np.abs(checked)) < 0.1, checked
+
+
+def test_a_shard_is_the_same_whoever_makes_it_and_splits_differ():
+    first, again = make_shard(TINY, "val", 0), make_shard(TINY, "val", 0)
+    assert set(first) == set(SHARD_KEYS)
+    for key in SHARD_KEYS:
+        np.testing.assert_array_equal(first[key], again[key])
+    assert first["windows"].shape == (3, 4, 296) and first["template"].shape == (3, 276)
+    assert not np.array_equal(first["offset"], make_shard(TINY, "test", 0)["offset"])
+
+
+def test_generation_resumes_without_remaking_shards(tmp_path):
+    made = generate(tmp_path, {"val": 2}, TINY)
+    assert made == 6
+    path = shard_path(tmp_path, "val", 0)
+    before = path.stat().st_mtime_ns
+    path_1 = shard_path(tmp_path, "val", 1)
+    path_1.unlink()  # as if interrupted before it was written
+    assert generate(tmp_path, {"val": 2}, TINY) == 3
+    assert path.stat().st_mtime_ns == before and path_1.exists()
+    assert len(load_split(tmp_path, "val")["offset"]) == 6
+    assert not list((tmp_path / "val").glob("*.tmp"))
+
+
+def test_missing_or_foreign_shards_are_refused_by_name(tmp_path):
+    with pytest.raises(ValueError, match="no shards"):
+        load_split(tmp_path, "train")
+    (tmp_path / "train").mkdir()
+    np.savez(tmp_path / "train" / "shard_00000.npz", windows=np.zeros((1, 2, 3)))
+    with pytest.raises(ValueError, match="missing template"):
+        load_split(tmp_path, "train")
+
+
+@pytest.mark.parametrize("change, field", [
+    (dict(max_coarse_error=10), "max_coarse_error"),
+    (dict(max_frames=1), "max_frames"),
+    (dict(re_power_dbm=(-70.0, -90.0)), "re_power_dbm"),
+    (dict(examples_per_shard=0), "examples_per_shard"),
+])
+def test_a_dataset_config_that_cannot_be_names_the_field(change, field):
+    with pytest.raises(ValueError, match=field):
+        DatasetConfig(**change)
+
+
+# -- training ----------------------------------------------------------------------------------
+
+torch = pytest.importorskip("torch", reason="torch is not installed (scripts/setup.sh installs the CPU wheel)")
+
+
+def run_yaml(tmp_path, steps: int, **training) -> str:
+    import yaml
+
+    path = tmp_path / "run.yaml"
+    path.write_text(yaml.safe_dump({
+        "dataset": {"max_frames": 4, "examples_per_shard": 8},
+        "model": {"channels": [4, 8, 8], "heads": 2, "hidden": [16, 8]},
+        "training": {"data_dir": str(tmp_path / "data"), "train_shards": 2, "val_shards": 1, "test_shards": 1,
+                     "run_dir": str(tmp_path / "run"), "model_path": str(tmp_path / "net.pt"), "steps": steps,
+                     "batch_size": 8, "eval_every": 5, "max_frames": 4, "min_frames": 2, "warmup_steps": 2,
+                     "workers": 1, **training},
+    }))
+    return str(path)
+
+
+def test_a_short_training_writes_a_checkpoint_the_stage_loads_and_resumes(tmp_path):
+    from deepsync.timing.checkpoint import load_checkpoint
+    from deepsync.training.train import load_run_config, train
+
+    config = run_yaml(tmp_path, steps=10)
+    path = train(load_run_config(config), config)
+    checkpoint = load_checkpoint(path)
+    assert checkpoint.training_range.max_frames == 4 and checkpoint.normalisation.window_scale > 0
+    history = json.loads((tmp_path / "run" / "history.json").read_text())
+    assert [h["step"] for h in history] == [5, 10]
+    assert (tmp_path / "run" / "training_curve.png").stat().st_size > 1000
+
+    longer = run_yaml(tmp_path, steps=15)  # the same run, asked for more: resumes at step 10
+    train(load_run_config(longer), longer)
+    history = json.loads((tmp_path / "run" / "history.json").read_text())
+    assert [h["step"] for h in history] == [5, 10, 15]
+    assert load_checkpoint(tmp_path / "run" / "last.pt").step == 15
+
+
+def test_a_resumed_run_takes_the_same_path_as_an_uninterrupted_one(tmp_path, monkeypatch):
+    from deepsync.timing.checkpoint import load_checkpoint
+    from deepsync.training import train as training
+    from deepsync.training.train import load_run_config, train
+
+    straight = run_yaml(tmp_path, steps=10, run_dir=str(tmp_path / "straight"))
+    train(load_run_config(straight), straight)
+    interrupted = run_yaml(tmp_path, steps=10, run_dir=str(tmp_path / "resumed"))
+    plot = training.plot_history
+
+    def ctrl_c_after_step_5(history, path):
+        plot(history, path)
+        if history[-1]["step"] == 5:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(training, "plot_history", ctrl_c_after_step_5)
+    with pytest.raises(KeyboardInterrupt):
+        train(load_run_config(interrupted), interrupted)
+    monkeypatch.setattr(training, "plot_history", plot)
+    train(load_run_config(interrupted), interrupted)
+    a = load_checkpoint(tmp_path / "straight" / "last.pt").model.state_dict()
+    b = load_checkpoint(tmp_path / "resumed" / "last.pt").model.state_dict()
+    for name in a:
+        torch.testing.assert_close(a[name], b[name])
+
+
+def test_a_run_config_that_does_not_fit_names_the_field(tmp_path):
+    import yaml
+
+    from deepsync.training.train import load_run_config
+
+    path = tmp_path / "run.yaml"
+    for content, message in [
+        ({"training": {"max_frames": 30}}, "max_frames"),
+        ({"model": {"window_length": 300}}, "window_length"),
+        ({"training": {"steps": 0}}, "steps"),
+        ({"schedule": {}}, "unknown section schedule"),
+        ({"training": {"learning_rat": 1.0}}, "learning_rat"),
+    ]:
+        path.write_text(yaml.safe_dump(content))
+        with pytest.raises(ConfigError, match=message):
+            load_run_config(path)
