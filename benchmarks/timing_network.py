@@ -7,7 +7,7 @@
 * The same forward pass in onnxruntime (one thread) and its largest difference from torch.
 
 Run:  .venv/bin/python benchmarks/timing_network.py  [--checkpoint PATH] [--repeats 200]
-Writes docs/results/timing_network_speed.json.
+Writes docs/results/timing_network/speed.json.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from deepsync.timing.network import DEFAULT_CHECKPOINT
 from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
 from deepsync.types import SyncWindow
 
-OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "timing_network_speed.json"
+OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "timing_network" / "speed.json"
 PCIS = (12, 97, 150, 301, 420, 488)
 
 

@@ -96,13 +96,25 @@ def test_a_bad_or_missing_checkpoint_fails_at_construction_and_keeps_the_running
     assert switched is not running and switched.network is not None
 
 
-def test_the_shipped_checkpoint_loads_and_times_a_clean_code(frontend):
+def test_the_shipped_checkpoint_times_simulated_cells_as_its_evaluation_says(frontend):
+    """Strong simulated cells (their own channels, other cells around): the network is within a
+    couple of samples and says so, network_ml within a fraction of one."""
+    from deepsync.training.dataset import DatasetConfig, make_shard
+
     assert DEFAULT_CHECKPOINT.is_file(), "the trained network must ship with deepsync"
     loaded = load_checkpoint(DEFAULT_CHECKPOINT)
     assert loaded.training_range.sample_rate == frontend.adc_rate_hz and loaded.optimiser is None
-    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK))
-    cell = stage.process([window(42, snr_db=-5.0, seed=1)]).cells[0]
-    assert cell.estimator == "network" and abs(cell.toa - 5001.0) < 0.5  # the code sits at +1 sample
+    shard = make_shard(DatasetConfig(re_power_dbm=(-85.0, -75.0), examples_per_shard=12), "test", 99)
+    strong = shard["snr_db"] > -15
+    cells = [SyncWindow(0, int(pci), 1000, w[:10], 10.0, -30.0) for pci, w in zip(shard["pci"], shard["windows"])]
+    errors = {}
+    for estimator in (Estimator.NETWORK, Estimator.NETWORK_ML):
+        timed = TimingStage(frontend, TimingConfig(estimator=estimator)).process(cells).cells
+        assert [c.estimator for c in timed] == [estimator.value] * len(cells)
+        error = np.array([c.toa - 1000 for c in timed]) - shard["offset"]
+        errors[estimator] = np.abs(error[strong])
+        assert np.mean(np.abs(error) <= 3 * np.array([c.toa_std for c in timed])) >= 0.75
+    assert np.median(errors[Estimator.NETWORK]) < 2.0 and np.median(errors[Estimator.NETWORK_ML]) < 0.3
 
 
 def test_nothing_but_the_network_imports_torch():

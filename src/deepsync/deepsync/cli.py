@@ -25,8 +25,6 @@ from deepsync.eval.cell_search import stack_record, summarize
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, SampleFormat, Source, open_source
-from deepsync.sync.stacking import StackConfig
-from deepsync.sync.stage import SyncConfig
 from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS
 
@@ -124,7 +122,7 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     confirmed cells (if verbose) with their arrival and the error against ground truth, if known.
     Returns one record per stack (``deepsync.eval.cell_search.stack_record``)."""
     towers = None if towers_path is None else load_tower_database(towers_path)
-    config = PipelineConfig(sync=SyncConfig(stack=StackConfig(n_frames=frames)))
+    config = _pipeline_config(frames)
     pipeline = Pipeline(source.frontend, config, towers)
     mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
     print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
@@ -282,8 +280,8 @@ def _print_health(health: dict[str, int]) -> None:
         print("  health      no stage reported a problem")
 
 
-def _pipeline_config(frames: int) -> PipelineConfig:
-    return PipelineConfig(sync=SyncConfig(stack=StackConfig(n_frames=frames)))
+def _pipeline_config(frames: int, estimator: str | None = None) -> PipelineConfig:
+    return PipelineConfig().with_choices(frames, estimator)
 
 
 def _cmd_evaluate_route(args: argparse.Namespace) -> int:
@@ -292,7 +290,7 @@ def _cmd_evaluate_route(args: argparse.Namespace) -> int:
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
     print(f"route evaluation of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
-    summary, paths = evaluate_route(source, towers, Path(args.out), _pipeline_config(args.frames),
+    summary, paths = evaluate_route(source, towers, Path(args.out), _pipeline_config(args.frames, args.estimator),
                                     progress=not args.quiet)
     _print_route(summary)
     print("  written: " + ", ".join(str(p) for p in paths))
@@ -306,7 +304,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
     print(f"site clock calibration from {source.description}\n  tower database {args.towers}")
-    calibration = calibrate_route(source, towers, _pipeline_config(args.frames), progress=not args.quiet)
+    calibration = calibrate_route(source, towers, _pipeline_config(args.frames, args.estimator), progress=not args.quiet)
     result = calibration.result
     print(f"  {len(result.sites)} sites heard; offsets relative to site {result.reference_site} (the most heard); "
           f"range residual RMS {result.residual_rms_before_m:.1f} m before, {result.residual_rms_after_m:.1f} m after "
@@ -329,7 +327,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     towers = None if args.towers is None else load_tower_database(args.towers)
     print(f"replay of {args.bag} through {', '.join(stages)}; "
           + (f"tower database {args.towers}" if towers else "no tower database") + f", {args.frames}-frame stacks")
-    summary = replay_bag(args.bag, args.out, towers, _pipeline_config(args.frames), stages=stages,
+    summary = replay_bag(args.bag, args.out, towers, _pipeline_config(args.frames, args.estimator), stages=stages,
                          copy_inputs=args.copy_inputs, overwrite=args.overwrite, progress=not args.quiet, say=_say)
     print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
           f"{summary.wall_seconds:.1f} s ({summary.realtime_factor:.1f}x real time)")
@@ -381,7 +379,7 @@ def _cmd_evaluate_timing(args: argparse.Namespace) -> int:
     for count, result in summary["frames"].items():
         line = ", ".join(f"{name} {result['all'][name]['median']:.3f}/{result['all'][name]['rmse']:.3f}"
                          for name in ("network", "network_ml", "ml", "fft_upsampled", "parabolic"))
-        print(f"  {count} frames, median/RMSE (samples): {line}; CRLB RMS {result['all']['crlb_rms']:.3f}")
+        print(f"  {count} frames, median/RMSE (samples): {line}; median CRLB {result['all']['crlb_median']:.3f}")
     for key, value in summary["headline"].items():
         print(f"  {key}: {value}")
     print(f"  written: {Path(args.out) / 'timing.json'}, {Path(args.out) / 'timing.png'}")
@@ -448,6 +446,9 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
     command.add_argument(*bag_options, dest="bag", required=True, help=bag_help)
     command.add_argument("--towers", required=towers_required, help=towers_help)
     command.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
+    command.add_argument("--estimator", default="ml", metavar="NAME",
+                         help="sub-sample timing estimator: ml (default), ml_white, fft_upsampled, parabolic, "
+                              "network, network_ml (the last two need torch)")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

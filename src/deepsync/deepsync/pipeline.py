@@ -22,12 +22,12 @@ sync or timing stage (fusion needs none).
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
 from deepsync.sync.stage import SyncConfig, SyncResult, SyncStage
-from deepsync.timing.stage import TimingConfig, TimingResult, TimingStage
+from deepsync.timing.stage import Estimator, TimingConfig, TimingResult, TimingStage
 from deepsync.towers import TowerDatabase
 from deepsync.types import EnvelopeChunk, Health, StackArrivals, StackWindows
 
@@ -44,6 +44,19 @@ class PipelineConfig:
         if self.sync.stack.n_frames < 2:
             raise ValueError(f"stacks of {self.sync.stack.n_frames} frame: the timing stage measures the noise "
                              "from how frames differ, so a stack needs at least 2 frames")
+
+    def with_choices(self, n_frames: int | None = None, estimator: str | None = None) -> PipelineConfig:
+        """This config with the knobs a command line offers: frames per stack, the timing
+        estimator by name (ValueError listing the names)."""
+        sync, timing = self.sync, self.timing
+        if n_frames is not None:
+            sync = replace(sync, stack=replace(sync.stack, n_frames=n_frames))
+        if estimator is not None:
+            names = [e.value for e in Estimator]
+            if estimator not in names:
+                raise ValueError(f"estimator must be one of {', '.join(names)}, got {estimator!r}")
+            timing = replace(timing, estimator=Estimator(estimator))
+        return replace(self, sync=sync, timing=timing)
 
 
 @dataclass(frozen=True)
