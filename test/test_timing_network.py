@@ -59,6 +59,19 @@ def test_every_cell_of_a_stack_goes_through_one_batch_and_gets_what_it_would_alo
         assert cell.toa_std > 0 and math.isfinite(cell.crlb_std) and cell.earfcn is None
 
 
+def test_a_dead_or_corrupt_window_is_reported_and_changes_no_other_cell(checkpoint, frontend):
+    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
+    good = window(10, seed=10)
+    dead = window(11)
+    dead = SyncWindow(0, 11, 5000, np.full_like(dead.windows, 0.25), 12.0, 0.0)
+    broken = window(12).windows.copy()
+    broken[3, 40] = np.nan
+    result = stage.process([dead, good, SyncWindow(0, 12, 5000, broken, 12.0, 0.0)])
+    alone = stage.process([good]).cells[0]
+    assert [c.pci for c in result.cells] == [10] and result.cells[0].toa == pytest.approx(alone.toa, abs=1e-5)
+    assert len(result.events) == 2 and "NaN" in result.fallbacks[0][1]
+
+
 def test_the_stage_feeds_the_network_what_training_fed_it(checkpoint, frontend):
     stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
     cell = window(120, seed=3)

@@ -19,9 +19,6 @@ from dataclasses import dataclass
 
 import torch
 
-NOISE_FLOOR = 1e-12  # relative: a window with no fluctuation at all is not divided by zero
-
-
 @dataclass(frozen=True)
 class Normalisation:
     """Global scale of the noise-normalised windows, measured on the training set."""
@@ -39,7 +36,8 @@ def noise_normalised(windows: torch.Tensor) -> torch.Tensor:
     frames = rows.shape[1]
     residual = rows - rows.mean(dim=1, keepdim=True)
     variance = residual.pow(2).mean(dim=(1, 2)) * frames / (frames - 1)  # (B,)
-    scale = variance.clamp_min(NOISE_FLOOR * float(variance.max().clamp_min(1e-30))).sqrt()
+    # per example: one dead or corrupt window must not change the others of its batch
+    scale = variance.clamp_min(torch.finfo(variance.dtype).tiny).sqrt()
     return rows / scale[:, None, None]
 
 

@@ -47,6 +47,8 @@ class NetworkEstimator:
         if (window.window_length, template_length) != (config.window_length, config.template_length):
             return (f"windows of {window.window_length} samples around a {template_length}-sample template, "
                     f"trained on {config.window_length} around {config.template_length}")
+        if not np.all(np.isfinite(window.windows)):
+            return "windows hold NaN or inf"
         if window.cosited_pci is not None:
             return f"a co-sited pair (PCI {window.pci} with {window.cosited_pci}): not in the training data"
         if not self.range.min_frames <= window.n_frames <= self.range.max_frames:
