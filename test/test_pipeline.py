@@ -83,7 +83,7 @@ def test_the_timing_stage_fed_from_a_sync_window_message_gives_the_same_arrivals
     assert pairs == 10  # 120 and 121 in each of the 5 stacks
 
 
-@pytest.mark.parametrize("estimator", [e for e in Estimator if e not in (Estimator.NETWORK, Estimator.NETWORK_ML)])
+@pytest.mark.parametrize("estimator", [e for e in Estimator if not e.uses_network])
 def test_every_classical_estimator_times_the_campus_cells(campus, estimator):
     source, results = campus
     stage = TimingStage(source.frontend, TimingConfig(estimator=estimator))

@@ -2,6 +2,7 @@
 reproducible and resumable, a seconds-long training that resumes where it stopped."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -45,7 +46,7 @@ def test_labels_are_the_true_code_start_that_ml_finds_in_clean_line_of_sight():
 
 def test_a_shard_is_the_same_whoever_makes_it_and_splits_differ():
     first, again = make_shard(TINY, "val", 0), make_shard(TINY, "val", 0)
-    assert set(first) == set(SHARD_KEYS)
+    assert set(first) == {*SHARD_KEYS, "dataset_config"}
     for key in SHARD_KEYS:
         np.testing.assert_array_equal(first[key], again[key])
     assert first["windows"].shape == (3, 4, 296) and first["template"].shape == (3, 276)
@@ -63,6 +64,8 @@ def test_generation_resumes_without_remaking_shards(tmp_path):
     assert path.stat().st_mtime_ns == before and path_1.exists()
     assert len(load_split(tmp_path, "val")["offset"]) == 6
     assert not list((tmp_path / "val").glob("*.tmp"))
+    with pytest.raises(ValueError, match="another dataset config .*max_frames 4 -> 5"):
+        generate(tmp_path, {"val": 2}, DatasetConfig(max_frames=5, examples_per_shard=3))
 
 
 def test_missing_or_foreign_shards_are_refused_by_name(tmp_path):
@@ -122,6 +125,15 @@ def test_a_short_training_writes_a_checkpoint_the_stage_loads_and_resumes(tmp_pa
     history = json.loads((tmp_path / "run" / "history.json").read_text())
     assert [h["step"] for h in history] == [5, 10, 15]
     assert load_checkpoint(tmp_path / "run" / "last.pt").step == 15
+
+    import yaml
+
+    other = run_yaml(tmp_path, steps=20)  # another model in the same run directory: refused, not mixed
+    content = yaml.safe_load(Path(other).read_text())
+    content["model"]["hidden"] = [32, 8]
+    Path(other).write_text(yaml.safe_dump(content))
+    with pytest.raises(ValueError, match="another model config"):
+        train(load_run_config(other), other)
 
 
 def test_a_resumed_run_takes_the_same_path_as_an_uninterrupted_one(tmp_path, monkeypatch):

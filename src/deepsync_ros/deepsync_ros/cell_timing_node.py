@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from deepsync_msgs.msg import CellTimingArray, SyncWindowArray
 
 from deepsync.bag.topics import CELL_TIMING_TOPIC, SYNC_WINDOWS_TOPIC, relative_name
-from deepsync.timing.stage import Estimator, TimingStage
+from deepsync.timing.stage import TimingStage
 
 from . import params
 from .conversions import cell_timing_array_to_msg, sync_window_array_from_msg
@@ -34,7 +34,7 @@ class CellTimingNode(DeepSyncNode):
         try:
             self.stage = TimingStage(frontend, config)
         except ValueError as error:  # no templates for this front end (its ADC rate), or no usable network
-            parameter = "estimator" if config.estimator is Estimator.NETWORK else "frontend"
+            parameter = "estimator" if config.estimator.uses_network else "frontend"
             raise ParameterError(f"{self.NAME}.{parameter}: {error}") from None
         self.health = StageHealth()
         self.publisher = self.create_publisher(CellTimingArray, relative_name(CELL_TIMING_TOPIC), RESULTS_QOS)

@@ -19,6 +19,7 @@ import json
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
@@ -28,10 +29,13 @@ from deepsync.frontend.config import FrontendConfig
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources.bagfile import BagSource
 from deepsync.timing.crlb import delay_crlb, fit_amplitude
-from deepsync.training.dataset import LOS_PROFILES, PROFILES, load_split
 from deepsync.timing.estimators import estimate_fft_upsampled, estimate_ml, estimate_parabolic, noise_psd
 from deepsync.timing.stage import Estimator, TimingConfig, TimingStage, refine_with_ml
 from deepsync.towers import TowerDatabase
+from deepsync.training.dataset import LOS_PROFILES, PROFILES, load_split
+
+if TYPE_CHECKING:
+    from deepsync.timing.network import NetworkEstimator
 
 SNR_EDGES_DB = np.arange(-30.0, 12.5, 5.0)
 CLASSICAL: dict[str, Callable] = {
@@ -56,12 +60,9 @@ def _stats(errors: np.ndarray, sigmas: np.ndarray | None = None) -> dict[str, fl
     return out
 
 
-def run_estimators(data: dict[str, np.ndarray], frames: int, checkpoint: str | Path | None,
+def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEstimator,
                    progress: bool = True) -> dict[str, np.ndarray]:
     """Per example: each estimator's error and sigma, and the bound (samples)."""
-    from deepsync.timing.network import NetworkEstimator
-
-    network = NetworkEstimator(checkpoint)
     windows = data["windows"][:, :frames]
     templates = data["template"]
     margin = (windows.shape[2] - templates.shape[1]) // 2
@@ -118,14 +119,19 @@ def threshold_snr_db(rows: list[dict], name: str) -> dict[str, float | None]:
 def evaluate_timing(data_dir: str | Path, out: str | Path, checkpoint: str | Path | None = None,
                     frames: Sequence[int] = (5, 10, 12), split: str = "test", progress: bool = True) -> dict:
     """The side by side on a split of the timing data; writes timing.json and timing.png to ``out``."""
+    from deepsync.timing.network import NetworkEstimator  # torch: only for this command
+
     data = load_split(Path(data_dir), split)
+    available = data["windows"].shape[1]
+    if max(frames) > available or min(frames) < 2:
+        raise ValueError(f"frames {', '.join(map(str, frames))}: the examples of {data_dir}/{split} have "
+                         f"{available} frames, and timing needs at least 2")
+    network = NetworkEstimator(checkpoint)
     los = np.isin(data["profile"], [PROFILES.index(p) for p in LOS_PROFILES])
     everything = np.ones(len(los), dtype=bool)
     summary: dict = {"split": split, "examples": int(len(los)), "frames": {}}
     for count in frames:
-        if count > data["windows"].shape[1]:
-            continue
-        results = run_estimators(data, count, checkpoint, progress)
+        results = run_estimators(data, count, network, progress)
         summary["frames"][str(count)] = {
             "all": breakdown(data, results, everything),
             "by_snr": by_snr(data, results, everything),
@@ -211,8 +217,8 @@ def evaluate_timing_bag(source: BagSource, towers: TowerDatabase | None, out: st
         raise ValueError(f"{source.description} holds no ground truth (/deepsync/truth/cell_timing): "
                          "only a simulated recording can be scored")
     pipeline = Pipeline(source.frontend, PipelineConfig().with_choices(frames), towers)
-    network = {"checkpoint": None if checkpoint is None else str(checkpoint)}
-    stages = {name: TimingStage(source.frontend, TimingConfig(Estimator(name), **(network if "network" in name else {})))
+    stages = {name: TimingStage(source.frontend, TimingConfig(Estimator(name), checkpoint=None if checkpoint is None
+                                                              else str(checkpoint)))
               for name in ESTIMATORS}
     records: dict[str, list[tuple[float, float, float]]] = {name: [] for name in stages}
     fallbacks: list[str] = []

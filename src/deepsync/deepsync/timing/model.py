@@ -61,11 +61,6 @@ class TimingNetConfig:
             raise ValueError(f"dropout: {self.dropout!r} must be in [0, 1)")
 
     @property
-    def margin(self) -> float:
-        """Samples either side of the template in a window: the offset's zero."""
-        return (self.window_length - self.template_length) / 2
-
-    @property
     def signal_tokens(self) -> int:
         return self.window_length // self.pool
 

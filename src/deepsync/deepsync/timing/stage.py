@@ -62,8 +62,8 @@ def refine_with_ml(windows: np.ndarray, template: np.ndarray, margin: int, psd: 
 
 
 class Estimator(enum.Enum):
-    """The classical sub-sample estimators (``timing.estimators``); the value is the name a
-    ``CellTiming`` carries."""
+    """The sub-sample estimators: the classical ones (``timing.estimators``) and the network's;
+    the value is the name a ``CellTiming`` carries."""
 
     ML = "ml"  # maximum likelihood, prewhitened by the noise spectrum measured from the rows
     ML_WHITE = "ml_white"  # maximum likelihood with white weights
@@ -71,6 +71,11 @@ class Estimator(enum.Enum):
     PARABOLIC = "parabolic"  # integer-lag correlation and a parabola through its peak
     NETWORK = "network"  # the DeepSync timing network (``timing.network``; needs torch), ML outside its range
     NETWORK_ML = "network_ml"  # ML's maximum inside the network's interval (estimate +- 2 sigma, >= 1 sample)
+
+    @property
+    def uses_network(self) -> bool:
+        """Whether the stage must load the timing network (and torch) for it."""
+        return self in (Estimator.NETWORK, Estimator.NETWORK_ML)
 
 
 @dataclass(frozen=True)
@@ -105,7 +110,7 @@ class TimingStage:
         self.sample_rate = frontend.adc_rate_hz
         self._single: dict[int, np.ndarray] = {}  # PCI -> template: 3 ms to compute, the same every stack
         self.network = None
-        if self.config.estimator in (Estimator.NETWORK, Estimator.NETWORK_ML):
+        if self.config.estimator.uses_network:
             try:
                 from deepsync.timing.network import NetworkEstimator  # torch is imported here only
             except ModuleNotFoundError as error:
@@ -114,20 +119,22 @@ class TimingStage:
             self.network = NetworkEstimator(self.config.checkpoint)
 
     def with_config(self, config: TimingConfig) -> TimingStage:
-        """This stage with ``config`` (a parameter changed at run time): the same stage when only
-        read-per-cell fields change, a new one when another network must be loaded (ValueError
-        if it cannot be: the old stage is then still there)."""
-        if (config.estimator, config.checkpoint) == (self.config.estimator, self.config.checkpoint):
-            self.config = config
-            return self
-        return TimingStage(self.frontend, config)
+        """This stage with ``config`` (a parameter changed at run time): a new stage when a network
+        must be loaded (ValueError if it cannot be: this stage is then unchanged), else this one
+        with its templates kept."""
+        if config.estimator.uses_network and (self.network is None or config.checkpoint != self.config.checkpoint):
+            return TimingStage(self.frontend, config)
+        self.config = config
+        if not config.estimator.uses_network:
+            self.network = None
+        return self
 
     def process(self, windows: Sequence[SyncWindow]) -> TimingResult:
         """Arrivals of the given cells; what cannot be timed becomes an ``UNTIMEABLE`` event."""
         cells, events, fallbacks, for_network = [], [], [], []
         for window in windows:
             reason = None if self.network is None else self.network.refusal(
-                window, self.sample_rate, len(self._template(window)))
+                window, self.sample_rate, self.templates.length)
             if self.network is not None and reason is None:
                 for_network.append(window)
                 continue
@@ -163,7 +170,7 @@ class TimingStage:
         """One cell's arrival by a classical estimator (default: the configured one); ValueError if
         its windows cannot be timed."""
         estimator = estimator or self.config.estimator
-        if estimator in (Estimator.NETWORK, Estimator.NETWORK_ML):
+        if estimator.uses_network:
             raise ValueError("time_cell runs the classical estimators; the network times a stack in process()")
         template = self._template(window)
         margin = self._margin(window, template)

@@ -26,19 +26,21 @@ what the estimators return. Per-frame SNR (``sync_snr.json``'s definition): the 
 code's mean-removed template at the received power per RE (all paths) over the per-frame
 interference energy in the code window, measured from the frame-to-frame fluctuation.
 
-Shards: ``<split>/shard_<k>.npz`` (``SHARD_KEYS``), shard k of a split drawn from
-``(seed, split, k)`` alone, so any shard is regenerated identically, missing shards are made
-by a rerun (resume) and workers may make them in any order.
+Shards: ``<split>/shard_<k>.npz`` (``SHARD_KEYS`` and the config that made it), shard k of a
+split drawn from ``(seed, split, k)`` alone, so any shard is regenerated identically, missing
+shards are made by a rerun (resume) and workers may make them in any order; a shard made with
+another config is refused rather than mixed in.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import multiprocessing
 import os
 import tempfile
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -60,14 +62,13 @@ PROFILES = ("TDL-A", "TDL-B", "TDL-C", "TDL-D", "TDL-E")  # index = the shards' 
 LOS_PROFILES = frozenset({"TDL-D", "TDL-E"})
 BANDWIDTHS_MHZ = (1.4, 3.0, 5.0, 10.0, 15.0, 20.0)
 SPLITS = {"train": 0, "val": 1, "test": 2}
-SHARD_KEYS = ("windows", "template", "offset", "snr_db", "bandwidth_mhz", "profile",
-              "delay_spread_ns", "re_power_dbm", "coarse_error", "pci", "other_cells")
+CONFIG_KEY = "dataset_config"  # each shard's DatasetConfig, as JSON: data of another config is not mixed in
 EIRP_PER_RE_W = 10 ** ((61 - 30) / 10) / 600  # a 61 dBm macro sector, per resource element
 
 
 @dataclass(frozen=True)
 class DatasetConfig:
-    """The training distribution; shards record nothing else, so a changed field means new data."""
+    """The training distribution; each shard records it, and a changed field means new data."""
 
     seed: int = 2025
     max_frames: int = 12  # frames per example: the model may take any first n of them
@@ -106,6 +107,9 @@ class Example:
     coarse_error: int
     pci: int
     other_cells: int
+
+
+SHARD_KEYS = tuple(f.name for f in fields(Example))
 
 
 # -- one scene ---------------------------------------------------------------------------------
@@ -228,7 +232,12 @@ def make_shard(config: DatasetConfig, split: str, index: int, frontend: Frontend
     arrays = {key: np.asarray([getattr(e, key) for e in examples]) for key in SHARD_KEYS}
     arrays["windows"] = arrays["windows"].astype(np.float32)
     arrays["template"] = arrays["template"].astype(np.float32)
+    arrays[CONFIG_KEY] = np.array(_config_json(config))
     return arrays
+
+
+def _config_json(config: DatasetConfig) -> str:
+    return json.dumps(asdict(config), sort_keys=True)
 
 
 def _write_shard(job: tuple[DatasetConfig, Path, str, int]) -> int:
@@ -238,17 +247,39 @@ def _write_shard(job: tuple[DatasetConfig, Path, str, int]) -> int:
     path.parent.mkdir(parents=True, exist_ok=True)
     # atomic: an interrupted write leaves no shard, so a rerun makes it again
     with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
-        np.savez(handle, **arrays)
+        try:
+            np.savez(handle, **arrays)
+        except BaseException:
+            Path(handle.name).unlink(missing_ok=True)
+            raise
     os.replace(handle.name, path)
     return len(arrays["offset"])
+
+
+def _check_made_with(path: Path, config: DatasetConfig) -> None:
+    """ValueError unless the shard at ``path`` was made with ``config`` (resuming must not mix data)."""
+    with np.load(path, allow_pickle=False) as shard:
+        made = json.loads(str(shard[CONFIG_KEY])) if CONFIG_KEY in shard.files else None
+    wanted = json.loads(_config_json(config))
+    if made != wanted:
+        changed = "no record of it" if made is None else ", ".join(
+            f"{key} {made.get(key)!r} -> {value!r}" for key, value in wanted.items() if made.get(key) != value)
+        raise ValueError(f"{path} was made with another dataset config ({changed}): remove the shards of "
+                         f"{path.parent.parent} or choose another data directory")
 
 
 def generate(root: Path, shards: dict[str, int], config: DatasetConfig | None = None, workers: int = 1) -> int:
     """Make every missing shard of ``shards`` (split -> count) under ``root``; returns how many
     examples were made. Existing shards are kept: an interrupted run resumes."""
     config = config or DatasetConfig()
-    jobs = [(config, Path(root), split, k) for split, count in shards.items() for k in range(count)
-            if not shard_path(root, split, k).exists()]
+    jobs = []
+    for split, count in shards.items():
+        for k in range(count):
+            path = shard_path(root, split, k)
+            if path.exists():
+                _check_made_with(path, config)
+            else:
+                jobs.append((config, Path(root), split, k))
     made = 0
     with tqdm(total=len(jobs) * config.examples_per_shard, desc="timing examples", unit="ex") as bar:
         if workers <= 1:
@@ -272,7 +303,7 @@ def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
     """Every shard of a split, concatenated (``SHARD_KEYS``); ValueError when there is none."""
     paths = sorted((Path(root) / split).glob("shard_*.npz"))
     if not paths:
-        raise ValueError(f"no shards in {Path(root) / split}: make them with `deepsync make-timing-data`")
+        raise ValueError(f"no shards in {Path(root) / split}: `deepsync train` makes them")
     parts = []
     for path in paths:
         with np.load(path, allow_pickle=False) as shard:

@@ -220,6 +220,9 @@ def train(run: RunConfig, config_path: str = "") -> Path:
     step = 0
     if last.exists():
         resumed = load_checkpoint(last)
+        if resumed.model.config != run.model:
+            raise ValueError(f"{last} is a run of another model config ({resumed.model.config}): remove "
+                             f"{run_dir} or choose another training.run_dir")
         model.load_state_dict(resumed.model.state_dict())
         optimiser.load_state_dict(resumed.optimiser)
         step = resumed.step
