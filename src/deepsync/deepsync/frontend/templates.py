@@ -41,7 +41,7 @@ TEMPLATE_LENGTH = SYNC_CODE_BASE_SAMPLES + 2
 PSS_OFFSET_BASE = SYNC_CODE_BASE_SAMPLES // 2  # the PSS symbol follows the SSS symbol (137 samples)
 PSS_TEMPLATE_LENGTH = PSS_OFFSET_BASE + 2
 _OVERSAMPLING = 16  # template waveform rate: 16 x 1.92 MHz, far above any ADC rate used
-_SPAN_BASE = 2048  # analysis window in base samples (1.07 ms) around the code
+_RING_BASE = 64  # base samples (33 us) left after the shapes for the video filter's ringing: it lasts a few us
 _WAVEFORM_RATE = _OVERSAMPLING * BASE_RATE_HZ
 FRACTION_GRID = 32
 
@@ -99,6 +99,7 @@ class SyncTemplates:
         self._video = VideoFilter(config)
         self._highpass = highpass_sos(config, config.adc_rate_hz)
         self._grid: dict[tuple[int, ...], np.ndarray] = {}  # shapes on a fraction grid, by PCI(s) and subframe
+        self._filters: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}  # (n_fft, rate) -> (f, H(f))
 
     def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0,
                  length: int | None = None) -> np.ndarray:
@@ -107,7 +108,9 @@ class SyncTemplates:
         ``envelopes`` is (B, L) |s|^2 at ``rate_hz`` starting at t = 0; the result is
         (B, D, length) for D delays, sampled at t = n / adc_rate (length defaults to the
         template's). Fractional delays are applied exactly, as a phase ramp on the filtered
-        spectrum.
+        spectrum, over an analysis window that holds the envelopes, their delays, the output
+        and the filter's ringing (a quarter of it before t = 0), and no longer: a longer one
+        changes the shapes by ~1e-13 and costs in proportion.
         """
         length = self.length if length is None else length
         envelopes = np.atleast_2d(envelopes)
@@ -116,12 +119,18 @@ class SyncTemplates:
         if abs(ratio - round(ratio)) > 1e-9:
             raise ValueError(f"ADC rate {self.sample_rate:g} Hz does not divide {rate_hz:g} Hz")
         ratio = round(ratio)
-        n_fft = int(round(_SPAN_BASE * rate_hz / BASE_RATE_HZ))
+        ring = _RING_BASE * rate_hz / BASE_RATE_HZ
+        late, early = max(0.0, delays.max() * rate_hz), max(0.0, -delays.min() * rate_hz)
+        content = max(envelopes.shape[1] + late, length * ratio) + early + ring
+        n_fft = 2 ** math.ceil(math.log2(4 / 3 * content))
         lead = n_fft // 4  # room before t = 0 for negative delays and the filter's pre-ringing
         padded = np.zeros((len(envelopes), n_fft))
         padded[:, lead : lead + envelopes.shape[1]] = envelopes
-        frequencies = scipy.fft.rfftfreq(n_fft, 1 / rate_hz)
-        spectrum = scipy.fft.rfft(padded, axis=1) * self._video.response(frequencies)
+        if (n_fft, rate_hz) not in self._filters:  # the same grid on every call: evaluated once
+            frequencies = scipy.fft.rfftfreq(n_fft, 1 / rate_hz)
+            self._filters[n_fft, rate_hz] = frequencies, self._video.response(frequencies)
+        frequencies, video = self._filters[n_fft, rate_hz]
+        spectrum = scipy.fft.rfft(padded, axis=1) * video
         shift = np.exp(-2j * np.pi * frequencies[None, :] * delays[:, None])
         filtered = scipy.fft.irfft(spectrum[:, None, :] * shift[None], n=n_fft, axis=2)
         sampled = filtered[:, :, lead : lead + length * ratio : ratio]

@@ -99,7 +99,12 @@ class SiteSearch:
         # orthonormal bases of each pair's span over both code windows, for candidate scores
         flat = self._parts.reshape(*self._parts.shape[:3], -1)
         self._bases = np.linalg.qr(np.swapaxes(flat, -1, -2))[0]  # (pairs, phases, 2L, 4)
-        self._spectra: dict[int, np.ndarray] = {}
+        # the sectors' own shapes are the single-template search's (same unit frame templates):
+        # their correlations are taken from it, rows (index in allowed) x phases + phase
+        position = {int(pci): i for i, pci in enumerate(allowed)}
+        own = np.array([[position[pci] for pci in pair] for pair in self.pairs], dtype=int).reshape(-1, 2)
+        self._own_rows = own[:, None, :] * len(phases) + np.arange(len(phases))[None, :, None]  # (pairs, phases, 2)
+        self._spectra: dict[int, np.ndarray] = {}  # cross-term shapes' spectra, by frame length
 
     @property
     def rows(self) -> int:
@@ -114,24 +119,26 @@ class SiteSearch:
         """Indices of the pairs ``pci`` belongs to."""
         return np.array([k for k, pair in enumerate(self.pairs) if pci in pair], dtype=int)
 
-    def correlations(self, spectrum: np.ndarray, frame: int, pairs: np.ndarray) -> np.ndarray:
+    def correlations(self, spectrum: np.ndarray, single: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """(pairs, phases, 4, frame) correlations with the given pairs' unit frame templates, of
-        the frame whose rfft is ``spectrum``."""
+        the frame whose rfft is ``spectrum`` and whose correlations with the single-cell search's
+        frame templates (all allowed PCIs x phases) are ``single``: only the cross terms are new."""
+        frame = single.shape[-1]
         if frame not in self._spectra:
-            self._spectra[frame] = frame_spectra(self._parts, frame)
-        return correlate(spectrum, self._spectra[frame][pairs], frame)
+            self._spectra[frame] = frame_spectra(self._parts[:, :, 2:], frame)
+        out = np.empty((len(pairs), len(self.phases), COMPONENTS, frame), dtype=np.float32)
+        out[:, :, :2] = single[self._own_rows[pairs]]
+        out[:, :, 2:] = correlate(spectrum, self._spectra[frame][pairs], frame)
+        return out
 
     def statistic(self, correlations: np.ndarray, covariances: np.ndarray) -> np.ndarray:
-        """(pairs x phases, frame) Gaussian-equivalent z of c' S^-1 c at every lag: the
-        correlations whitened (S = R R', w = R^-1 c, lower triangular), then |w|^2."""
+        """(frame,) Gaussian-equivalent z of c' S^-1 c at every lag, for the best of the pair
+        hypotheses there: the correlations whitened (S = R R', w = R^-1 c), then |w|^2; the
+        map to z is monotonic, so it is applied to the best hypothesis only."""
         whitening = np.linalg.inv(np.linalg.cholesky(covariances)).astype(np.float32)
-        chi2 = np.zeros((*correlations.shape[:2], correlations.shape[-1]), dtype=np.float32)
-        for i in range(COMPONENTS):
-            w = whitening[:, :, i, 0, None] * correlations[:, :, 0]
-            for j in range(1, i + 1):
-                w += whitening[:, :, i, j, None] * correlations[:, :, j]
-            chi2 += w * w
-        return chi2_4_z(chi2).reshape(-1, correlations.shape[-1])
+        whitened = np.matmul(whitening, correlations)  # (pairs, phases, 4, frame)
+        chi2 = np.einsum("kpcn,kpcn->kpn", whitened, whitened)
+        return chi2_4_z(chi2.reshape(-1, chi2.shape[-1]).max(axis=0))
 
     def identify(self, centred: np.ndarray, code_start: int, pairs: np.ndarray, covariances: np.ndarray,
                  pair_false_alarm: float, min_gain: float) -> SiteMatch | None:
@@ -202,8 +209,8 @@ class SiteNoise:
     measured when a pass first needs the pair and kept for the stack's later passes, as the
     single templates' spreads are."""
 
-    def __init__(self, search: SiteSearch, spectrum: np.ndarray, frame: int) -> None:
-        self._search, self._spectrum, self._frame = search, spectrum, frame
+    def __init__(self, search: SiteSearch, spectrum: np.ndarray, single: np.ndarray) -> None:
+        self._search, self._spectrum, self._single = search, spectrum, single
         self._covariances: dict[int, np.ndarray] = {}  # pair index -> (phases, 4, 4)
 
     def covariances(self, pairs: np.ndarray, correlations: np.ndarray | None = None) -> np.ndarray:
@@ -212,7 +219,7 @@ class SiteNoise:
         missing = np.array([i for i, k in enumerate(pairs) if int(k) not in self._covariances], dtype=int)
         if missing.size:
             if correlations is None:
-                measured = _covariances(self._search.correlations(self._spectrum, self._frame, pairs[missing]))
+                measured = _covariances(self._search.correlations(self._spectrum, self._single, pairs[missing]))
             else:
                 measured = _covariances(correlations[missing])
             self._covariances.update(zip((int(k) for k in pairs[missing]), measured))
@@ -221,11 +228,11 @@ class SiteNoise:
 
 def _covariances(correlations: np.ndarray) -> np.ndarray:
     """(..., 4, 4) covariance of the four correlations over the lags where none stands out
-    (5 robust sigmas): codes occupy a few lags of thousands. Every 32nd lag is enough."""
+    (5 robust sigmas about zero, where correlations with zero-mean shapes are centred): codes
+    occupy a few lags of thousands. Every 32nd lag is enough."""
     sample = correlations[..., ::32].astype(np.float64)
-    median = np.median(sample, axis=-1, keepdims=True)
-    spread = mad_spread(sample, axis=-1, keepdims=True)
-    quiet = np.all(np.abs(sample - median) < 5 * spread, axis=-2, keepdims=True)  # (..., 1, lags)
+    spread = mad_spread(sample, axis=-1, keepdims=True, centre=0.0)
+    quiet = np.all(np.abs(sample) < 5 * spread, axis=-2, keepdims=True)  # (..., 1, lags)
     count = quiet.sum(axis=-1, keepdims=True)
     mean = np.sum(sample * quiet, axis=-1, keepdims=True) / count
     centred = (sample - mean) * quiet

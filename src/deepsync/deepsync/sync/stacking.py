@@ -110,6 +110,8 @@ class FrameStacker:
         self._latest = (0, 0)  # (stream index, stamp ns) of the latest chunk: the timeline a chunk must keep
         self._buffer = np.empty(0, dtype=np.float32)
         self._clipped = np.empty(0, dtype=bool)
+        self._parts: list[tuple[np.ndarray, np.ndarray]] = []  # chunks after the buffer, joined once a stack is complete
+        self._held = 0  # samples in the buffer and the parts
         self._buffer_start = 0
 
     @property
@@ -145,7 +147,7 @@ class FrameStacker:
                 self.events.append(Health(
                     HealthKind.RATE_MISMATCH,
                     f"chunk at sample {first_sample_index} comes at {sample_rate:g} Hz, but the templates are built "
-                    f"for {self.sample_rate:g} Hz: dropped with {len(self._buffer)} pending samples (an unfinished "
+                    f"for {self.sample_rate:g} Hz: dropped with {self._held} pending samples (an unfinished "
                     "stack), as is every chunk until the rate is right again",
                     first_sample_index,
                 ))
@@ -160,7 +162,7 @@ class FrameStacker:
             self.events.append(Health(
                 HealthKind.RESTART,
                 f"the stream starts over at sample {first_sample_index} after sample {self._expected - 1} "
-                f"(a driver restart, a bag played again?): {len(self._buffer)} pending samples (an unfinished "
+                f"(a driver restart, a bag played again?): {self._held} pending samples (an unfinished "
                 "stack) dropped; stacking starts afresh",
                 first_sample_index,
             ))
@@ -197,7 +199,7 @@ class FrameStacker:
 
     def _event(self, kind: HealthKind, index: int, what: str) -> None:
         self.events.append(Health(
-            kind, f"{what} at sample {index}: {len(self._buffer)} pending samples (an unfinished "
+            kind, f"{what} at sample {index}: {self._held} pending samples (an unfinished "
             "stack) dropped; stacking restarts after it", index,
         ))
 
@@ -214,6 +216,8 @@ class FrameStacker:
     def _restart(self, index: int, stamp_ns: int) -> None:
         self._buffer = np.empty(0, dtype=np.float32)
         self._clipped = np.empty(0, dtype=bool)
+        self._parts.clear()
+        self._held = 0
         self._buffer_start = index
         self._origin = (index, stamp_ns)
 
@@ -222,20 +226,24 @@ class FrameStacker:
         return origin_stamp + round((index - origin_index) * 1e9 / self.sample_rate)
 
     def _append(self, samples: np.ndarray, clipped: np.ndarray) -> list[Stack]:
-        self._buffer = np.concatenate([self._buffer, samples])
-        self._clipped = np.concatenate([self._clipped, clipped])
+        self._parts.append((samples, clipped))
+        self._held += len(samples)
         frame, n = self.frame_samples, self.config.n_frames
         stacks = []
         while True:
             period = frame * (1 + self.clock_ppm * 1e-6)
             exact = np.arange(n) * period
             starts = np.round(exact).astype(np.int64)
-            if len(self._buffer) < starts[-1] + frame:
+            advance = int(round(n * period))  # where the next stack's first row starts
+            if self._held < max(starts[-1] + frame, advance):
                 return stacks
-            index = starts[:, None] + np.arange(frame)[None, :]
-            rows = self._buffer[index]
+            if self._parts:  # joined once per stack, not per chunk
+                self._buffer = np.concatenate([self._buffer, *(part for part, _ in self._parts)])
+                self._clipped = np.concatenate([self._clipped, *(part for _, part in self._parts)])
+                self._parts.clear()
+            rows = np.stack([self._buffer[start : start + frame] for start in starts])
             flags = []
-            clipped_fraction = float(self._clipped[index].mean())
+            clipped_fraction = sum(int(np.count_nonzero(self._clipped[start : start + frame])) for start in starts) / rows.size
             if clipped_fraction > self.config.clip_fraction:
                 flags.append(Health(HealthKind.CLIPPED, f"{100 * clipped_fraction:.2f} % of samples at the ADC rails"))
             held = held_fraction(rows.mean(axis=0))
@@ -249,9 +257,9 @@ class FrameStacker:
                 flags.append(Health(HealthKind.MISALIGNED, f"{residual:+.1f} ppm of clock drift was not compensated"))
             stacks.append(Stack(rows, self._buffer_start + starts, exact - starts, self.sample_rate,
                                 self._stamp(self._buffer_start), aligned, tuple(flags), drift))
-            advance = int(round(n * period))  # where the next stack's first row starts
             self._buffer = self._buffer[advance:]
             self._clipped = self._clipped[advance:]
+            self._held -= advance
             self._buffer_start += advance
             if drift is not None:
                 previous = self.measured_drift_ppm
@@ -284,7 +292,7 @@ def measure_drift(rows: np.ndarray, max_ppm: float = MAX_CLOCK_PPM, min_z: float
     reach = int(np.ceil(max_ppm * 1e-6 * frame * (n // 2))) + 1
     lags = np.arange(-reach, reach + 1)
     lag = int(lags[np.argmax(c[lags % frame])])
-    spread = mad_spread(c)
-    if spread <= 0 or (c[lag % frame] - np.median(c)) / spread < min_z:
+    spread = mad_spread(c, centre=0.0)  # zero-mean frames: the correlation sums to zero
+    if spread <= 0 or c[lag % frame] / spread < min_z:
         return None
     return (lag + parabolic_peak(c, lag % frame)) / ((n // 2) * frame) * 1e6
