@@ -55,14 +55,34 @@ def interference(seconds: float, config: FrontendConfig) -> tuple[np.ndarray, fl
     return frames - frames.mean(), resident
 
 
+def interference_sigma(frames: np.ndarray, resident: float) -> float:
+    """Interference RMS per sample, away from the resident cell's own codes."""
+    return float(np.std(frames[:, (np.arange(FRAME) - resident) % HALF > 400]))
+
+
+class TowerDatabases:
+    """The known-PCI search of a trial: a tower database of the true PCI, the resident cell
+    and 18 other PCIs (drawn once per true PCI)."""
+
+    def __init__(self, templates: SyncTemplates, rng: np.random.Generator) -> None:
+        self.templates, self.rng = templates, rng
+        self.searches: dict[int, CellSearch] = {}
+
+    def __call__(self, pci: int) -> CellSearch:
+        if pci not in self.searches:
+            others = self.rng.choice(np.setdiff1d(np.arange(504), [pci, RESIDENT_PCI]), 18, replace=False)
+            self.searches[pci] = CellSearch(self.templates, SearchConfig(), [pci, RESIDENT_PCI, *others.tolist()])
+        return self.searches[pci]
+
+
 def near(position: float, target: float, period: int) -> bool:
     d = (position - target) % period
     return min(d, period - d) <= 1.0
 
 
-def trial(rng, frames, resident, templates, blind, database, pci, n, snr_db, sigma):
-    """One stack with the codes of ``pci`` (None: interference alone). Per mode, "blind" and
-    "known": (hit, PCI right, N_ID2 right, N_ID1 right, PCI in candidates, any false cell)."""
+def trial(rng, frames, resident, templates, blind, database, pci, n, snr_db, sigma, modes=("blind", "known")):
+    """One stack with the codes of ``pci`` (None: interference alone). Per mode ("blind",
+    "known"): (hit, PCI right, N_ID2 right, N_ID1 right, PCI in candidates, any false cell)."""
     start = rng.integers(0, len(frames) - n)
     stacked = frames[start : start + n].mean(axis=0)
     offset = rng.uniform(0, FRAME)
@@ -76,7 +96,8 @@ def trial(rng, frames, resident, templates, blind, database, pci, n, snr_db, sig
         amplitude = math.sqrt(10 ** (snr_db / 10) * len(shape) * sigma**2 / energy)
         stacked = stacked + amplitude * codes
     outcome = {}
-    for mode, search in (("blind", blind), ("known", database(RESIDENT_PCI if pci is None else pci))):
+    for mode in modes:
+        search = blind if mode == "blind" else database(RESIDENT_PCI if pci is None else pci)
         found = search.search(stacked)
         hit = [d for d in found if pci is not None and near(d.frame_offset + d.fraction, offset, HALF)]
         false = [d for d in found if d not in hit and not near(d.frame_offset + d.fraction, resident, HALF)]
@@ -102,18 +123,10 @@ def main() -> None:
     templates = SyncTemplates(config)
     print(f"simulating {args.seconds:g} s of interference ...")
     frames, resident = interference(args.seconds, config)
-    # interference energy per sample in a code window, away from the resident cell's codes
-    sigma = float(np.std(frames[:, (np.arange(FRAME) - resident) % HALF > 400]))
+    sigma = interference_sigma(frames, resident)
 
     blind = CellSearch(templates, SearchConfig())
-    databases: dict[int, CellSearch] = {}
-
-    def database(pci: int) -> CellSearch:
-        """A tower database of the true PCI, the resident cell and 18 other PCIs."""
-        if pci not in databases:
-            others = rng.choice(np.setdiff1d(np.arange(504), [pci, RESIDENT_PCI]), 18, replace=False)
-            databases[pci] = CellSearch(templates, SearchConfig(), [pci, RESIDENT_PCI, *others.tolist()])
-        return databases[pci]
+    database = TowerDatabases(templates, rng)
     results: dict = {"definition": __doc__.split("\n\n")[1], "trials": args.trials, "curves": {}}
     pcis = rng.choice(np.setdiff1d(np.arange(504), [RESIDENT_PCI]), 40, replace=False)
     total = sum(len(v) for v in SNR_GRID.values()) * args.trials + 4 * args.trials

@@ -127,8 +127,11 @@ def gaussian_rows(
 
 
 def run(
-    kind: str, pool: np.ndarray, psd: np.ndarray, args, templates: SyncTemplates, longer: SyncTemplates
+    kind: str, pool: np.ndarray, psd: np.ndarray, args, templates: SyncTemplates, longer: SyncTemplates,
+    estimators: dict = ESTIMATORS, snr_grid: np.ndarray = SNRS_DB,
 ) -> list[dict]:
+    """Per SNR point (``snr_grid``, dB per frame): each estimator's errors against the CRLB, over
+    ``args.trials`` trials of ``args.frames`` frames in ``kind`` interference."""
     rng = np.random.default_rng(args.seed + (0 if kind == "simulator" else 1))
     bank = templates.all()
     margin, frames, length = args.margin, args.frames, pool.shape[1]
@@ -136,10 +139,10 @@ def run(
     pool_inner = pool[:, inner] - pool[:, inner].mean(axis=1, keepdims=True)
     noise_energy = float(np.mean(np.sum(pool_inner**2, axis=1)))  # per frame, over the code window
     points = []
-    for snr_db in tqdm(SNRS_DB, desc=f"fine timing ({kind})"):
-        errors = {name: [] for name in ESTIMATORS}
-        stds = {name: [] for name in ESTIMATORS}
-        snrs = {name: [] for name in ESTIMATORS}
+    for snr_db in tqdm(snr_grid, desc=f"fine timing ({kind})"):
+        errors = {name: [] for name in estimators}
+        stds = {name: [] for name in estimators}
+        snrs = {name: [] for name in estimators}
         crlb_var = []
         for _ in range(args.trials):
             pci, sf_index = int(rng.integers(504)), int(rng.integers(2))
@@ -154,13 +157,13 @@ def run(
                 interference = gaussian_rows(rng, psd, frames, length)
             windows = code[None, :] + k * interference
             crlb_var.append(delay_crlb(template, 1.0, k**2 * psd, frames).std_samples ** 2)
-            for name, estimator in ESTIMATORS.items():
+            for name, estimator in estimators.items():
                 estimate = estimator(windows, template, margin)
                 errors[name].append(estimate.offset - offset)
                 stds[name].append(estimate.std)
                 snrs[name].append(estimate.snr_db)
         point = {"snr_per_frame_db": float(snr_db), "crlb_samples": float(np.sqrt(np.mean(crlb_var)))}
-        for name in ESTIMATORS:
+        for name in estimators:
             err = np.abs(np.array(errors[name]))
             std = np.array(stds[name])
             rmse = float(np.sqrt(np.mean(err**2)))
