@@ -106,7 +106,8 @@ def detection_curves(trials: int, seconds: float, rng: np.random.Generator) -> d
             hits = 0
             for _ in range(trials):
                 pci = int(rng.choice(pcis))
-                out = cell_search.trial(rng, frames, resident, templates, None, database, pci, n, snr, sigma, ("known",))
+                out = cell_search.trial(rng, frames, resident, templates, None, database, pci, n, snr, sigma,
+                                        ("known",))
                 hits += out["known"][0] and out["known"][1]
             pd.append(hits / trials)
         for _ in range(trials):
@@ -280,7 +281,8 @@ def main() -> None:
             for n in FRAMES:
                 r = next(r for r in table if r["frontend"] == name and r["bandwidth_mhz"] == bandwidth
                          and r["load"] == 0.6 and r["frames"] == n)
-                cells.append(f"{r['heard_power_dbm']:7.1f} {r['range_m']['UMa NLOS']:6.0f}/{r['range_m']['UMi NLOS']:5.0f}")
+                ranges = r["range_m"]
+                cells.append(f"{r['heard_power_dbm']:7.1f} {ranges['UMa NLOS']:6.0f}/{ranges['UMi NLOS']:5.0f}")
             print(f"{name:12s} {bandwidth:5.1f} " + " ".join(f"{c:>22s}" for c in cells))
 
     OUT.mkdir(parents=True, exist_ok=True)

@@ -38,8 +38,8 @@ def time_mode(chunks, towers, repeats: int, config: SyncConfig) -> tuple[float, 
     """Median and 90th percentile (ms) of processing one 10-frame stack."""
     frontend = bag_frontend(BAG)
     warm = SyncStage(frontend, config, towers)
-    for chunk in chunks[:10]:
-        warm.process(chunk)  # builds and caches templates (start-up cost, not per stack)
+    for chunk in chunks[:30]:
+        warm.process(chunk)  # builds and caches templates, CRS ones of the cells found too (not per stack)
     times = []
     for r in range(repeats):
         stage = SyncStage(frontend, config, towers)

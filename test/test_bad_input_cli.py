@@ -254,6 +254,8 @@ def test_replay_refuses_what_it_cannot_start_on_and_writes_nothing(tmp_path, cap
     fails(replay_args(Path("/nonexistent/bag"), out), capsys, "/nonexistent/bag")
     fails(replay_args(BAG, out, "--towers", "/nonexistent/towers.yaml"), capsys, "file not found")
     fails(replay_args(BAG, out, "--stages", "fusion,sync"), capsys, "contiguous part of the chain")
+    fails(replay_args(BAG, out, "--frames", "10", "--hop", "20"), capsys, "hop_frames must be 1..n_frames (10)")
+    fails(replay_args(BAG, out, "--hop", "0"), capsys, "hop_frames must be 1..n_frames")
     wrong = tmp_path / "wrong"
     arrivals = StackArrivals(10**18, 0, 1.92e6, (CellTiming(56, 10.0, 0.1, 0.0, "ml"),))
     with BagWriter(wrong) as bag:

@@ -60,8 +60,9 @@ def test_the_defaults_are_the_cores() -> None:
 
 
 def test_the_pipeline_declares_what_the_separate_nodes_do() -> None:
+    # stack_overlap is cell_sync's n_frames / hop_frames, which one process knows: derived there
     separate = {spec.name: spec for node in ("envelope_adc", "cell_sync", "cell_timing", "tdoa_fusion")
-                for spec in params.NODES[node] if spec.name not in ("frontend", "towers")}
+                for spec in params.NODES[node] if spec.name not in ("frontend", "towers", "stack_overlap")}
     pipeline = {spec.name: spec for spec in params.DEEPSYNC_PIPELINE}
     assert set(pipeline) - {"towers"} == set(separate)
     assert all(pipeline[name].default == spec.default for name, spec in separate.items())
@@ -219,3 +220,13 @@ def test_the_yaml_with_the_campus_paths_builds_every_node() -> None:
             assert params.frontend(given, node) == BagSource(CAMPUS_BAG).frontend
         if "source" in given:
             assert params.source(given, node).frontend == BagSource(CAMPUS_BAG).frontend
+
+
+def test_sliding_stacks_set_the_trackers_overlap_in_one_process_and_by_parameter_apart() -> None:
+    def values(node: str, **chosen) -> dict:
+        return params.checked(params.NODES[node], chosen, node)
+
+    sliding = params.pipeline_config(values("deepsync_pipeline", n_frames=50, hop_frames=10))
+    assert sliding.fusion.tracker.stack_overlap == 5.0
+    assert params.pipeline_config(values("deepsync_pipeline")).fusion.tracker.stack_overlap == 1.0
+    assert params.fusion_config(values("tdoa_fusion", stack_overlap=5.0)).tracker.stack_overlap == 5.0

@@ -8,9 +8,12 @@ import scipy.fft
 
 from deepsync.bag import read_envelope
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk, HealthKind, Severity
+from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.templates import SyncTemplates
+from deepsync.frontend.simulator import EnvelopeSimulator
+from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.frontend.video import VideoFilter
+from deepsync.lte.cell import CellConfig
 from deepsync.sources import BagSource
 from deepsync.sync.search import CellSearch, SearchConfig
 from deepsync.sync.sites import SiteFit
@@ -176,6 +179,39 @@ def test_flags_for_clipping_and_silence():
     codes[:100] = 2047
     (clipped,) = stacker.push(EnvelopeChunk(0, 1.92e6, 2 * FRAME, 12, 1e-3, codes))
     assert [f.kind for f in clipped.flags] == [HealthKind.CLIPPED] and "0.52 %" in str(clipped.flags[0])
+
+
+def test_sliding_stacks_start_every_hop_frames_and_share_the_rest():
+    rng = np.random.default_rng(2)
+    codes = rng.integers(-2000, 2000, size=12 * FRAME + 5).astype(np.int16)
+    stacker = FrameStacker(1.92e6, StackConfig(n_frames=5, hop_frames=2))
+    stacks = [s for c in chunked(codes, [3 * FRAME, 5000, 9 * FRAME - 5000 + 5]) for s in stacker.push(c)]
+    assert [s.first_sample_index for s in stacks] == [0, 2 * FRAME, 4 * FRAME, 6 * FRAME]  # 12 frames: 4 stacks
+    for earlier, later in zip(stacks, stacks[1:]):
+        np.testing.assert_array_equal(later.rows[:3], earlier.rows[2:])  # 5 - 2 frames in common
+    np.testing.assert_allclose(stacks[3].rows[-1], codes[10 * FRAME : 11 * FRAME] * 1e-3, rtol=1e-6)
+    assert not stacker.events
+    with pytest.raises(ValueError, match="hop_frames must be 1..n_frames"):
+        StackConfig(n_frames=5, hop_frames=6)
+
+
+def test_sliding_stacks_confirm_a_cell_at_the_hop_rate():
+    """A 20-frame stack every 5 frames on the campus bag: a result every 50 ms, the cells found
+    where they are, and confirmed after three stacks in a row, as with back-to-back stacks."""
+    bag = REPO / "bags" / "campus"
+    config = SyncConfig(stack=StackConfig(n_frames=20, hop_frames=5))
+    stage = SyncStage(BagSource(bag).frontend, config, load_tower_database(CAMPUS_TOWERS))
+    results = [r for chunk in read_envelope(bag) for r in stage.process(chunk)]
+    assert len(results) == (300 - 20) // 5 + 1  # 3 s of frames
+    assert np.all(np.diff([r.first_sample_index for r in results]) == 5 * FRAME)
+    truth = {56: 1672.06, 301: 14938.01, 120: 6680.06, 121: 6680.06}
+    assert not results[0].cells and not results[1].cells  # three stacks in a row confirm a cell
+    complete = [{c.pci for c in r.cells} == set(truth) for r in results[2:]]
+    assert np.mean(complete) >= 0.9  # PCI 301, at -6 dB, fades out of a few stacks
+    for result in results:
+        for cell in result.cells:
+            assert abs((cell.code_position - truth[cell.pci] + FRAME / 2) % FRAME - FRAME / 2) <= 1.0
+            assert cell.window.windows.shape == (20, 276 + 20)
 
 
 def test_clock_offset_is_compensated_to_the_sub_sample(templates):
@@ -409,3 +445,45 @@ def test_stage_survives_every_kind_of_bad_input_and_says_what_happened(templates
     assert {HealthKind.NO_SIGNAL, HealthKind.CLIPPED} <= set(flags)
     assert results[0].pcis == [301]
     assert all(r.cells == () for r in results if any(f.kind is HealthKind.NO_SIGNAL for f in r.flags))
+
+
+# -- a strong cell's CRS --------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def strong_cell_frames():
+    """100 frames of one strong, loaded 10 MHz cell (PCI 456, line of sight) through the default
+    chain, and where its code sits: what long stacks near a tower look like."""
+    cell = Emitter(CellConfig(pci=456, bandwidth_mhz=10, load=0.6), 2115e6, 2e-3, 0.0, 0.0, "S")
+    sim = EnvelopeSimulator([cell], FixedChannel(Paths([1e-6], [3e-5], [0.0])), FrontendConfig(), seed=3)
+    volts = np.concatenate([c.samples for c in sim.stream(1.0)]).astype(np.float64)
+    code = float(sim.sample_index(sync_code_offset_seconds() + 1e-6)) % FRAME
+    return volts[: 100 * FRAME].reshape(100, FRAME), code
+
+
+def test_the_crs_template_is_what_the_simulator_sends(templates, strong_cell_frames):
+    frames, code = strong_cell_frames
+    stacked = frames.mean(axis=0)
+    start = code - sync_code_offset_seconds() * templates.sample_rate
+    shape = templates.crs_envelope(456, 10)
+    shifted = np.fft.irfft(np.fft.rfft(shape) * np.exp(-2j * np.pi * np.fft.rfftfreq(FRAME) * start), FRAME)
+    assert np.corrcoef(shifted, stacked)[0, 1] > 0.5  # the CRS is a large part of everything in the stack (0.64)
+    wrong = templates.crs_envelope(457, 10)  # another PCI's CRS comb sits on other subcarriers
+    shifted_wrong = np.fft.irfft(np.fft.rfft(wrong) * np.exp(-2j * np.pi * np.fft.rfftfreq(FRAME) * start), FRAME)
+    assert np.corrcoef(shifted_wrong, stacked)[0, 1] < 0.5 * np.corrcoef(shifted, stacked)[0, 1]
+
+
+def test_a_strong_cells_crs_does_not_pass_for_other_cells_over_long_stacks(templates, strong_cell_frames):
+    """Stacking averages the data away but not the CRS: without its cancellation, database
+    PCIs' codes match parts of it; with it, the one cell on the air is all that is found."""
+    frames, code = strong_cell_frames
+    rng = np.random.default_rng(4)
+    database = [456, *rng.choice(np.setdiff1d(np.arange(504), [456]), 19, replace=False).tolist()]
+    false = {}
+    for z in (0.0, SearchConfig().crs_cancel_z):
+        search = CellSearch(templates, SearchConfig(crs_cancel_z=z), database)
+        found = [search.search(frames[k : k + 50].mean(axis=0)) for k in range(0, 51, 10)]
+        assert all(any(d.pci == 456 and abs((d.frame_offset + d.fraction - code + FRAME / 2) % FRAME - FRAME / 2) <= 1
+                       for d in cells) for cells in found)
+        false[z] = sum(d.pci != 456 for cells in found for d in cells)
+    assert false[0.0] >= 3 and false[SearchConfig().crs_cancel_z] == 0, false

@@ -280,8 +280,8 @@ def _print_health(health: dict[str, int]) -> None:
         print("  health      no stage reported a problem")
 
 
-def _pipeline_config(frames: int, estimator: str | None = None) -> PipelineConfig:
-    return PipelineConfig().with_choices(frames, estimator)
+def _pipeline_config(frames: int, estimator: str | None = None, hop: int | None = None) -> PipelineConfig:
+    return PipelineConfig().with_choices(frames, estimator, hop)
 
 
 def _cmd_evaluate_route(args: argparse.Namespace) -> int:
@@ -290,7 +290,8 @@ def _cmd_evaluate_route(args: argparse.Namespace) -> int:
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
     print(f"route evaluation of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
-    summary, paths = evaluate_route(source, towers, Path(args.out), _pipeline_config(args.frames, args.estimator),
+    config = _pipeline_config(args.frames, args.estimator, args.hop)
+    summary, paths = evaluate_route(source, towers, Path(args.out), config,
                                     progress=not args.quiet)
     _print_route(summary)
     print("  written: " + ", ".join(str(p) for p in paths))
@@ -304,7 +305,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
     print(f"site clock calibration from {source.description}\n  tower database {args.towers}")
-    calibration = calibrate_route(source, towers, _pipeline_config(args.frames, args.estimator), progress=not args.quiet)
+    config = _pipeline_config(args.frames, args.estimator, args.hop)
+    calibration = calibrate_route(source, towers, config, progress=not args.quiet)
     result = calibration.result
     print(f"  {len(result.sites)} sites heard; offsets relative to site {result.reference_site} (the most heard); "
           f"range residual RMS {result.residual_rms_before_m:.1f} m before, {result.residual_rms_after_m:.1f} m after "
@@ -327,7 +329,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     towers = None if args.towers is None else load_tower_database(args.towers)
     print(f"replay of {args.bag} through {', '.join(stages)}; "
           + (f"tower database {args.towers}" if towers else "no tower database") + f", {args.frames}-frame stacks")
-    summary = replay_bag(args.bag, args.out, towers, _pipeline_config(args.frames, args.estimator), stages=stages,
+    config = _pipeline_config(args.frames, args.estimator, args.hop)
+    summary = replay_bag(args.bag, args.out, towers, config, stages=stages,
                          copy_inputs=args.copy_inputs, overwrite=args.overwrite, progress=not args.quiet, say=_say)
     print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
           f"{summary.wall_seconds:.1f} s ({summary.realtime_factor:.1f}x real time)")
@@ -446,6 +449,8 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
     command.add_argument(*bag_options, dest="bag", required=True, help=bag_help)
     command.add_argument("--towers", required=towers_required, help=towers_help)
     command.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
+    command.add_argument("--hop", type=int, help="frames from one stack to the next (default: --frames, back to "
+                         "back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz)")
     command.add_argument("--estimator", default="ml", metavar="NAME",
                          help="sub-sample timing estimator: ml (default), ml_white, fft_upsampled, parabolic, "
                               "network, network_ml (the last two need torch)")

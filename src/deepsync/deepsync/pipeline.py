@@ -44,13 +44,22 @@ class PipelineConfig:
         if self.sync.stack.n_frames < 2:
             raise ValueError(f"stacks of {self.sync.stack.n_frames} frame: the timing stage measures the noise "
                              "from how frames differ, so a stack needs at least 2 frames")
+        # one source for the overlap of sliding stacks: the stacks themselves
+        overlap = self.sync.stack.n_frames / self.sync.stack.hop
+        if self.fusion.tracker.stack_overlap != overlap:
+            tracker = replace(self.fusion.tracker, stack_overlap=overlap)
+            object.__setattr__(self, "fusion", replace(self.fusion, tracker=tracker))
 
-    def with_choices(self, n_frames: int | None = None, estimator: str | None = None) -> PipelineConfig:
-        """This config with the knobs a command line offers: frames per stack, the timing
-        estimator by name (ValueError listing the names)."""
+    def with_choices(self, n_frames: int | None = None, estimator: str | None = None,
+                     hop_frames: int | None = None) -> PipelineConfig:
+        """This config with the knobs a command line offers: frames per stack, frames from one
+        stack to the next (sliding stacks), the timing estimator by name (ValueError listing
+        the names)."""
         sync, timing = self.sync, self.timing
-        if n_frames is not None:
-            sync = replace(sync, stack=replace(sync.stack, n_frames=n_frames))
+        if n_frames is not None or hop_frames is not None:
+            frames = sync.stack.n_frames if n_frames is None else n_frames
+            stack = replace(sync.stack, n_frames=frames, hop_frames=hop_frames)
+            sync = replace(sync, stack=stack)
         if estimator is not None:
             names = [e.value for e in Estimator]
             if estimator not in names:

@@ -26,6 +26,7 @@ from deepsync.configio import build_dataclass, load_yaml
 from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
 from deepsync.fusion.snapshot import SnapshotConfig
 from deepsync.fusion.stage import FusionConfig
+from deepsync.fusion.tracker import TrackerConfig
 from deepsync.pipeline import PipelineConfig, places_sites
 from deepsync.sources import SampleFormat, Source, bag_frontend, open_source
 from deepsync.sources.bagfile import is_bag_path
@@ -124,6 +125,9 @@ FRONTEND = ParamSpec("frontend", "", "Receiver chain the stream went through, fo
 SYNC = (
     ParamSpec("n_frames", _STACK.n_frames, "LTE frames (10 ms) stacked per search; the timing stage needs 2 to "
               "measure the noise.", range=(2, 1000)),
+    ParamSpec("hop_frames", 0, "Frames from one stack's start to the next; 0: n_frames (back to back). Fewer "
+              "gives sliding stacks: n_frames 50, hop_frames 10 hears as 50 frames do and answers at 10 Hz.",
+              range=(0, 1000)),
     ParamSpec("clock_ppm", _STACK.clock_ppm, "Initial receiver clock error, compensated [ppm].",
               range=FRONTEND_RANGES["clock_offset_ppm"][:2]),
     ParamSpec("track_clock", _STACK.track_clock, "Follow the receiver clock drift measured on each stack."),
@@ -134,6 +138,9 @@ SYNC = (
     ParamSpec("max_cells", _SEARCH.max_cells, "Most cells searched for per stack.", range=(1, 64)),
     ParamSpec("full_code_timing", _SEARCH.full_code_timing, "With a tower database, time known cells by their "
               "whole codes (about +9 dB, slower)."),
+    ParamSpec("crs_cancel_z", _SEARCH.crs_cancel_z, "A cell found this many sigmas out also has its CRS cancelled "
+              "before weaker cells are sought: over long stacks a strong cell's CRS passes for other cells' codes. "
+              "0: never.", range=(0.0, 1000.0)),
 )
 TIMING = (
     ParamSpec("estimator", _TIMING.estimator.value, "Sub-sample timing estimator.",
@@ -152,6 +159,10 @@ FUSION = (
     ParamSpec("receiver_height_m", _SNAPSHOT.receiver_height_m, "Antenna height above the map origin's ground "
               "in a 2-D fix [m].", range=(-500.0, 1e4)),
 )
+STACK_OVERLAP = ParamSpec("stack_overlap", 1.0, "Stacks each ADC frame is in: cell_sync's n_frames / hop_frames "
+                          "(sliding stacks share frames, so their timing noise repeats); the tracker counts each "
+                          "arrival's timing variance that many times. (deepsync_pipeline derives it.)",
+                          range=(1.0, 1000.0))
 OUTPUT_FRAMES = (
     ParamSpec("map_frame", MAP_FRAME_ID, "frame_id of the pose (REP-105 map: ENU at the database's origin)."),
     ParamSpec("antenna_frame", ANTENNA_FRAME_ID, "frame_id of the NavSatFix (the receiver antenna)."),
@@ -163,7 +174,7 @@ ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME)
 CELL_SYNC = (TOWERS, FRONTEND, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the published "
                                                 "windows (the stream's frame)."))
 CELL_TIMING = (FRONTEND, *TIMING)
-TDOA_FUSION = (FUSION_TOWERS, *FUSION, *OUTPUT_FRAMES)
+TDOA_FUSION = (FUSION_TOWERS, *FUSION, STACK_OVERLAP, *OUTPUT_FRAMES)
 DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, *SYNC, *TIMING, *FUSION, *OUTPUT_FRAMES)
 
 NODES: dict[str, tuple[ParamSpec, ...]] = {
@@ -205,11 +216,13 @@ def _config(build: Callable[..., T], specs: tuple[ParamSpec, ...], values: Mappi
         raise ParameterError(f"{node}: {error}") from None
 
 
-def _sync(n_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int, false_alarm_rate: float,
-          max_cells: int, full_code_timing: bool) -> SyncConfig:
+def _sync(n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int,
+          false_alarm_rate: float, max_cells: int, full_code_timing: bool, crs_cancel_z: float) -> SyncConfig:
     return SyncConfig(
-        stack=StackConfig(n_frames=n_frames, clock_ppm=clock_ppm, track_clock=track_clock),
-        search=SearchConfig(false_alarm_rate=false_alarm_rate, max_cells=max_cells, full_code_timing=full_code_timing),
+        stack=StackConfig(n_frames=n_frames, hop_frames=hop_frames or None, clock_ppm=clock_ppm,
+                          track_clock=track_clock),
+        search=SearchConfig(false_alarm_rate=false_alarm_rate, max_cells=max_cells, full_code_timing=full_code_timing,
+                            crs_cancel_z=crs_cancel_z),
         confirm_stacks=confirm_stacks)
 
 
@@ -222,9 +235,11 @@ def _timing(estimator: str, weak_std_samples: float, checkpoint: str) -> TimingC
     return TimingConfig(estimator=kind, weak_std_samples=weak_std_samples, checkpoint=checkpoint or None)
 
 
-def _fusion(tracking: bool, multipath_std_m: float, min_std_m: float, receiver_height_m: float) -> FusionConfig:
+def _fusion(tracking: bool, multipath_std_m: float, min_std_m: float, receiver_height_m: float,
+            stack_overlap: float = 1.0) -> FusionConfig:
     return FusionConfig(snapshot=SnapshotConfig(receiver_height_m=receiver_height_m), track=tracking,
-                        min_std_m=min_std_m, multipath_std_m=multipath_std_m)
+                        min_std_m=min_std_m, multipath_std_m=multipath_std_m,
+                        tracker=TrackerConfig(stack_overlap=stack_overlap))
 
 
 def sync_config(values: Mapping[str, ParamValue], node: str = "cell_sync") -> SyncConfig:
@@ -236,7 +251,9 @@ def timing_config(values: Mapping[str, ParamValue], node: str = "cell_timing") -
 
 
 def fusion_config(values: Mapping[str, ParamValue], node: str = "tdoa_fusion") -> FusionConfig:
-    return _config(_fusion, FUSION, values, node)
+    """The fusion node's config; in the one-process pipeline the stack overlap comes from the
+    stacks themselves (``PipelineConfig``)."""
+    return _config(_fusion, (*FUSION, STACK_OVERLAP) if node == "tdoa_fusion" else FUSION, values, node)
 
 
 def pipeline_config(values: Mapping[str, ParamValue], node: str = "deepsync_pipeline") -> PipelineConfig:

@@ -26,7 +26,8 @@ import scipy.signal
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.video import VideoFilter, highpass_sos
 from deepsync.lte import grid as G
-from deepsync.lte.cell import N_CELL_IDS, split_pci
+from deepsync.lte.cell import N_CELL_IDS, CellConfig, split_pci
+from deepsync.lte.frame import FrameGenerator
 from deepsync.lte.numerology import (
     BASE_FFT,
     BASE_RATE_HZ,
@@ -34,8 +35,9 @@ from deepsync.lte.numerology import (
     Numerology,
     sync_code_start_base,
 )
-from deepsync.lte.ofdm import subcarrier_bins
+from deepsync.lte.ofdm import modulate, subcarrier_bins
 from deepsync.lte.sequences import pss, sss
+from deepsync.types import FRAME_SECONDS
 
 TEMPLATE_LENGTH = SYNC_CODE_BASE_SAMPLES + 2
 PSS_OFFSET_BASE = SYNC_CODE_BASE_SAMPLES // 2  # the PSS symbol follows the SSS symbol (137 samples)
@@ -100,6 +102,7 @@ class SyncTemplates:
         self._highpass = highpass_sos(config, config.adc_rate_hz)
         self._grid: dict[tuple[int, ...], np.ndarray] = {}  # shapes on a fraction grid, by PCI(s) and subframe
         self._filters: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}  # (n_fft, rate) -> (f, H(f))
+        self._crs: dict[tuple[int, int], np.ndarray] = {}  # (PCI, 10 x bandwidth) -> CRS envelope of a frame
 
     def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0,
                  length: int | None = None) -> np.ndarray:
@@ -195,6 +198,28 @@ class SyncTemplates:
         out = out[:, : self.pss_length]
         return out[0] if np.ndim(delay_samples) == 0 else out
 
+    def crs_envelope(self, pci: int, bandwidth_mhz: float) -> np.ndarray:
+        """(frame,) one frame of a cell's cell-specific reference signals (port 0) in the
+        envelope, the frame starting at sample 0: |CRS|^2 through the video filter and the AC
+        coupling, per unit RE power, with its mean over each of the cell's OFDM symbols removed
+        (the load-dependent pedestal of the data there is unknown). Sent the same in every
+        frame, it survives stacking as the sync codes do; a strong cell's, over long stacks,
+        rises above the search's threshold (``deepsync.sync.search``). Cached."""
+        key = (pci, round(10 * bandwidth_mhz))
+        if key not in self._crs:
+            numerology = _numerology_for_rate(bandwidth_mhz, self.sample_rate)
+            grid = FrameGenerator(CellConfig(pci=pci, bandwidth_mhz=bandwidth_mhz), seed=0).deterministic_grid
+            for slot in G.SYNC_SLOTS:  # the sync codes have templates of their own
+                grid[[G.frame_symbol(slot, G.SSS_SYMBOL_IN_SLOT), G.frame_symbol(slot, G.PSS_SYMBOL_IN_SLOT)]] = 0
+            envelope = np.abs(np.tile(modulate(grid, numerology), 2)) ** 2  # two frames: the filters settle
+            frame = int(round(self.sample_rate * FRAME_SECONDS))
+            shape = self.response(envelope, numerology.sample_rate_hz, 0.0, 2 * frame)[0, 0, frame:]
+            starts = np.round(Numerology.for_bandwidth(1.4).symbol_starts * self.sample_rate / BASE_RATE_HZ)
+            symbol = np.searchsorted(starts.astype(int), np.arange(frame), side="right") - 1
+            shape -= (np.bincount(symbol, shape) / np.bincount(symbol))[symbol]
+            self._crs[key] = shape
+        return self._crs[key]
+
     @property
     def pss_length(self) -> int:
         return int(round(PSS_TEMPLATE_LENGTH * self.sample_rate / BASE_RATE_HZ))
@@ -224,6 +249,19 @@ def code_template(
         raise ValueError(f"PCI {pci} with co-sited PCI {cosited_pci}: the pair's 4 site coefficients are needed")
     pair = (min(pci, cosited_pci), max(pci, cosited_pci))
     return np.asarray(site_coefficients, dtype=np.float64) @ templates.pair_shapes(pair, subframe, delay_samples)
+
+
+def _numerology_for_rate(bandwidth_mhz: float, adc_rate_hz: float) -> Numerology:
+    """The carrier's numerology at the smallest FFT size (its own or a power-of-two multiple,
+    or of 2048: 30.72 MHz, which every ADC rate templates allow divides) whose sample rate
+    the ADC rate divides, so its envelope can be sampled at the ADC rate."""
+    standard = Numerology.for_bandwidth(bandwidth_mhz).fft_size
+    sizes = sorted({standard << k for k in range(6)} | {BASE_FFT * _OVERSAMPLING << k for k in range(2)})
+    for size in (s for s in sizes if s >= standard):
+        rate = size * BASE_RATE_HZ / BASE_FFT
+        if abs(rate / adc_rate_hz - round(rate / adc_rate_hz)) < 1e-9 and rate >= adc_rate_hz:
+            return Numerology.for_bandwidth(bandwidth_mhz, fft_size=size)
+    raise ValueError(f"no FFT size puts a {bandwidth_mhz:g} MHz carrier at a multiple of {adc_rate_hz:g} Hz")
 
 
 def _cross_envelopes(pci_a: int, pci_b: int, subframe: int, step: int) -> tuple[np.ndarray, int]:

@@ -45,6 +45,8 @@ filter sized at construction does not do. Sixty lines of numpy, no dependency.
   matter ``site_clocks`` gives them their own states. A variance larger than before (a site
   clock's error grows with the database's age) is added to the state as a fresh error. The
   arrival's noise is then ``timing_std_m`` alone: what stays from stack to stack is in states.
+  Sliding stacks (a stack every ``hop`` of its ``n`` frames) share frames, so that noise repeats
+  in the next ``n / hop`` arrivals: its variance counts ``stack_overlap`` = n / hop times.
   A bias common to every site is the receiver clock's ``b``: the priors hold that gauge.
   Weakly observable: a position error traded against biases ``m_s = -u_s . dx`` shows only as
   the geometry turns, and with one site per stack the EKF runs somewhat overconfident along it
@@ -134,6 +136,7 @@ class TrackerConfig:
     bias_correlation_s: float = 30.0  # how long a site's multipath range bias stays (~40 m walked)
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
+    stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (sliding stacks)
 
     def __post_init__(self) -> None:
         if not isinstance(self.snapshot, SnapshotConfig):
@@ -156,6 +159,7 @@ class TrackerConfig:
             "height_correlation_s": 0 < self.height_correlation_s <= 1e5,
             "bias_correlation_s": 0 < self.bias_correlation_s <= 1e5,
             "site_clock_wander_mps_per_sqrt_s": 0 <= self.site_clock_wander_mps_per_sqrt_s <= 1e3,
+            "stack_overlap": 1 <= self.stack_overlap <= 1000,
         }
         for name, ok in checks.items():
             value = getattr(self, name)
@@ -332,9 +336,11 @@ class Tracker:
             h[site.index + 1] = 1.0
         predicted = distance + float(h[bias:] @ x[bias:])
         innovation = unwrap_range(arrival.range_mod_m, predicted) - predicted
-        noise = arrival.timing_std_m  # what stays from stack to stack is in the site's states
+        # what stays from stack to stack is in the site's states; a sliding stack's noise also
+        # stays in the next stacks that share its frames: counted once per stack it is in
+        noise2 = arrival.timing_std_m**2 * self.config.stack_overlap
         ph = P @ h
-        variance = float(h @ ph) + noise * noise
+        variance = float(h @ ph) + noise2
         if innovation * innovation > self._gate * variance:
             return False
         gain = ph / variance

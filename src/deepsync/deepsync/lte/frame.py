@@ -62,6 +62,11 @@ class FrameGenerator:
     def shape(self) -> tuple[int, int]:
         return SYMBOLS_PER_FRAME, self.numerology.n_subcarriers
 
+    @property
+    def deterministic_grid(self) -> np.ndarray:
+        """(140, K) PSS, SSS and CRS: what the cell sends the same in every frame (a copy)."""
+        return self._fixed.copy()
+
     def _fixed_signals(self) -> tuple[np.ndarray, np.ndarray]:
         """PSS/SSS/CRS grid, and the mask of REs no other channel may use."""
         num = self.numerology

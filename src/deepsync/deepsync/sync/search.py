@@ -16,6 +16,10 @@ Found cells are fitted jointly (templates, pedestals and the cross terms of code
 in time) and cancelled before the next peak is examined, so a cell next to a stronger one, or
 at the same timing, shows up in the residual.
 
+A cell found far above the threshold (``crs_cancel_z``) also has its cell-specific reference
+signals cancelled: stacking does not average them away, and over long stacks a strong cell's
+CRS passes for weaker cells' codes (``CellSearch._crs_model``).
+
 With a tower database, two sectors of one site (same carrier, same timing) are also sought as
 one hypothesis, their codes and the cross term between them (``deepsync.sync.sites``): at
 similar power that cross term dominates the envelope, and neither sector's template matches.
@@ -42,8 +46,9 @@ import numpy as np
 import scipy.fft
 import scipy.stats
 
-from deepsync.frontend.templates import SyncTemplates
+from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.lte.cell import N_CELL_IDS
+from deepsync.lte.numerology import SUPPORTED_BANDWIDTHS_MHZ
 from deepsync.numeric import mad_spread, parabolic_peak
 from deepsync.sync.correlation import correlate, frame_spectra, template_spectra, unit_frame_parts
 from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
@@ -66,6 +71,7 @@ class SearchConfig:
     site_hypotheses: bool = True  # with full-code timing, also search the co-sited pairs given (+cost)
     pair_false_alarm: float = 1e-3  # chance that one sector alone passes for a co-sited pair at a site peak
     pair_min_gain: float = 0.25  # and what the pair must add to one sector's statistic, relatively
+    crs_cancel_z: float = 10.0  # a cell found this many sigmas out also has its CRS cancelled (0: never)
 
     def __post_init__(self) -> None:
         if not 0 < self.false_alarm_rate < 0.5:
@@ -74,6 +80,8 @@ class SearchConfig:
             raise ValueError(f"pair_false_alarm must be in (0, 0.5), got {self.pair_false_alarm!r}")
         if self.max_cells < 1 or self.refine_lags < 1:
             raise ValueError("max_cells and refine_lags must be >= 1")
+        if not (math.isfinite(self.crs_cancel_z) and self.crs_cancel_z >= 0):
+            raise ValueError(f"crs_cancel_z must be a number of sigmas >= 0 (0: never), got {self.crs_cancel_z!r}")
 
 
 @dataclass(frozen=True)
@@ -113,6 +121,7 @@ class _SearchState:
 
     centred: np.ndarray  # the stacked frame, zero-mean
     residual: np.ndarray  # what remains once the detections so far are cancelled
+    crs: np.ndarray  # the fitted CRS of the strongest detections, cancelled with them
     spectrum: np.ndarray  # its rfft
     period: int  # of the timing statistic's lag axis (a frame, or a half-frame blind)
     correlations: np.ndarray  # single-template timing correlations of the residual
@@ -147,7 +156,7 @@ class CellSearch:
         self.allowed = np.arange(N_CELL_IDS) if allowed_pcis is None else np.unique(allowed_pcis)
         if self.allowed.size == 0 or self.allowed.min() < 0 or self.allowed.max() >= N_CELL_IDS:
             raise ValueError("allowed_pcis must be PCIs in 0..503")
-        self._cache: dict[tuple[str, int], np.ndarray] = {}  # template spectra by kind and length
+        self._cache: dict[tuple, np.ndarray] = {}  # template spectra by kind and length (CRS: PCI, bandwidth)
         self.sites = (SiteSearch(templates, cosited_pairs, self.allowed, PHASES)
                       if cosited_pairs and self.full_code_timing and self.config.site_hypotheses else None)
 
@@ -289,8 +298,8 @@ class CellSearch:
         pss_z, pss_spreads = self.pss_statistic(centred) if self.full_code_timing else (z, spreads)
         tests = z.size + (0 if self.sites is None else self.sites.rows * period)
         return _SearchState(
-            centred=centred, residual=centred, spectrum=spectrum, period=period, correlations=correlations, z=z,
-            spreads=spreads, pss_z=pss_z, pss_spreads=pss_spreads,
+            centred=centred, residual=centred, crs=np.zeros(len(centred)), spectrum=spectrum, period=period,
+            correlations=correlations, z=z, spreads=spreads, pss_z=pss_z, pss_spreads=pss_spreads,
             threshold=cfar_threshold(self.config.false_alarm_rate, tests), given_up=np.zeros((2, period), dtype=bool),
             near_new=np.zeros(period, dtype=bool),
             site_noise=None if self.sites is None else SiteNoise(self.sites, spectrum, correlations),
@@ -336,12 +345,18 @@ class CellSearch:
         return peak, match is not None and self._add_site(match, float(best[peak]), state.detections)
 
     def _cancel(self, state: _SearchState) -> None:
-        """Cancel every detection from the stack and recompute the statistics on the residual
-        (with the first pass's noise spreads)."""
+        """Cancel every detection from the stack, and the CRS of the strong ones, and recompute
+        the statistics on the residual (with the first pass's noise spreads)."""
         new = state.detections[state.cancelled :]
         state.cancelled = len(state.detections)
         state.near_new[:] = False
-        state.residual = state.centred - self._fit(state.centred, state.detections)
+        strong = [d for d in new if self.config.crs_cancel_z and d.peak_metric >= self.config.crs_cancel_z]
+        for d in strong:
+            state.crs = state.crs + self._crs_model(state.residual, d)
+        if strong:
+            state.site_z = None  # the CRS spans the whole frame: the pairs' statistic is computed again
+        known = state.centred - state.crs
+        state.residual = known - self._fit(known, state.detections)
         state.correlations, state.spectrum, _ = self.timing_correlations(state.residual)
         state.z, _ = _normalised(state.correlations, state.spreads)
         state.pss_z = self.pss_statistic(state.residual, state.pss_spreads)[0] if self.full_code_timing else state.z
@@ -350,6 +365,35 @@ class CellSearch:
             # valid elsewhere and are not recomputed
             for d in new:
                 state.given_up[_SITE, self._overlapping_lags(d.frame_offset, state.period)] = True
+
+    def _crs_model(self, signal: np.ndarray, found: CellDetection) -> np.ndarray:
+        """A strong cell's CRS in the stacked frame, fitted to ``signal``.
+
+        Stacking averages the data away but not the CRS: over long stacks a strong cell's CRS
+        stands out as far as the codes of weak cells do, at places fixed to its frame timing
+        (its symbols 0 and 4 of each slot), and some database PCI's code template always
+        matches part of it, in every stack: false cells that persist, which confirmation cannot
+        remove. Its frame timing is known from its code; its bandwidth is not (a tower database
+        does not give it), so each LTE bandwidth is tried and the one that explains the most
+        energy kept (the fits by Parseval, on the spectra). Per-symbol pedestals are left out
+        (the template is zero-mean per symbol)."""
+        frame = len(signal)
+        start = found.frame_offset + found.fraction - sync_code_offset_seconds() * self.templates.sample_rate
+        delay = np.exp(-2j * np.pi * scipy.fft.rfftfreq(frame) * start)
+        weights = np.full(frame // 2 + 1, 2.0 / frame)  # sum(x y) from rfft(x) rfft(y)*, frame even
+        weights[[0, -1]] = 1.0 / frame
+        spectrum = np.conj(scipy.fft.rfft(signal)) * weights
+        best, fitted = 0.0, None
+        for bandwidth in SUPPORTED_BANDWIDTHS_MHZ:
+            key = ("crs", found.pci, round(10 * bandwidth))
+            if key not in self._cache:
+                self._cache[key] = scipy.fft.rfft(self.templates.crs_envelope(found.pci, bandwidth))
+            shifted = self._cache[key] * delay
+            dot = float(np.real(spectrum @ shifted))
+            energy = float(np.abs(shifted) ** 2 @ weights)
+            if dot > 0 and dot * dot / energy > best:
+                best, fitted = dot * dot / energy, dot / energy * shifted
+        return np.zeros(frame) if fitted is None else scipy.fft.irfft(fitted, frame)
 
     def _overlapping_lags(self, code_start: int, period: int) -> np.ndarray:
         """Lags at which a timing template overlaps either code of a cell whose subframe-0 code

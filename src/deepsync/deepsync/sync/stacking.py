@@ -4,6 +4,12 @@ Every cell repeats its sync codes every 10 ms, so adding N frames makes them add
 amplitude while data averages out. The stacker knows nothing of the network's frame timing: a
 "frame" is just 10 ms of stream, and a cell's code sits at its own offset inside it.
 
+A stack starts every ``hop_frames`` frames: back to back by default (hop = N), or **sliding**
+(hop < N): a 50-frame stack every 10 frames hears as far as 50 frames do and still answers at
+10 Hz. Successive sliding stacks share N - hop frames, so their errors are correlated; and an
+arrival moves by v/c over a stack (a car at 15 m/s: 0.1 sample per second), which the stack
+averages: what it measures is the arrival at the stack's middle.
+
 The stream arrives in chunks of any size. The stacker checks what a driver or bag can get
 wrong and reports it as a :class:`~deepsync.types.Health` event instead of stacking garbage:
 
@@ -53,14 +59,22 @@ class StackConfig:
     track_clock: bool = True  # follow the measured drift
     max_drift_samples: float = 0.5
     clip_fraction: float = 1e-3  # flag a stack with more clipped samples than this
+    hop_frames: int | None = None  # frames from one stack's start to the next; None: n_frames (back to back)
 
     def __post_init__(self) -> None:
         if not 1 <= self.n_frames <= 1000:
             raise ValueError(f"n_frames must be 1..1000, got {self.n_frames!r}")
+        if self.hop_frames is not None and not 1 <= self.hop_frames <= self.n_frames:
+            raise ValueError(f"hop_frames must be 1..n_frames ({self.n_frames}), got {self.hop_frames!r}")
         if not math.isfinite(self.clock_ppm) or abs(self.clock_ppm) > 1000:
             raise ValueError(f"clock_ppm must be a finite number within +-1000, got {self.clock_ppm!r}")
         if not self.max_drift_samples > 0:
             raise ValueError(f"max_drift_samples must be > 0, got {self.max_drift_samples!r}")
+
+    @property
+    def hop(self) -> int:
+        """Frames from one stack's start to the next."""
+        return self.n_frames if self.hop_frames is None else self.hop_frames
 
 
 @dataclass(frozen=True)
@@ -234,7 +248,7 @@ class FrameStacker:
             period = frame * (1 + self.clock_ppm * 1e-6)
             exact = np.arange(n) * period
             starts = np.round(exact).astype(np.int64)
-            advance = int(round(n * period))  # where the next stack's first row starts
+            advance = int(round(self.config.hop * period))  # where the next stack's first row starts
             if self._held < max(starts[-1] + frame, advance):
                 return stacks
             if self._parts:  # joined once per stack, not per chunk
@@ -243,7 +257,8 @@ class FrameStacker:
                 self._parts.clear()
             rows = np.stack([self._buffer[start : start + frame] for start in starts])
             flags = []
-            clipped_fraction = sum(int(np.count_nonzero(self._clipped[start : start + frame])) for start in starts) / rows.size
+            at_rails = sum(int(np.count_nonzero(self._clipped[start : start + frame])) for start in starts)
+            clipped_fraction = at_rails / rows.size
             if clipped_fraction > self.config.clip_fraction:
                 flags.append(Health(HealthKind.CLIPPED, f"{100 * clipped_fraction:.2f} % of samples at the ADC rails"))
             held = held_fraction(rows.mean(axis=0))
