@@ -37,7 +37,6 @@ from deepsync.lte.numerology import (
 )
 from deepsync.lte.ofdm import modulate, subcarrier_bins
 from deepsync.lte.sequences import pss, sss
-from deepsync.types import FRAME_SECONDS
 
 TEMPLATE_LENGTH = SYNC_CODE_BASE_SAMPLES + 2
 PSS_OFFSET_BASE = SYNC_CODE_BASE_SAMPLES // 2  # the PSS symbol follows the SSS symbol (137 samples)
@@ -211,14 +210,27 @@ class SyncTemplates:
             grid = FrameGenerator(CellConfig(pci=pci, bandwidth_mhz=bandwidth_mhz), seed=0).deterministic_grid
             for slot in G.SYNC_SLOTS:  # the sync codes have templates of their own
                 grid[[G.frame_symbol(slot, G.SSS_SYMBOL_IN_SLOT), G.frame_symbol(slot, G.PSS_SYMBOL_IN_SLOT)]] = 0
-            envelope = np.abs(np.tile(modulate(grid, numerology), 2)) ** 2  # two frames: the filters settle
-            frame = int(round(self.sample_rate * FRAME_SECONDS))
-            shape = self.response(envelope, numerology.sample_rate_hz, 0.0, 2 * frame)[0, 0, frame:]
+            shape = self._periodic_response(np.abs(modulate(grid, numerology)) ** 2, numerology.sample_rate_hz)
+            frame = len(shape)
             starts = np.round(Numerology.for_bandwidth(1.4).symbol_starts * self.sample_rate / BASE_RATE_HZ)
             symbol = np.searchsorted(starts.astype(int), np.arange(frame), side="right") - 1
             shape -= (np.bincount(symbol, shape) / np.bincount(symbol))[symbol]
             self._crs[key] = shape
         return self._crs[key]
+
+    def _periodic_response(self, envelope: np.ndarray, rate_hz: float) -> np.ndarray:
+        """ADC-rate samples of one period of a periodic envelope (at ``rate_hz``, a whole number
+        of ADC samples long) through the video filter and the AC coupling in their steady
+        state: filtered circularly, which is exact for a periodic signal, then sampled."""
+        ratio = round(rate_hz / self.sample_rate)
+        frequencies = scipy.fft.rfftfreq(len(envelope), 1 / rate_hz)
+        filtered = scipy.fft.irfft(scipy.fft.rfft(envelope) * self._video.response(frequencies), len(envelope))
+        sampled = filtered[::ratio]
+        if self._highpass is not None:
+            coupling = scipy.signal.sosfreqz(self._highpass, scipy.fft.rfftfreq(len(sampled), 1 / self.sample_rate),
+                                             fs=self.sample_rate)[1]
+            sampled = scipy.fft.irfft(scipy.fft.rfft(sampled) * coupling, len(sampled))
+        return sampled * (self.config.detector_responsivity_v_per_w * self.config.rf_power_gain)
 
     @property
     def pss_length(self) -> int:
