@@ -136,7 +136,7 @@ class TrackerConfig:
     bias_correlation_s: float = 30.0  # how long a site's multipath range bias stays (~40 m walked)
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
-    stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (sliding stacks)
+    stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (PipelineConfig sets it)
 
     def __post_init__(self) -> None:
         if not isinstance(self.snapshot, SnapshotConfig):
