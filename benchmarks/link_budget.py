@@ -82,9 +82,9 @@ def crossing(x: np.ndarray, y: np.ndarray, target: float) -> float:
     above = y >= target
     if not above[-1]:
         return math.nan
-    first = len(y) - int(np.argmin(above[::-1])) if not above.all() else 0  # start of the last run above
-    if first == 0:
-        return float(x[0]) if y[0] >= target else math.nan
+    if above.all():
+        return float(x[0])
+    first = len(y) - int(np.argmin(above[::-1]))  # start of the last run above
     x0, x1, y0, y1 = x[first - 1], x[first], y[first - 1], y[first]
     return float(x0 + (target - y0) * (x1 - x0) / (y1 - y0))
 

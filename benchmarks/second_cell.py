@@ -24,6 +24,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
+from cell_search import near
 from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator
@@ -31,12 +32,12 @@ from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.lte.cell import CellConfig
 from deepsync.sync.search import CellSearch, SearchConfig
 from deepsync.types import FRAME_SECONDS
+from sync_snr import EIRP_PER_RE_W
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results"
 STRONG, WEAK = 456, 301
 STRONG_DBM = -85.0
 DELAYS_S = (1.0e-6, 2.4e-3)  # the second cell's frame 2.4 ms after the strong one's: codes apart
-EIRP_PER_RE_W = 10 ** ((61 - 30) / 10) / 600
 FRAMES = 50
 WEAK_DBM = np.arange(-85.0, -101.0, -2.0)
 
@@ -53,10 +54,6 @@ def stacks(weak_dbm: float, count: int, config: FrontendConfig) -> tuple[np.ndar
     frames = volts[: count * FRAMES * frame].astype(np.float64).reshape(count, FRAMES, frame)
     code = float(sim.sample_index(sync_code_offset_seconds() + DELAYS_S[1])) % frame
     return frames.mean(axis=1), code
-
-
-def near(position: float, target: float, frame: int) -> bool:
-    return abs((position - target + frame / 2) % frame - frame / 2) <= 1.0
 
 
 def main() -> None:

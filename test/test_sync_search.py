@@ -464,13 +464,15 @@ def strong_cell_frames():
 def test_the_crs_template_is_what_the_simulator_sends(templates, strong_cell_frames):
     frames, code = strong_cell_frames
     stacked = frames.mean(axis=0)
-    start = code - sync_code_offset_seconds() * templates.sample_rate
-    shape = templates.crs_envelope(456, 10)
-    shifted = np.fft.irfft(np.fft.rfft(shape) * np.exp(-2j * np.pi * np.fft.rfftfreq(FRAME) * start), FRAME)
-    assert np.corrcoef(shifted, stacked)[0, 1] > 0.5  # the CRS is a large part of everything in the stack (0.64)
-    wrong = templates.crs_envelope(457, 10)  # another PCI's CRS comb sits on other subcarriers
-    shifted_wrong = np.fft.irfft(np.fft.rfft(wrong) * np.exp(-2j * np.pi * np.fft.rfftfreq(FRAME) * start), FRAME)
-    assert np.corrcoef(shifted_wrong, stacked)[0, 1] < 0.5 * np.corrcoef(shifted, stacked)[0, 1]
+    start = code - sync_code_offset_seconds() * templates.sample_rate  # where the cell's frame starts
+
+    def correlation(pci: int) -> float:
+        shape = templates.crs_envelope(pci, 10)
+        shifted = np.fft.irfft(np.fft.rfft(shape) * np.exp(-2j * np.pi * np.fft.rfftfreq(FRAME) * start), FRAME)
+        return float(np.corrcoef(shifted, stacked)[0, 1])
+
+    assert correlation(456) > 0.5  # the CRS is a large part of everything in the stack (0.64)
+    assert correlation(457) < 0.5 * correlation(456)  # another PCI's CRS comb sits on other subcarriers
 
 
 def test_a_strong_cells_crs_does_not_pass_for_other_cells_over_long_stacks(templates, strong_cell_frames):

@@ -251,9 +251,10 @@ def timing_config(values: Mapping[str, ParamValue], node: str = "cell_timing") -
 
 
 def fusion_config(values: Mapping[str, ParamValue], node: str = "tdoa_fusion") -> FusionConfig:
-    """The fusion node's config; in the one-process pipeline the stack overlap comes from the
-    stacks themselves (``PipelineConfig``)."""
-    return _config(_fusion, (*FUSION, STACK_OVERLAP) if node == "tdoa_fusion" else FUSION, values, node)
+    """From the fusion parameters ``node`` declares: the one-process pipeline declares no
+    stack overlap, which its stacks give (``PipelineConfig``)."""
+    specs = tuple(spec for spec in NODES[node] if spec in (*FUSION, STACK_OVERLAP))
+    return _config(_fusion, specs, values, node)
 
 
 def pipeline_config(values: Mapping[str, ParamValue], node: str = "deepsync_pipeline") -> PipelineConfig:

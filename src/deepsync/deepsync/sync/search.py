@@ -122,7 +122,6 @@ class _SearchState:
     centred: np.ndarray  # the stacked frame, zero-mean
     residual: np.ndarray  # what remains once the detections so far are cancelled
     crs: np.ndarray  # the fitted CRS of the strongest detections, cancelled with them
-    spectrum: np.ndarray  # its rfft
     period: int  # of the timing statistic's lag axis (a frame, or a half-frame blind)
     correlations: np.ndarray  # single-template timing correlations of the residual
     z: np.ndarray  # and their z-scores
@@ -198,11 +197,15 @@ class CellSearch:
             self._cache[key] = spectra.reshape(-1, spectra.shape[-1])
         return self._cache[key]
 
-    def pss_statistic(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(3 x phases, half) PSS correlation z-scores of the half-frame fold, and their spreads."""
+    def pss_correlations(self, centred: np.ndarray) -> np.ndarray:
+        """(3 x phases, half) PSS correlations of the half-frame fold (lag = PSS start)."""
         half = len(centred) // 2
         folded = centred[:half] + centred[half : 2 * half]
-        return _normalised(correlate(scipy.fft.rfft(folded), self._pss_spectra(half), half), spreads)
+        return correlate(scipy.fft.rfft(folded), self._pss_spectra(half), half)
+
+    def pss_statistic(self, centred: np.ndarray, spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(3 x phases, half) PSS correlation z-scores of the half-frame fold, and their spreads."""
+        return _normalised(self.pss_correlations(centred), spreads)
 
     def _plausible(self, residual: np.ndarray, found: CellDetection, detections: list[CellDetection],
                    pss_z: np.ndarray) -> bool:
@@ -232,21 +235,18 @@ class CellSearch:
         """The same search over all 504 PCIs, to check a database PCI against everyone else."""
         return CellSearch(self.templates, self.config)
 
-    def timing_correlations(self, centred: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        """Correlations over candidate code positions, the input's rfft, and the period of the
-        lag axis. Blind: the three PSS templates against the half-frame fold (lag = PSS start,
-        mod a half-frame). Known PCIs: each PCI's full frame template (lag = subframe-0 code
-        start, mod a frame), twice the code energy. Every template is also tried half a sample
-        later: the envelope has energy near Nyquist, and a code between two samples would
-        otherwise lose up to 3 dB of correlation. (Divided by their noise spreads, they are the
-        timing statistic, in sigmas.)"""
-        spectrum = scipy.fft.rfft(centred)
+    def timing_correlations(self, centred: np.ndarray) -> tuple[np.ndarray, int]:
+        """Correlations over candidate code positions and the period of the lag axis. Blind:
+        the three PSS templates against the half-frame fold (lag = PSS start, mod a half-frame).
+        Known PCIs: each PCI's full frame template (lag = subframe-0 code start, mod a frame),
+        twice the code energy. Every template is also tried half a sample later: the envelope
+        has energy near Nyquist, and a code between two samples would otherwise lose up to 3 dB
+        of correlation. (Divided by their noise spreads, they are the timing statistic, in
+        sigmas.)"""
         if not self.full_code_timing:
-            half = len(centred) // 2
-            folded = centred[:half] + centred[half : 2 * half]
-            return correlate(scipy.fft.rfft(folded), self._pss_spectra(half), half), spectrum, half
+            return self.pss_correlations(centred), len(centred) // 2
         period = len(centred)
-        return correlate(spectrum, self._frame_spectra(period), period), spectrum, period
+        return correlate(scipy.fft.rfft(centred), self._frame_spectra(period), period), period
 
     def search(self, stacked: np.ndarray) -> list[CellDetection]:
         """Cells in one stacked frame (the mean of a stack's rows), strongest first.
@@ -293,16 +293,16 @@ class CellSearch:
 
     def _start(self, centred: np.ndarray) -> _SearchState:
         """The first pass's statistics, noise spreads and CFAR threshold of a stack."""
-        correlations, spectrum, period = self.timing_correlations(centred)
+        correlations, period = self.timing_correlations(centred)
         z, spreads = _normalised(correlations, None)
         pss_z, pss_spreads = self.pss_statistic(centred) if self.full_code_timing else (z, spreads)
         tests = z.size + (0 if self.sites is None else self.sites.rows * period)
         return _SearchState(
-            centred=centred, residual=centred, crs=np.zeros(len(centred)), spectrum=spectrum, period=period,
+            centred=centred, residual=centred, crs=np.zeros(len(centred)), period=period,
             correlations=correlations, z=z, spreads=spreads, pss_z=pss_z, pss_spreads=pss_spreads,
             threshold=cfar_threshold(self.config.false_alarm_rate, tests), given_up=np.zeros((2, period), dtype=bool),
             near_new=np.zeros(period, dtype=bool),
-            site_noise=None if self.sites is None else SiteNoise(self.sites, spectrum, correlations),
+            site_noise=None if self.sites is None else SiteNoise(self.sites, scipy.fft.rfft(centred), correlations),
         )
 
     def _strongest_single(self, state: _SearchState) -> int | None:
@@ -334,7 +334,7 @@ class CellSearch:
             return None
         every = self.sites.every_pair
         if state.site_z is None:
-            correlations = self.sites.correlations(state.spectrum, state.correlations, every)
+            correlations = self.sites.correlations(scipy.fft.rfft(state.residual), state.correlations, every)
             state.site_z = self.sites.statistic(correlations, state.site_noise.covariances(every, correlations))
         best = np.where(state.given_up[_SITE], -np.inf, state.site_z)
         peak = int(np.argmax(best))
@@ -357,7 +357,7 @@ class CellSearch:
             state.site_z = None  # the CRS spans the whole frame: the pairs' statistic is computed again
         known = state.centred - state.crs
         state.residual = known - self._fit(known, state.detections)
-        state.correlations, state.spectrum, _ = self.timing_correlations(state.residual)
+        state.correlations, _ = self.timing_correlations(state.residual)
         state.z, _ = _normalised(state.correlations, state.spreads)
         state.pss_z = self.pss_statistic(state.residual, state.pss_spreads)[0] if self.full_code_timing else state.z
         if state.site_z is not None:

@@ -125,12 +125,16 @@ class FrameStacker:
         self._buffer = np.empty(0, dtype=np.float32)
         self._clipped = np.empty(0, dtype=bool)
         self._parts: list[tuple[np.ndarray, np.ndarray]] = []  # chunks after the buffer, joined once a stack is complete
-        self._held = 0  # samples in the buffer and the parts
         self._buffer_start = 0
 
     @property
     def frame_samples(self) -> int:
         return int(round(self.sample_rate * FRAME_SECONDS))
+
+    @property
+    def _held(self) -> int:
+        """Samples received and not yet behind the last stack: the buffer and the parts."""
+        return len(self._buffer) + sum(len(part) for part, _ in self._parts)
 
     def push(self, chunk: EnvelopeChunk) -> list[Stack]:
         """Add a chunk of ADC codes; return the stacks it completes."""
@@ -231,7 +235,6 @@ class FrameStacker:
         self._buffer = np.empty(0, dtype=np.float32)
         self._clipped = np.empty(0, dtype=bool)
         self._parts.clear()
-        self._held = 0
         self._buffer_start = index
         self._origin = (index, stamp_ns)
 
@@ -241,7 +244,6 @@ class FrameStacker:
 
     def _append(self, samples: np.ndarray, clipped: np.ndarray) -> list[Stack]:
         self._parts.append((samples, clipped))
-        self._held += len(samples)
         frame, n = self.frame_samples, self.config.n_frames
         stacks = []
         while True:
@@ -274,7 +276,6 @@ class FrameStacker:
                                 self._stamp(self._buffer_start), aligned, tuple(flags), drift))
             self._buffer = self._buffer[advance:]
             self._clipped = self._clipped[advance:]
-            self._held -= advance
             self._buffer_start += advance
             if drift is not None:
                 previous = self.measured_drift_ppm
