@@ -7,9 +7,10 @@ its middle. Each stack layout replays the route once (cell search and timing) an
 the simulation's true site clocks, so what changes is what the receiver hears and how well it
 times it, not the clocks. Scored on the whole route. A layout is N frames per stack, back to
 back (one fix per stack: 10 Hz at N = 10, 2 Hz at N = 50), or N/H: N frames every H frames,
-sliding (50/10: 50-frame stacks at 10 Hz).
+sliding (50/10: 50-frame stacks at 10 Hz). ``--search-every`` sets how often the full search
+for new cells runs (``SyncConfig.search_every``; 1: every stack, the cells found tracked too).
 
-    python benchmarks/stack_length.py [--route route_dense] [--stacks 10 20 50 100] [--out NAME]
+    python benchmarks/stack_length.py [--route route_dense] [--stacks 10 20 50 100] [--search-every K] [--out NAME]
 
 Needs the route bag (scripts/route_bags.sh). Writes docs/results/stack_length.json (or --out).
 """
@@ -35,7 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "docs" / "results"
 
 
-def measure(route: str, towers_path: Path, layout: str) -> dict:
+def measure(route: str, towers_path: Path, layout: str, search_every: int) -> dict:
     bag = REPO / "bags" / "generated" / route
     if not bag.exists():
         raise SystemExit(f"{bag} is missing: make it with scripts/route_bags.sh")
@@ -45,7 +46,8 @@ def measure(route: str, towers_path: Path, layout: str) -> dict:
     towers = load_tower_database(towers_path)
     started = time.perf_counter()
     with threadpool_limits(1):
-        config = PipelineConfig(sync=SyncConfig(stack=stack))  # sliding: the tracker counts the overlap
+        # sliding: the tracker counts the overlap
+        config = PipelineConfig(sync=SyncConfig(stack=stack, search_every=search_every))
         recorded = replay(source, towers, config, progress=False)
     replay_s = time.perf_counter() - started
     summary = summarize_route(fuse_route(recorded, oracle_database(towers, source), config.fusion))
@@ -54,6 +56,7 @@ def measure(route: str, towers_path: Path, layout: str) -> dict:
     return {
         "frames": stack.n_frames,
         "hop_frames": stack.hop,
+        "search_every": search_every,
         "stacks": stacks,
         "replay_wall_s": replay_s,
         "sites_per_stack": sum(int(k) * n for k, n in heard.items()) / stacks,
@@ -74,15 +77,17 @@ def main() -> None:
     parser.add_argument("--towers", help="tower database (default config/towers/ROUTE.yaml)")
     parser.add_argument("--stacks", nargs="+", default=["10", "20", "50", "100"],
                         help="stack layouts: N (back to back) or N/H (N frames every H frames, sliding)")
+    parser.add_argument("--search-every", type=int, default=SyncConfig().search_every,
+                        help="stacks per full search for new cells (between, the cells found are tracked)")
     parser.add_argument("--out", default="stack_length.json", help="file name under docs/results")
     args = parser.parse_args()
     towers = Path(args.towers).resolve() if args.towers else REPO / "config" / "towers" / f"{args.route}.yaml"
     rows = []
-    print(f"{args.route}, true site clocks, whole route")
+    print(f"{args.route}, true site clocks, whole route, a full search every {args.search_every} stacks")
     print(f"  {'N/hop':>6s} {'sites/stack':>11s} {'>=3 sites':>9s} {'snapshot':>17s} {'tracked m':>14s} "
           f"{'bound m':>8s} {'replay s':>8s}   timing RMS vs truth per site (samples)")
     for layout in args.stacks:
-        row = measure(args.route, towers, layout)
+        row = measure(args.route, towers, layout, args.search_every)
         rows.append(row)
         snap, tracked, bound = row["methods"]["snapshot"], row["methods"]["tracked"], row["position_bound"]
         timing = ", ".join(f"{site} {t['rms_error_samples']:.2f}" for site, t in row["timing"].items()

@@ -4,9 +4,12 @@ Times ``SyncStage.process`` on real stacks of the bundled campus bag (4 cells on
 stacking (10 chunks of 10 ms), the search (blind: 504 PCIs; known: the campus tower database,
 timed by the PSS or by the PCIs' whole codes, with or without its co-sited sector pairs, the
 default) and window extraction, on one core (BLAS limited to one thread). Templates are built
-once, before timing, as a running node builds them at start-up. Then ``TimingStage.process``
-on the confirmed cells of each stack (4 cells, one co-sited pair), per classical estimator.
-Prints the median of --repeats runs.
+once, before timing, as a running node builds them at start-up. A fresh stage per stack: the
+full search, with nothing tracked yet. Then the running stage: the bag looped as one stream,
+each stack either a full search (with the cells found before tracked first) or, between full
+searches (``SyncConfig.search_every``), only the tracked cells; their medians and the mean per
+stack. Then ``TimingStage.process`` on the confirmed cells of each stack (4 cells, one
+co-sited pair), per classical estimator. Prints the median of --repeats runs.
 
 Run:  .venv/bin/python benchmarks/sync_speed.py [--repeats 30]
 Writes docs/results/sync_speed.json.
@@ -28,6 +31,7 @@ from deepsync.sync.search import SearchConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
 from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
 from deepsync.towers import load_tower_database
+from soak import Stream  # benchmarks/soak.py: the bag looped on one stream
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "campus"
@@ -51,6 +55,31 @@ def time_mode(chunks, towers, repeats: int, config: SyncConfig) -> tuple[float, 
         assert len(results) == 1
     times.sort()
     return statistics.median(times), times[int(0.9 * (len(times) - 1))]
+
+
+def time_stream(chunks, towers, stacks: int, config: SyncConfig) -> dict:
+    """ms per stack of one running stage over the bag looped: full searches and tracked-only
+    stacks apart (median, p90) and the mean over all of them."""
+    stage = SyncStage(bag_frontend(BAG), config, towers)
+    stream = Stream(chunks)
+    for _ in range(len(chunks)):  # templates, CRS templates of the cells found, the tracks
+        stage.process(stream.next())
+    times: dict[bool, list[float]] = {True: [], False: []}
+    while len(times[True]) + len(times[False]) < stacks:
+        chunk = stream.next()
+        started = time.perf_counter()
+        results = stage.process(chunk)
+        spent = (time.perf_counter() - started) * 1e3
+        if results:  # the chunk that completes a stack (stacking the others costs ~0.1 ms each)
+            times[results[0].searched].append(spent)
+    every = times[True] + times[False]
+    row = {"mean_ms": statistics.fmean(every), "full_search_stacks": len(times[True]),
+           "tracked_only_stacks": len(times[False])}
+    for searched, name in ((True, "full_search"), (False, "tracked_only")):
+        if times[searched]:
+            ordered = sorted(times[searched])
+            row[name] = {"median_ms": statistics.median(ordered), "p90_ms": ordered[int(0.9 * (len(ordered) - 1))]}
+    return row
 
 
 def time_timing(chunks, towers, repeats: int, estimator: Estimator) -> tuple[float, float]:
@@ -90,6 +119,13 @@ def main() -> None:
             out[mode] = {"median_ms": median, "p90_ms": p90}
             print(f"{label:40s}: {median:6.1f} ms median, {p90:6.1f} ms p90 per 10-frame stack "
                   f"(192,000 samples), one core")
+        for mode, towers, label in (("blind_stream", None, "blind"), ("known_stream", database, "known, default")):
+            row = time_stream(chunks, towers, 10 * args.repeats, SyncConfig())
+            out[mode] = row
+            tracked = row.get("tracked_only", {}).get("median_ms", float("nan"))
+            print(f"{'running stage, ' + label:40s}: {row['mean_ms']:6.1f} ms mean per stack; full search "
+                  f"{row['full_search']['median_ms']:.1f} ms median ({row['full_search_stacks']} stacks), tracked "
+                  f"only {tracked:.1f} ms ({row['tracked_only_stacks']} stacks)")
         for estimator in Estimator:
             median, p90 = time_timing(chunks, database, args.repeats, estimator)
             out[f"timing_{estimator.value}"] = {"median_ms": median, "p90_ms": p90}

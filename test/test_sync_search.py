@@ -385,6 +385,61 @@ def test_stage_on_the_campus_bag_finds_every_cell_and_no_others():
     assert abs(results[-1].clock_drift_ppm) < 1.0  # the simulated receiver clock is exact (measured to ~0.5 ppm)
 
 
+# -- tracking the cells found ------------------------------------------------------------------
+
+
+def fading_stream(templates, amplitudes, rng, pci=56, start=1672.3):
+    """One frame per amplitude: the cell's codes at that amplitude (0: gone) in unit coloured noise."""
+    return np.concatenate([frame_with_codes(templates, [(pci, start, a)]) + coloured_noise(rng, (FRAME,))
+                           for a in amplitudes])
+
+
+def test_a_confirmed_cell_is_held_through_a_fade_the_full_search_misses(templates):
+    """Strong for 4 stacks, then at a level where the full search (6 sigmas over a frame of lags
+    and 26 PCIs) finds it in a third of the stacks, while tracking tests 3 lags of one PCI (3.6
+    sigmas); then gone: not reported, looked for in two more stacks, and each stack after a miss
+    is searched in full."""
+    db = load_tower_database(CAMPUS_TOWERS)
+    stage = SyncStage(CONFIG, SyncConfig(search_every=5), db)
+    stream = fading_stream(templates, [1.0] * 40 + [0.45] * 80 + [0.0] * 30, np.random.default_rng(21))
+    results = stage.process_samples(stream, 0, 1.92e6)
+    assert len(results) == 15
+    weak, gone = results[4:12], results[12:]
+    held = [r for r in weak if [c.pci for c in r.cells + r.tentative] == [56]]
+    assert len(held) >= 7
+    for result in held:
+        (cell,) = result.cells + result.tentative
+        assert abs(cell.code_position - result.first_sample_index - 1672.3) < 1.0
+        # reported (timed) only where strong enough to time
+        assert (result.cells != ()) == (cell.detection.peak_metric >= SyncConfig().report_z)
+    assert sum(r.pcis == [56] for r in weak) >= 3
+    # the same stacks searched afresh, as every stack was before tracking
+    full = CellSearch(templates, allowed_pcis=db.pcis, cosited_pairs=db.cosited_pairs())
+    stacks = stream.reshape(-1, 10, FRAME).mean(axis=1)[4:12]
+    assert sum(any(d.pci == 56 for d in full.search(stack)) for stack in stacks) <= 4
+    assert all(not r.cells and not r.tentative for r in gone)
+    # a stack that missed the (confirmed) cell is followed by a full search
+    missed = [56 not in [c.pci for c in r.cells + r.tentative] for r in results]
+    assert all(later.searched for later, miss in zip(results[5:], missed[4:]) if miss)
+    # between full searches, only the cells found are looked for
+    assert [r.searched for r in results[:5]] == [True, False, False, False, False]
+
+
+def test_tracking_confirms_and_times_the_campus_cells_as_a_search_every_stack_does():
+    bag = REPO / "bags" / "campus"
+    db = load_tower_database(CAMPUS_TOWERS)
+    runs = {}
+    for every in (1, 5):
+        stage = SyncStage(BagSource(bag).frontend, SyncConfig(search_every=every), db)
+        runs[every] = [r for chunk in read_envelope(bag) for r in stage.process(chunk)]
+    assert sum(r.searched for r in runs[1]) == 30 and sum(r.searched for r in runs[5]) <= 8
+    for full, tracked in zip(runs[1], runs[5]):
+        assert set(full.pcis) == set(tracked.pcis)
+        positions = {c.pci: c.code_position for c in full.cells}
+        for cell in tracked.cells:
+            assert cell.code_position == pytest.approx(positions[cell.pci], abs=0.05)
+
+
 def test_detect_command_reports_cells_and_refuses_ambiguous_input(capsys):
     from deepsync.cli import main
 

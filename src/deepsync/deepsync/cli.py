@@ -25,6 +25,7 @@ from deepsync.eval.cell_search import stack_record, summarize
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, SampleFormat, Source, open_source
+from deepsync.sync.stage import SyncConfig
 from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS
 
@@ -122,7 +123,7 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     confirmed cells (if verbose) with their arrival and the error against ground truth, if known.
     Returns one record per stack (``deepsync.eval.cell_search.stack_record``)."""
     towers = None if towers_path is None else load_tower_database(towers_path)
-    config = _pipeline_config(frames)
+    config = PipelineConfig().with_choices(frames)
     pipeline = Pipeline(source.frontend, config, towers)
     mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
     print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
@@ -280,8 +281,9 @@ def _print_health(health: dict[str, int]) -> None:
         print("  health      no stage reported a problem")
 
 
-def _pipeline_config(frames: int, estimator: str | None = None, hop: int | None = None) -> PipelineConfig:
-    return PipelineConfig().with_choices(frames, estimator, hop)
+def _pipeline_config(args: argparse.Namespace) -> PipelineConfig:
+    """The pipeline a replaying command asked for (``_replay_arguments``)."""
+    return PipelineConfig().with_choices(args.frames, args.estimator, args.hop, args.search_every)
 
 
 def _cmd_evaluate_route(args: argparse.Namespace) -> int:
@@ -290,7 +292,7 @@ def _cmd_evaluate_route(args: argparse.Namespace) -> int:
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
     print(f"route evaluation of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
-    config = _pipeline_config(args.frames, args.estimator, args.hop)
+    config = _pipeline_config(args)
     summary, paths = evaluate_route(source, towers, Path(args.out), config,
                                     progress=not args.quiet)
     _print_route(summary)
@@ -305,7 +307,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
     print(f"site clock calibration from {source.description}\n  tower database {args.towers}")
-    config = _pipeline_config(args.frames, args.estimator, args.hop)
+    config = _pipeline_config(args)
     calibration = calibrate_route(source, towers, config, progress=not args.quiet)
     result = calibration.result
     print(f"  {len(result.sites)} sites heard; offsets relative to site {result.reference_site} (the most heard); "
@@ -329,7 +331,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     towers = None if args.towers is None else load_tower_database(args.towers)
     print(f"replay of {args.bag} through {', '.join(stages)}; "
           + (f"tower database {args.towers}" if towers else "no tower database") + f", {args.frames}-frame stacks")
-    config = _pipeline_config(args.frames, args.estimator, args.hop)
+    config = _pipeline_config(args)
     summary = replay_bag(args.bag, args.out, towers, config, stages=stages,
                          copy_inputs=args.copy_inputs, overwrite=args.overwrite, progress=not args.quiet, say=_say)
     print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
@@ -451,6 +453,8 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
     command.add_argument("--frames", type=int, default=10, help="frames per stack (default 10)")
     command.add_argument("--hop", type=int, help="frames from one stack to the next (default: --frames, back to "
                          "back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz)")
+    command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
+                         f"{SyncConfig().search_every}; between, the cells found are tracked; 1: every stack)")
     command.add_argument("--estimator", default="ml", metavar="NAME",
                          help="sub-sample timing estimator: ml (default), ml_white, fft_upsampled, parabolic, "
                               "network, network_ml (the last two need torch)")

@@ -51,15 +51,17 @@ class PipelineConfig:
             object.__setattr__(self, "fusion", replace(self.fusion, tracker=tracker))
 
     def with_choices(self, n_frames: int | None = None, estimator: str | None = None,
-                     hop_frames: int | None = None) -> PipelineConfig:
+                     hop_frames: int | None = None, search_every: int | None = None) -> PipelineConfig:
         """This config with the knobs a command line offers: frames per stack, frames from one
-        stack to the next (sliding stacks), the timing estimator by name (ValueError listing
-        the names)."""
+        stack to the next (sliding stacks), stacks per full search for new cells, the timing
+        estimator by name (ValueError listing the names)."""
         sync, timing = self.sync, self.timing
         if n_frames is not None or hop_frames is not None:
             frames = sync.stack.n_frames if n_frames is None else n_frames
             stack = replace(sync.stack, n_frames=frames, hop_frames=hop_frames)
             sync = replace(sync, stack=stack)
+        if search_every is not None:
+            sync = replace(sync, search_every=search_every)
         if estimator is not None:
             names = [e.value for e in Estimator]
             if estimator not in names:

@@ -133,6 +133,13 @@ SYNC = (
     ParamSpec("track_clock", _STACK.track_clock, "Follow the receiver clock drift measured on each stack."),
     ParamSpec("confirm_stacks", _SYNC.confirm_stacks, "Stacks in a row a cell must be found in, where its code "
               "should be, before it is reported.", range=(1, 100)),
+    ParamSpec("search_every", _SYNC.search_every, "Stacks per full search for new cells; between, the cells "
+              "found are only tracked where their codes should be (a few templates instead of dozens). 1: every "
+              "stack.", range=(1, 1000)),
+    ParamSpec("hold_stacks", _SYNC.hold_stacks, "Stacks a confirmed cell is still looked for after a stack it "
+              "was missed in (a fade).", range=(0, 100)),
+    ParamSpec("report_z", _SYNC.report_z, "A confirmed cell found below this many sigmas is kept tracked but not "
+              "reported: below about 5 the timing breaks down (arrivals a sample or more off).", range=(0.0, 100.0)),
     ParamSpec("false_alarm_rate", _SEARCH.false_alarm_rate, "Chance of a false timing peak anywhere in one stack.",
               range=(0.0, 0.5)),
     ParamSpec("max_cells", _SEARCH.max_cells, "Most cells searched for per stack.", range=(1, 64)),
@@ -217,13 +224,14 @@ def _config(build: Callable[..., T], specs: tuple[ParamSpec, ...], values: Mappi
 
 
 def _sync(n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int,
-          false_alarm_rate: float, max_cells: int, full_code_timing: bool, crs_cancel_z: float) -> SyncConfig:
+          search_every: int, hold_stacks: int, report_z: float, false_alarm_rate: float, max_cells: int, full_code_timing: bool,
+          crs_cancel_z: float) -> SyncConfig:
     return SyncConfig(
         stack=StackConfig(n_frames=n_frames, hop_frames=hop_frames or None, clock_ppm=clock_ppm,
                           track_clock=track_clock),
         search=SearchConfig(false_alarm_rate=false_alarm_rate, max_cells=max_cells, full_code_timing=full_code_timing,
                             crs_cancel_z=crs_cancel_z),
-        confirm_stacks=confirm_stacks)
+        confirm_stacks=confirm_stacks, search_every=search_every, hold_stacks=hold_stacks, report_z=report_z)
 
 
 def _timing(estimator: str, weak_std_samples: float, checkpoint: str) -> TimingConfig:

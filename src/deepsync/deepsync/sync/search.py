@@ -39,12 +39,13 @@ candidates with scores and a tower database decides which may be reported.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 import scipy.fft
-import scipy.stats
+import scipy.special
 
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.lte.cell import N_CELL_IDS
@@ -72,14 +73,15 @@ class SearchConfig:
     pair_false_alarm: float = 1e-3  # chance that one sector alone passes for a co-sited pair at a site peak
     pair_min_gain: float = 0.25  # and what the pair must add to one sector's statistic, relatively
     crs_cancel_z: float = 10.0  # a cell found this many sigmas out also has its CRS cancelled (0: never)
+    track_lags: int = 1  # +- samples a confirmed cell's code may have moved from where it should be
 
     def __post_init__(self) -> None:
         if not 0 < self.false_alarm_rate < 0.5:
             raise ValueError(f"false_alarm_rate must be in (0, 0.5), got {self.false_alarm_rate!r}")
         if not 0 < self.pair_false_alarm < 0.5:
             raise ValueError(f"pair_false_alarm must be in (0, 0.5), got {self.pair_false_alarm!r}")
-        if self.max_cells < 1 or self.refine_lags < 1:
-            raise ValueError("max_cells and refine_lags must be >= 1")
+        if self.max_cells < 1 or self.refine_lags < 1 or self.track_lags < 1:
+            raise ValueError("max_cells, refine_lags and track_lags must be >= 1")
         if not (math.isfinite(self.crs_cancel_z) and self.crs_cancel_z >= 0):
             raise ValueError(f"crs_cancel_z must be a number of sigmas >= 0 (0: never), got {self.crs_cancel_z!r}")
 
@@ -112,6 +114,17 @@ class CellDetection:
         return self.candidates[0].score - self.candidates[1].score
 
 
+@dataclass(frozen=True)
+class ExpectedCell:
+    """A cell found in earlier stacks and where its code should be in this one: what the stage
+    asks the search to track (:meth:`CellSearch.search`)."""
+
+    pci: int
+    frame_offset: float  # predicted subframe-0 code start within the stack's frames (sub-sample)
+    cosited_pci: int | None = None  # found together with this co-sited sector, as a pair
+    held: bool = False  # confirmed: held at the tracking threshold (else the search's own, and plausibility)
+
+
 _SINGLE, _SITE = 0, 1  # rows of _SearchState.given_up
 
 
@@ -126,12 +139,13 @@ class _SearchState:
     correlations: np.ndarray  # single-template timing correlations of the residual
     z: np.ndarray  # and their z-scores
     spreads: np.ndarray  # their noise spreads, measured on the first pass
-    pss_z: np.ndarray  # PSS z-scores of the residual (plausibility check)
-    pss_spreads: np.ndarray
+    pss_z: np.ndarray | None  # PSS z-scores of the residual (plausibility check; None: not needed)
+    pss_spreads: np.ndarray | None
     threshold: float  # CFAR threshold, in sigmas
     given_up: np.ndarray  # (2, period): lags whose single / site peak could not be explained
     near_new: np.ndarray  # (period,) single lags overlapping cells found since the last cancellation
     site_noise: SiteNoise | None
+    rows: np.ndarray | None = None  # timing rows computed (None: all; the others stay zero)
     site_z: np.ndarray | None = None  # the pairs' statistic, once the single peaks are exhausted
     detections: list[CellDetection] = field(default_factory=list)
     cancelled: int = 0  # how many of the detections the residual has cancelled
@@ -140,7 +154,7 @@ class _SearchState:
 def cfar_threshold(false_alarm_rate: float, tests: int) -> float:
     """Gaussian threshold (in sigmas) so that ``tests`` one-sided tests give one false alarm
     with probability ``false_alarm_rate`` (independent tests: conservative for correlated lags)."""
-    return float(scipy.stats.norm.isf(false_alarm_rate / tests))
+    return float(-scipy.special.ndtri(false_alarm_rate / tests))  # the normal's isf, without its overhead
 
 
 class CellSearch:
@@ -221,8 +235,7 @@ class CellSearch:
             return False
         half = len(residual) // 2
         lag = (found.frame_offset + self.templates.pss_offset + np.arange(-2, 3)) % half
-        group = [0, 1] if found.pci % 3 == 0 else [2, 3, 4, 5]  # roots 29 and 34 look alike
-        if pss_z[np.ix_(group, lag)].max() < self.config.pss_confirm * found.peak_metric:
+        if pss_z[np.ix_(_pss_rows(found.pci), lag)].max() < self.config.pss_confirm * found.peak_metric:
             return False
         if self.known_pcis:
             rivals = self._open_set_search._identify(residual, found.frame_offset % half, found.peak_metric)
@@ -235,21 +248,38 @@ class CellSearch:
         """The same search over all 504 PCIs, to check a database PCI against everyone else."""
         return CellSearch(self.templates, self.config)
 
-    def timing_correlations(self, centred: np.ndarray) -> tuple[np.ndarray, int]:
+    def timing_correlations(self, centred: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, int]:
         """Correlations over candidate code positions and the period of the lag axis. Blind:
         the three PSS templates against the half-frame fold (lag = PSS start, mod a half-frame).
         Known PCIs: each PCI's full frame template (lag = subframe-0 code start, mod a frame),
-        twice the code energy. Every template is also tried half a sample later: the envelope
-        has energy near Nyquist, and a code between two samples would otherwise lose up to 3 dB
-        of correlation. (Divided by their noise spreads, they are the timing statistic, in
-        sigmas.)"""
+        twice the code energy; only ``rows`` of them if given (the others left zero). Every
+        template is also tried half a sample later: the envelope has energy near Nyquist, and a
+        code between two samples would otherwise lose up to 3 dB of correlation. (Divided by
+        their noise spreads, they are the timing statistic, in sigmas.)"""
         if not self.full_code_timing:
             return self.pss_correlations(centred), len(centred) // 2
         period = len(centred)
-        return correlate(scipy.fft.rfft(centred), self._frame_spectra(period), period), period
+        spectra = self._frame_spectra(period)
+        if rows is None:
+            return correlate(scipy.fft.rfft(centred), spectra, period), period
+        correlations = np.zeros((len(spectra), period), dtype=np.float32)
+        correlations[rows] = correlate(scipy.fft.rfft(centred), spectra[rows], period)
+        return correlations, period
 
-    def search(self, stacked: np.ndarray) -> list[CellDetection]:
-        """Cells in one stacked frame (the mean of a stack's rows), strongest first.
+    def _tracked_rows(self, expected: Sequence[ExpectedCell]) -> np.ndarray | None:
+        """The timing rows a stack that only tracks ``expected`` needs (None: all of them)."""
+        if not self.full_code_timing:
+            return None  # blind: three PSS templates, nothing to spare
+        pcis = {e.pci for e in expected} | {e.cosited_pci for e in expected if e.cosited_pci is not None}
+        if self.sites is not None:  # a tentative sector's partners: its pairs are tried as the search tries them
+            pcis |= {pci for e in expected if not e.held for k in self.sites.pairs_with(e.pci) for pci in self.sites.pairs[k]}
+        index = np.flatnonzero(np.isin(self.allowed, list(pcis)))
+        return (index[:, None] * len(PHASES) + np.arange(len(PHASES))).ravel()
+
+    def search(self, stacked: np.ndarray, expected: Sequence[ExpectedCell] = (),
+               discover: bool = True) -> list[CellDetection]:
+        """Cells in one stacked frame (the mean of a stack's rows): the ``expected`` ones that
+        are still there (:meth:`_track`), then, if ``discover``, new ones, strongest first.
 
         Peaks of the single templates are examined first, strongest first
         (:meth:`_single_pass`). Found cells are cancelled, and the statistics recomputed on the
@@ -260,15 +290,23 @@ class CellSearch:
         single peak passes the threshold, the co-sited pairs' statistic
         (if any) is computed on what remains, and a pair found there is cancelled the same way
         (:meth:`_site_pass`), after which single peaks are looked at again. The threshold
-        counts both kinds of test."""
+        counts both kinds of test.
+
+        Without ``discover`` only the expected cells are looked for, and only their templates
+        are correlated: a few of the dozens a full search needs, and no second pass unless two
+        of them overlap."""
         if not np.all(np.isfinite(stacked)):
             raise ValueError("stacked frame contains NaN or inf")
         centred = stacked - stacked.mean()
         if held_fraction(centred) > HELD_FRACTION:
             return []  # (mostly) constant input: no noise level to set a threshold by
-        state = self._start(centred)
+        if discover:
+            state = self._start(centred)
+        else:  # the PSS check is only needed for cells not confirmed yet
+            state = self._start(centred, self._tracked_rows(expected), pss=not all(e.held for e in expected))
+        self._track(state, expected, discover)
         examined = 0
-        while examined < self.config.max_examined and len(state.detections) < self.config.max_cells:
+        while discover and examined < self.config.max_examined and len(state.detections) < self.config.max_cells:
             before = len(state.detections)
             peak = self._strongest_single(state)
             if state.cancelled < before and (peak is None or state.near_new[peak]):
@@ -287,15 +325,19 @@ class CellSearch:
             elif kind == _SITE:
                 self._cancel(state)
             else:
-                for d in state.detections[before:]:
-                    state.near_new[self._overlapping_lags(d.frame_offset, state.period)] = True
+                self._mark_new(state, before)
         return state.detections
 
-    def _start(self, centred: np.ndarray) -> _SearchState:
-        """The first pass's statistics, noise spreads and CFAR threshold of a stack."""
-        correlations, period = self.timing_correlations(centred)
-        z, spreads = _normalised(correlations, None)
-        pss_z, pss_spreads = self.pss_statistic(centred) if self.full_code_timing else (z, spreads)
+    def _start(self, centred: np.ndarray, rows: np.ndarray | None = None, pss: bool = True) -> _SearchState:
+        """The first pass's statistics, noise spreads and CFAR threshold of a stack (the
+        threshold of a full search, whichever ``rows`` are computed); the PSS statistic of
+        known-PCI timing if ``pss``."""
+        correlations, period = self.timing_correlations(centred, rows)
+        z, spreads = _normalised(correlations, None, rows)
+        if not self.full_code_timing:
+            pss_z, pss_spreads = z, spreads
+        else:
+            pss_z, pss_spreads = self.pss_statistic(centred) if pss else (None, None)
         tests = z.size + (0 if self.sites is None else self.sites.rows * period)
         return _SearchState(
             centred=centred, residual=centred, crs=np.zeros(len(centred)), period=period,
@@ -303,7 +345,89 @@ class CellSearch:
             threshold=cfar_threshold(self.config.false_alarm_rate, tests), given_up=np.zeros((2, period), dtype=bool),
             near_new=np.zeros(period, dtype=bool),
             site_noise=None if self.sites is None else SiteNoise(self.sites, scipy.fft.rfft(centred), correlations),
+            rows=rows,
         )
+
+    def _mark_new(self, state: _SearchState, before: int) -> None:
+        """Lags that overlap the detections found since index ``before``: a peak there waits
+        for the residual."""
+        for d in state.detections[before:]:
+            state.near_new[self._overlapping_lags(d.frame_offset, state.period)] = True
+
+    def _track(self, state: _SearchState, expected: Sequence[ExpectedCell], discover: bool) -> None:
+        """Look for each expected cell where its code should be: the confirmed ones first, in
+        the order given (strongest first is best: weaker ones are then seen on the residual).
+
+        A confirmed (held) cell is looked for within ``track_lags`` of where its code should be,
+        and only has to beat the false-alarm rate over those few lags and its own templates, not
+        over a whole frame of them: about 3.6 sigmas instead of 6, so a cell once found is kept
+        through fades that a new one could not be found in. A cell not yet confirmed must pass
+        the full search's threshold and plausibility checks, on the residual of the cells
+        found (and the CRS of the strong ones), so that tracking confirms no more than searching
+        every stack would. A co-sited pair is tracked as a pair, and as two sectors if the pair
+        no longer explains its codes; with ``discover``, a sector held alone has its pairs tried
+        too, as the search tries a sector found alone (else one held alone would keep its
+        partner from ever being found)."""
+        for cell in sorted(expected, key=lambda e: not e.held):  # stable: the given order within each
+            if len(state.detections) >= self.config.max_cells:
+                return
+            if any(d.pci == cell.pci for d in state.detections):
+                continue  # found with its co-sited partner
+            lags = round(cell.frame_offset) + np.arange(-self.config.track_lags, self.config.track_lags + 1)
+            overlaps = state.near_new[self._timing_lags(lags, state.period)].any()
+            if state.cancelled < len(state.detections) and (overlaps or not cell.held):
+                self._cancel(state)
+            before = len(state.detections)
+            if not self._track_pair(state, cell, lags):
+                self._track_single(state, cell, lags, discover)
+            self._mark_new(state, before)
+
+    def _timing_lags(self, code_starts: np.ndarray, period: int) -> np.ndarray:
+        """Lags of the timing statistic at which a code starting at ``code_starts`` peaks."""
+        return (code_starts + (0 if self.full_code_timing else self.templates.pss_offset)) % period
+
+    def _timing_rows(self, pci: int) -> np.ndarray:
+        """Rows of the timing statistic that time ``pci``: its frame templates, or blind, its PSS."""
+        if not self.full_code_timing:
+            return _pss_rows(pci)
+        return int(np.searchsorted(self.allowed, pci)) * len(PHASES) + np.arange(len(PHASES))
+
+    def _track_single(self, state: _SearchState, cell: ExpectedCell, lags: np.ndarray, pairs: bool) -> None:
+        """One expected cell, by its own timing templates at ``lags`` (code starts); a held
+        cell's code is placed within them (and its co-sited pairs tried if ``pairs``), a
+        tentative one's as the search places a peak's."""
+        if cell.pci not in self.allowed:
+            return
+        block = state.z[np.ix_(self._timing_rows(cell.pci), self._timing_lags(lags, state.period))]
+        best = block.max(axis=0)
+        peak = int(np.argmax(best))
+        if cell.held:
+            if best[peak] < cfar_threshold(self.config.false_alarm_rate, block.size):
+                return
+            centre = int(lags[len(lags) // 2]) % len(state.centred)
+            self._admit(state, self._identify(state.residual, centre, float(best[peak]), cell.pci,
+                                              self.config.track_lags), held=True, pairs=pairs)
+        elif best[peak] >= state.threshold:
+            found = self._identify(state.residual, int(lags[peak]) % len(state.centred), float(best[peak]))
+            if found.pci == cell.pci:
+                self._admit(state, found)
+
+    def _track_pair(self, state: _SearchState, cell: ExpectedCell, lags: np.ndarray) -> bool:
+        """An expected co-sited pair, by the site hypothesis at ``lags``: whether it was added."""
+        if cell.cosited_pci is None or self.sites is None:
+            return False
+        pair = self.sites.pair_index(cell.pci, cell.cosited_pci)
+        if pair is None or any(d.pci == cell.cosited_pci for d in state.detections):
+            return False
+        pairs = np.array([pair])
+        match = self.sites.identify(state.residual, int(lags[len(lags) // 2]) % len(state.centred), pairs,
+                                    state.site_noise.covariances(pairs), self.config.pair_false_alarm,
+                                    self.config.pair_min_gain, reach=self.config.track_lags)
+        if match is None:
+            return False
+        tests = len(lags) * len(PHASES)
+        threshold = cfar_threshold(self.config.false_alarm_rate, tests) if cell.held else state.threshold
+        return match.z >= threshold and self._add_site(match, match.z, state.detections)
 
     def _strongest_single(self, state: _SearchState) -> int | None:
         """Lag of the strongest single-template peak not given up, if it passes the threshold."""
@@ -317,14 +441,23 @@ class CellSearch:
         # (a template half a sample late peaks at the same integer lag, so the lag stands)
         half = len(state.centred) // 2
         code_start = (peak - (0 if self.full_code_timing else self.templates.pss_offset)) % half
-        found = self._identify(state.residual, code_start, float(state.z[:, peak].max()))
-        match = None if state.site_noise is None else self._pair_of(state.residual, found, state.site_noise)
+        return self._admit(state, self._identify(state.residual, code_start, float(state.z[:, peak].max())))
+
+    def _admit(self, state: _SearchState, found: CellDetection, held: bool = False, pairs: bool = True) -> bool:
+        """Add a detection, or (if ``pairs``) the co-sited pair it belongs to if its partner's
+        code is there too: whether anything was added. A new cell must be plausible; a held one
+        only a PCI not found yet, with a positive amplitude."""
+        match = None if state.site_noise is None or not pairs else self._pair_of(state.residual, found,
+                                                                                  state.site_noise)
         if match is not None:  # a sector whose co-sited partner is there too
             return self._add_site(match, found.peak_metric, state.detections)
-        if self._plausible(state.residual, found, state.detections, state.pss_z):
+        if held:
+            plausible = found.amplitude > 0 and all(d.pci != found.pci for d in state.detections)
+        else:
+            plausible = self._plausible(state.residual, found, state.detections, state.pss_z)
+        if plausible:
             state.detections.append(found)
-            return True
-        return False
+        return plausible
 
     def _site_pass(self, state: _SearchState) -> tuple[int, bool] | None:
         """Examine the strongest co-sited pair peak of what the single templates left: (its
@@ -357,9 +490,12 @@ class CellSearch:
             state.site_z = None  # the CRS spans the whole frame: the pairs' statistic is computed again
         known = state.centred - state.crs
         state.residual = known - self._fit(known, state.detections)
-        state.correlations, _ = self.timing_correlations(state.residual)
-        state.z, _ = _normalised(state.correlations, state.spreads)
-        state.pss_z = self.pss_statistic(state.residual, state.pss_spreads)[0] if self.full_code_timing else state.z
+        state.correlations, _ = self.timing_correlations(state.residual, state.rows)
+        state.z, _ = _normalised(state.correlations, state.spreads, state.rows)
+        if not self.full_code_timing:
+            state.pss_z = state.z
+        elif state.pss_spreads is not None:
+            state.pss_z = self.pss_statistic(state.residual, state.pss_spreads)[0]
         if state.site_z is not None:
             # cancelling changes the residual only around the new codes: the site rows stay
             # valid elsewhere and are not recomputed
@@ -490,14 +626,18 @@ class CellSearch:
         windows = centred[index]
         return windows - windows.mean(axis=1, keepdims=True)
 
-    def _identify(self, centred: np.ndarray, code_start: int, peak_metric: float) -> CellDetection:
-        """The PCI, subframe order and sub-sample position of the code starting near
-        ``code_start`` (mod a half-frame), scored over every allowed PCI."""
+    def _identify(self, centred: np.ndarray, code_start: int, peak_metric: float,
+                  pci: int | None = None, reach: int | None = None) -> CellDetection:
+        """The PCI, subframe order and sub-sample position of the code starting within
+        ``reach`` (default ``refine_lags``) of ``code_start`` (mod a half-frame), scored over
+        every allowed PCI; with ``pci`` (a tracked cell), the position and scale are that
+        PCI's, whichever ranks first."""
         cfg = self.config
         frame, half = len(centred), len(centred) // 2
         codes, template_energy = self._code_templates
         pcis, length = len(template_energy), codes.shape[1]
-        lags = np.arange(-cfg.refine_lags, cfg.refine_lags + 1)
+        reach = cfg.refine_lags if reach is None else reach
+        lags = np.arange(-reach, reach + 1)
         first = self._windows(centred, code_start, lags, length)  # the code at code_start
         second = self._windows(centred, code_start + half, lags, length)  # and half a frame on
         energy = np.sum(first**2, axis=1) + np.sum(second**2, axis=1)  # (lags,)
@@ -507,7 +647,11 @@ class CellSearch:
         # order 0: subframe 0's code at code_start; order 1: subframe 5's there
         dots = np.stack([t0_first + t5_second, t5_first + t0_second])  # (2, P, lags)
         rho = dots / np.sqrt(template_energy[None, :, None] * energy[None, None, :])
-        order, best, lag_i = np.unravel_index(np.argmax(rho), rho.shape)
+        if pci is None:
+            order, best, lag_i = np.unravel_index(np.argmax(rho), rho.shape)
+        else:
+            best = int(np.searchsorted(self.allowed, pci))
+            order, lag_i = np.unravel_index(np.argmax(rho[:, best]), (2, len(lags)))
         per_pci = rho.max(axis=(0, 2))
         ranked = np.argsort(per_pci)[::-1][: cfg.keep_candidates]
         candidates = tuple(
@@ -524,7 +668,7 @@ class CellSearch:
         return CellDetection(
             frame_offset=int(sf0_at % frame),
             fraction=float(fraction),
-            pci=candidates[0].pci,
+            pci=int(self.allowed[best]),
             candidates=candidates,
             peak_metric=peak_metric,
             snr_db=snr_db,
@@ -532,12 +676,27 @@ class CellSearch:
         )
 
 
-def _normalised(c: np.ndarray, spreads: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _pss_rows(pci: int) -> np.ndarray:
+    """Rows of the PSS statistic (3 roots x phases) that a PCI's PSS raises: roots 29 and 34
+    (N_ID2 1 and 2) have the same envelope."""
+    return np.arange(len(PHASES)) if pci % 3 == 0 else np.arange(len(PHASES), 3 * len(PHASES))
+
+
+def _normalised(c: np.ndarray, spreads: np.ndarray | None,
+                rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Correlation rows in units of their noise spread (median absolute deviation about zero,
     where a zero-mean template's circular correlation is centred; measured here unless given:
-    later passes keep the first pass's spread), and the spreads. Every fourth lag is enough
-    for the median (thousands of lags), at a quarter of the cost."""
+    later passes keep the first pass's spread), and the spreads. Only ``rows`` if given: the
+    others' z and spread stay 0. Every fourth lag is enough for the median (thousands of lags),
+    at a quarter of the cost."""
+    if rows is None:
+        if spreads is None:
+            spreads = mad_spread(c[:, ::4], axis=1, centre=0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0), spreads
     if spreads is None:
-        spreads = mad_spread(c[:, ::4], axis=1, centre=0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0), spreads
+        spreads = np.zeros(len(c))
+        spreads[rows] = mad_spread(c[rows, ::4], axis=1, centre=0.0)
+    z = np.zeros(c.shape)
+    z[rows] = _normalised(c[rows], spreads[rows])[0]
+    return z, spreads

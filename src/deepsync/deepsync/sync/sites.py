@@ -73,6 +73,7 @@ class SiteMatch:
     frame_offset: int  # subframe-0 code start within the frame
     fraction: float  # sub-sample refinement, samples
     snr_db: float  # pair model energy / residual energy in the two code windows
+    z: float  # the pair statistic there, as the Gaussian z of its tail probability
     ranked: tuple[tuple[tuple[int, int], float, int], ...]  # (pair, multiple correlation, lag), best first
 
 
@@ -115,6 +116,11 @@ class SiteSearch:
     def every_pair(self) -> np.ndarray:
         return np.arange(len(self.pairs))
 
+    def pair_index(self, a: int, b: int) -> int | None:
+        """Index of the pair of sectors ``a`` and ``b``, if they are one."""
+        pair = tuple(sorted((a, b)))
+        return self.pairs.index(pair) if pair in self.pairs else None
+
     def pairs_with(self, pci: int) -> np.ndarray:
         """Indices of the pairs ``pci`` belongs to."""
         return np.array([k for k, pair in enumerate(self.pairs) if pci in pair], dtype=int)
@@ -141,15 +147,15 @@ class SiteSearch:
         return chi2_4_z(chi2.reshape(-1, chi2.shape[-1]).max(axis=0))
 
     def identify(self, centred: np.ndarray, code_start: int, pairs: np.ndarray, covariances: np.ndarray,
-                 pair_false_alarm: float, min_gain: float) -> SiteMatch | None:
+                 pair_false_alarm: float, min_gain: float, reach: int = 1) -> SiteMatch | None:
         """Which of ``pairs`` (indices; ``covariances`` their noise), at which sub-sample
-        position and with which coefficients, explains a code at ``code_start`` (subframe-0
-        code start, mod a frame); None if one sector alone explains it about as well: the pair
+        position and with which coefficients, explains a code within ``reach`` samples of
+        ``code_start`` (subframe-0 code start, mod a frame); None if one sector alone explains it about as well: the pair
         must add significantly (at ``pair_false_alarm``, shared among the pairs tried) and at
         least ``min_gain`` x the sector's own statistic (template mismatch at high SNR leaks a
         little of a lone sector into the other shapes)."""
         frame, half, length = len(centred), len(centred) // 2, self.templates.length
-        lags = np.arange(-1, 2)
+        lags = np.arange(-reach, reach + 1)
         index = code_start + lags[:, None, None] + np.array([0, half])[None, :, None] + np.arange(length)
         windows = centred[index % frame]  # (lags, 2, L)
         c = np.einsum("kpcsl,nsl->kpcn", self._parts[pairs], windows)  # (pairs, phases, 4, lags)
@@ -185,7 +191,8 @@ class SiteSearch:
              for j, pair in enumerate(pairs)),
             key=lambda item: -item[1],
         )
-        return SiteMatch(fit, offset, fraction, snr_db, tuple(ranked))
+        z = float(chi2_4_z(np.array([full[k, p, n]]))[0])
+        return SiteMatch(fit, offset, fraction, snr_db, z, tuple(ranked))
 
     def _fit(self, centred: np.ndarray, pair: tuple[int, int], offset: int, fraction: float) -> tuple[SiteFit, float]:
         """Least squares of the pair's four shapes (one set of coefficients for both codes)
