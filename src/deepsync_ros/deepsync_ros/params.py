@@ -224,8 +224,8 @@ def _config(build: Callable[..., T], specs: tuple[ParamSpec, ...], values: Mappi
 
 
 def _sync(n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int,
-          search_every: int, hold_stacks: int, report_z: float, false_alarm_rate: float, max_cells: int, full_code_timing: bool,
-          crs_cancel_z: float) -> SyncConfig:
+          search_every: int, hold_stacks: int, report_z: float, false_alarm_rate: float, max_cells: int,
+          full_code_timing: bool, crs_cancel_z: float) -> SyncConfig:
     return SyncConfig(
         stack=StackConfig(n_frames=n_frames, hop_frames=hop_frames or None, clock_ppm=clock_ppm,
                           track_clock=track_clock),

@@ -272,7 +272,8 @@ class CellSearch:
             return None  # blind: three PSS templates, nothing to spare
         pcis = {e.pci for e in expected} | {e.cosited_pci for e in expected if e.cosited_pci is not None}
         if self.sites is not None:  # a tentative sector's partners: its pairs are tried as the search tries them
-            pcis |= {pci for e in expected if not e.held for k in self.sites.pairs_with(e.pci) for pci in self.sites.pairs[k]}
+            pcis |= {pci for e in expected if not e.held
+                     for k in self.sites.pairs_with(e.pci) for pci in self.sites.pairs[k]}
         index = np.flatnonzero(np.isin(self.allowed, list(pcis)))
         return (index[:, None] * len(PHASES) + np.arange(len(PHASES))).ravel()
 

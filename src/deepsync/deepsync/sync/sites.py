@@ -150,10 +150,10 @@ class SiteSearch:
                  pair_false_alarm: float, min_gain: float, reach: int = 1) -> SiteMatch | None:
         """Which of ``pairs`` (indices; ``covariances`` their noise), at which sub-sample
         position and with which coefficients, explains a code within ``reach`` samples of
-        ``code_start`` (subframe-0 code start, mod a frame); None if one sector alone explains it about as well: the pair
-        must add significantly (at ``pair_false_alarm``, shared among the pairs tried) and at
-        least ``min_gain`` x the sector's own statistic (template mismatch at high SNR leaks a
-        little of a lone sector into the other shapes)."""
+        ``code_start`` (subframe-0 code start, mod a frame); None if one sector alone explains
+        it about as well: the pair must add significantly (at ``pair_false_alarm``, shared
+        among the pairs tried) and at least ``min_gain`` x the sector's own statistic (template
+        mismatch at high SNR leaks a little of a lone sector into the other shapes)."""
         frame, half, length = len(centred), len(centred) // 2, self.templates.length
         lags = np.arange(-reach, reach + 1)
         index = code_start + lags[:, None, None] + np.array([0, half])[None, :, None] + np.arange(length)

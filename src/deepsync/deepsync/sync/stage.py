@@ -20,9 +20,10 @@ be (``CellSearch.search``'s expected cells), the confirmed ones at a lower thres
 only a few lags are tested, and for ``hold_stacks`` more stacks after one they were missed in
 (a fade). A confirmed cell held below ``report_z`` sigmas is kept but not reported: below about
 5 sigmas the timing stage's ML estimate breaks down (on the dense walk with 10-frame stacks,
-13-22 % of arrivals a sample or more off at 3.5-4.5 sigmas, 2 % at 5-6). The full search for new cells, the costly part, runs every
-``search_every`` stacks, and on the stack after one where a tracked cell was lost or when none
-is tracked; between, a stack costs the few templates of the cells it tracks.
+13-22 % of arrivals a sample or more off at 3.5-4.5 sigmas, 2 % at 5-6). The full search for
+new cells, the costly part, runs every ``search_every`` stacks, on the stack after one where a
+tracked cell was missed, and when none is tracked; between, a stack costs the few templates of
+the cells it tracks.
 """
 
 from __future__ import annotations
