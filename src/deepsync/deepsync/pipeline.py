@@ -63,10 +63,7 @@ class PipelineConfig:
         if search_every is not None:
             sync = replace(sync, search_every=search_every)
         if estimator is not None:
-            names = [e.value for e in Estimator]
-            if estimator not in names:
-                raise ValueError(f"estimator must be one of {', '.join(names)}, got {estimator!r}")
-            timing = replace(timing, estimator=Estimator(estimator))
+            timing = replace(timing, estimator=Estimator.named(estimator))
         return replace(self, sync=sync, timing=timing)
 
 

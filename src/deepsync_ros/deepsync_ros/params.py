@@ -235,12 +235,8 @@ def _sync(n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, c
 
 
 def _timing(estimator: str, weak_std_samples: float, checkpoint: str) -> TimingConfig:
-    try:
-        kind = Estimator(estimator)
-    except ValueError:
-        choices = ", ".join(e.value for e in Estimator)
-        raise ValueError(f"estimator must be one of {choices}, got {estimator!r}") from None
-    return TimingConfig(estimator=kind, weak_std_samples=weak_std_samples, checkpoint=checkpoint or None)
+    return TimingConfig(estimator=Estimator.named(estimator), weak_std_samples=weak_std_samples,
+                        checkpoint=checkpoint or None)
 
 
 def _fusion(tracking: bool, multipath_std_m: float, min_std_m: float, receiver_height_m: float,

@@ -345,7 +345,7 @@ class CellSearch:
             correlations=correlations, z=z, spreads=spreads, pss_z=pss_z, pss_spreads=pss_spreads,
             threshold=cfar_threshold(self.config.false_alarm_rate, tests), given_up=np.zeros((2, period), dtype=bool),
             near_new=np.zeros(period, dtype=bool),
-            site_noise=None if self.sites is None else SiteNoise(self.sites, scipy.fft.rfft(centred), correlations),
+            site_noise=None if self.sites is None else SiteNoise(self.sites, centred, correlations),
             rows=rows,
         )
 

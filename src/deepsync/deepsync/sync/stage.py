@@ -110,7 +110,7 @@ class SyncResult:
     cells: tuple[DetectedCell, ...]  # confirmed cells
     tentative: tuple[DetectedCell, ...]  # found but not reported: not confirmed yet, or held too weakly to time
     clock_drift_ppm: float | None  # receiver clock error measured so far
-    searched: bool = True  # searched for new cells (else only the cells found before were tracked)
+    searched: bool  # searched for new cells (else only the cells found before were tracked)
 
     @property
     def pcis(self) -> list[int]:
@@ -172,8 +172,8 @@ class SyncStage:
         self._since_search = 0 if discover else self._since_search + 1
         self._lost = not {e.pci for e in expected} <= {c.pci for c in cells}
         streaks = {c.pci: self._streak(stack, c) for c in cells}
-        confirmed = [c for c in cells if streaks[c.pci] >= self.config.confirm_stacks
-                     and c.detection.peak_metric >= self.config.report_z]
+        reported = {c.pci for c in cells if streaks[c.pci] >= self.config.confirm_stacks
+                    and c.detection.peak_metric >= self.config.report_z}
         self._follow(stack, cells, streaks)
         return SyncResult(
             stamp_ns=stack.stamp_ns,
@@ -183,8 +183,8 @@ class SyncStage:
             aligned=stack.aligned,
             flags=stack.flags,
             events=self._new_events(),
-            cells=tuple(confirmed),
-            tentative=tuple(c for c in cells if c.pci not in {k.pci for k in confirmed}),
+            cells=tuple(c for c in cells if c.pci in reported),
+            tentative=tuple(c for c in cells if c.pci not in reported),
             clock_drift_ppm=self.stacker.measured_drift_ppm,
             searched=discover,
         )

@@ -72,6 +72,14 @@ class Estimator(enum.Enum):
     NETWORK = "network"  # the DeepSync timing network (``timing.network``; needs torch), ML outside its range
     NETWORK_ML = "network_ml"  # ML's maximum inside the network's interval (estimate +- 2 sigma, >= 1 sample)
 
+    @classmethod
+    def named(cls, name: str) -> Estimator:
+        """The estimator called ``name``; ValueError listing the names."""
+        try:
+            return cls(name)
+        except ValueError:
+            raise ValueError(f"estimator must be one of {', '.join(e.value for e in cls)}, got {name!r}") from None
+
     @property
     def uses_network(self) -> bool:
         """Whether the stage must load the timing network (and torch) for it."""
