@@ -195,6 +195,52 @@ def test_sliding_stacks_start_every_hop_frames_and_share_the_rest():
         StackConfig(n_frames=5, hop_frames=6)
 
 
+def test_a_sliding_stacks_mean_summed_block_by_block_is_the_mean_of_its_rows():
+    rng = np.random.default_rng(5)
+    codes = rng.integers(-2000, 2000, size=40 * FRAME).astype(np.int16)
+    stacker = FrameStacker(1.92e6, StackConfig(n_frames=20, hop_frames=4, track_clock=False))
+    stacks = [s for c in chunked(codes, [7777] * (len(codes) // 7777 + 1)) for s in stacker.push(c)]
+    assert len(stacks) == 6
+    for stack in stacks:
+        np.testing.assert_allclose(stack.stacked(), stack.rows.mean(axis=0), rtol=1e-5, atol=1e-7)
+        np.testing.assert_array_equal(stack.rows, codes[stack.first_sample_index :][: 20 * FRAME].reshape(20, FRAME) * np.float32(1e-3))
+
+
+def periodic_stream(frames: int, clock_ppm: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """ADC codes of a pattern that repeats every frame of a receiver clock ``clock_ppm`` fast
+    (as every cell's codes and CRS do), in noise; and the pattern."""
+    rng = np.random.default_rng(seed)
+    spectrum = scipy.fft.rfft(rng.normal(size=FRAME))
+    spectrum[FRAME // 8 :] = 0  # smooth enough to interpolate linearly
+    pattern = scipy.fft.irfft(spectrum, FRAME)
+    pattern /= pattern.std()
+    n = np.arange(frames * FRAME)
+    phase = n / (1 + clock_ppm * 1e-6) % FRAME
+    signal = np.interp(phase, np.arange(FRAME + 1), np.r_[pattern, pattern[0]]) + 0.5 * rng.normal(size=n.size)
+    return np.round(300 * signal).astype(np.int16), pattern
+
+
+@pytest.mark.parametrize("n_frames, hop, chunk", [(10, None, FRAME // 4), (10, None, 0), (50, 10, FRAME // 4), (50, 10, 0)])
+def test_the_receiver_clock_is_followed_and_stacks_line_up_once_it_is_known(n_frames, hop, chunk):
+    """A 22 ppm receiver clock (the real recording's) moves the frames 0.42 samples each: the
+    first stack measures it and says it is misaligned; every later one is cut by it. A sliding
+    stack's frames cut before it was known are let go, not stacked misaligned. Chunks of a
+    quarter frame (a frame then often ends where the data does), or of any size (0)."""
+    codes, pattern = periodic_stream(160, 22.0, seed=6)
+    stacker = FrameStacker(1.92e6, StackConfig(n_frames=n_frames, hop_frames=hop))
+    sizes = np.full(len(codes) // chunk, chunk) if chunk else np.random.default_rng(7).integers(1000, 30000, 250)
+    sizes = sizes[: np.searchsorted(np.cumsum(sizes), len(codes)) + 1].tolist()
+    stacks = [s for c in chunked(codes, sizes) for s in stacker.push(c)]
+    assert not stacks[0].aligned and stacks[0].drift_ppm == pytest.approx(22.0, abs=0.5)
+    assert len(stacks) >= 6 and all(s.aligned for s in stacks[1:])
+    assert all(s.drift_ppm == pytest.approx(22.0, abs=0.2) for s in stacks[1:])
+    for stack in stacks[1:]:  # the stacked pattern as sharp as one frame of it
+        c = scipy.fft.irfft(scipy.fft.rfft(stack.stacked() - stack.stacked().mean()) * np.conj(scipy.fft.rfft(pattern)), FRAME)
+        assert c.max() / (np.linalg.norm(stack.stacked() - stack.stacked().mean()) * np.linalg.norm(pattern)) > 0.95
+    if hop:  # the frames of the first, misaligned stack are not reused: the next one comes a stack later
+        assert stacks[1].first_sample_index >= stacks[0].first_sample_index + n_frames * FRAME
+
+
 def test_sliding_stacks_confirm_a_cell_at_the_hop_rate():
     """A 20-frame stack every 5 frames on the campus bag: a result every 50 ms, the cells found
     where they are, and confirmed after three stacks in a row, as with back-to-back stacks."""
@@ -528,6 +574,28 @@ def test_the_crs_template_is_what_the_simulator_sends(templates, strong_cell_fra
 
     assert correlation(456) > 0.5  # the CRS is a large part of everything in the stack (0.64)
     assert correlation(457) < 0.5 * correlation(456)  # another PCI's CRS comb sits on other subcarriers
+
+
+def test_a_known_cells_full_frame_template_is_its_codes_and_crs_as_sent(templates, strong_cell_frames):
+    """Codes + CRS: what the simulator sends, with 10x the codes' energy at 10 MHz, and the
+    CRS comb's sidelobes one comb period (21.3 samples) out (``benchmarks/full_frame_template.py``)."""
+    frames, code = strong_cell_frames
+    stacked = frames.mean(axis=0) - frames.mean()
+
+    def correlation(pci: int) -> float:
+        full = np.roll(templates.frame_template(pci, 10, [code % 1])[0], int(code))
+        return float(np.corrcoef(full, stacked)[0, 1])
+
+    start = code - sync_code_offset_seconds() * templates.sample_rate
+    crs = scipy.fft.irfft(scipy.fft.rfft(templates.crs_envelope(456, 10)) * np.exp(-2j * np.pi * scipy.fft.rfftfreq(FRAME) * start), FRAME)
+    assert correlation(456) > float(np.corrcoef(crs, stacked)[0, 1]) + 0.03  # 0.69 against 0.64: the codes are where they are sent
+    assert correlation(457) < 0.5 * correlation(456)
+    full = templates.frame_template(456, 10, [0.0])[0]
+    codes = sum(np.sum((t - t.mean()) ** 2) for t in (templates.template(456, s, 0.0) for s in (0, 5)))
+    assert 9.0 < 10 * np.log10(np.sum(full**2) / codes) < 11.5
+    auto = scipy.fft.irfft(np.abs(scipy.fft.rfft(full)) ** 2, FRAME) / np.sum(full**2)
+    comb = auto[18:25]
+    assert 0.45 < comb.max() < 0.75 and 20 <= 18 + np.argmax(comb) <= 22 and auto[5:16].max() < comb.max()
 
 
 def test_a_strong_cells_crs_does_not_pass_for_other_cells_over_long_stacks(templates, strong_cell_frames):

@@ -218,6 +218,28 @@ class SyncTemplates:
             self._crs[key] = shape
         return self._crs[key]
 
+    def frame_template(self, pci: int, bandwidth_mhz: float, phases: Sequence[float]) -> np.ndarray:
+        """(phases, frame) everything a cell sends the same in every frame, as the envelope
+        shows it: its two sync codes (each zero-mean) and its CRS (``crs_envelope``), with the
+        subframe-0 code starting at each of the sub-sample ``phases`` (0 <= phase < 1), per unit
+        RE power.
+
+        The codes are 4 of the frame's 140 symbols; the CRS adds 40 (port 0), so a known cell
+        carries several times the matched-filter energy of its codes alone, more the wider the
+        carrier (the codes always span 62 subcarriers, the CRS comb the whole band). Its comb
+        (every 6th subcarrier) repeats the CRS envelope every 21.3 samples, so this template's
+        autocorrelation has sidelobes there that the codes' does not."""
+        frame = len(self.crs_envelope(pci, bandwidth_mhz))
+        delays = np.asarray(phases, dtype=float)
+        codes = np.zeros((len(delays), frame))
+        for subframe, start in ((0, 0), (5, frame // 2)):
+            part = self.template(pci, subframe, delays)
+            codes[:, start : start + part.shape[1]] = part - part.mean(axis=1, keepdims=True)
+        shift = delays[:, None] - sync_code_offset_seconds() * self.sample_rate  # the frame's start
+        ramp = np.exp(-2j * np.pi * scipy.fft.rfftfreq(frame) * shift)
+        crs = scipy.fft.irfft(scipy.fft.rfft(self.crs_envelope(pci, bandwidth_mhz)) * ramp, frame)
+        return codes + crs
+
     def _periodic_response(self, envelope: np.ndarray, rate_hz: float) -> np.ndarray:
         """ADC-rate samples of one period of a periodic envelope (at ``rate_hz``, a whole number
         of ADC samples long) through the video filter and the AC coupling in their steady

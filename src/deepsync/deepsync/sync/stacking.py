@@ -10,6 +10,13 @@ A stack starts every ``hop_frames`` frames: back to back by default (hop = N), o
 arrival moves by v/c over a stack (a car at 15 m/s: 0.1 sample per second), which the stack
 averages: what it measures is the arrival at the stack's middle.
 
+Stacking is incremental: each frame is cut from the stream once, when its samples are in, and
+kept while a stack still needs it. Frames are summed in blocks of g = gcd(N, hop, N/2), each
+block once, and a stack's mean is the sum of its N/g blocks, each moved by the whole samples
+that line it up with the stack's first row (see the clock below). A sliding stack therefore
+costs its new frames and a few block additions, not N frames again; and the buffer of raw
+samples never holds more than about a frame.
+
 The stream arrives in chunks of any size. The stacker checks what a driver or bag can get
 wrong and reports it as a :class:`~deepsync.types.Health` event instead of stacking garbage:
 
@@ -26,20 +33,28 @@ wrong and reports it as a :class:`~deepsync.types.Health` event instead of stack
 * clipped frames, and silent or stuck ones (most of the stack holding one value): stacked,
   but the stack carries a flag.
 
-Receiver clock offset: frame f of a stack starts ``f * frame * (1 + clock_ppm)`` samples after
-frame 0, rounded; the sub-sample remainder of each row is kept in ``Stack.row_shifts`` so
-windows can be aligned exactly. The clock needs no cell to be known: everything deterministic
-in the envelope (every cell's sync codes and CRS, the symbol power profile) repeats each frame
-and moves only with the receiver clock, so each stack measures its own residual drift by
-cross-correlating the mean of its first and second halves of frames. With ``track_clock`` the
-smoothed measurement becomes the compensation for the next stacks; a stack whose residual
-drift across its rows exceeds ``max_drift_samples`` is marked ``aligned = False``.
+Receiver clock offset: each frame starts ``frame * (1 + clock_ppm)`` samples after the one
+before (the clock as known when it is cut). A block's first frame starts at that position
+rounded, and its other frames at whole frames-and-samples from it (rounded relative to it, so
+a block's rows line up within half a sample); the sub-sample remainder of each row is kept in
+``Stack.row_shifts`` so windows can be aligned exactly. The clock needs no cell to be
+known: everything deterministic in the envelope (every cell's sync codes and CRS, the symbol
+power profile) repeats each frame and moves only with the receiver clock, so each stack
+measures its own residual drift by cross-correlating the mean of its first and second halves
+of frames. With ``track_clock`` the smoothed measurement becomes the compensation for the
+frames cut after it; a stack whose residual drift across its rows exceeds
+``max_drift_samples`` is marked ``aligned = False``. When the compensation moves so far that
+the frames a sliding stack keeps would be off by more than half that across the stack (the
+first stack of a stream from a receiver whose clock was not configured), they are let go and
+stacking continues with frames cut by the new clock: a stack later than otherwise, aligned.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.fft
@@ -79,24 +94,35 @@ class StackConfig:
 
 @dataclass(frozen=True)
 class Stack:
-    """N consecutive frames of the stream, one row per frame (float, volts)."""
+    """N consecutive frames of the stream, one row per frame (float, volts). The frames are
+    the stacker's own, shared with the other stacks that hold them, not copied per stack."""
 
-    rows: np.ndarray  # (n_frames, frame_samples)
+    frames: tuple[np.ndarray, ...]  # n_frames x (frame_samples,) float32
     row_starts: np.ndarray  # (n_frames,) stream index of each row's first sample
     row_shifts: np.ndarray  # (n_frames,) exact start minus row_starts (clock remainder), samples
     sample_rate: float
     stamp_ns: int  # receiver time of the first sample of row 0
+    mean: np.ndarray  # (frame_samples,) the rows averaged, summed incrementally by the stacker
     aligned: bool = True
     flags: tuple[Health, ...] = field(default=())
     drift_ppm: float | None = None  # receiver clock error measured on this stack (None: too weak)
 
     @property
     def n_frames(self) -> int:
-        return self.rows.shape[0]
+        return len(self.frames)
 
     @property
     def frame_samples(self) -> int:
-        return self.rows.shape[1]
+        return len(self.frames[0])
+
+    @cached_property
+    def rows(self) -> np.ndarray:
+        """(n_frames, frame_samples) the frames as one array (a copy)."""
+        return np.stack(self.frames)
+
+    def columns(self, index: np.ndarray) -> np.ndarray:
+        """(n_frames, len(index)) the samples at ``index`` of every frame (without copying them all)."""
+        return np.stack([frame[index] for frame in self.frames])
 
     @property
     def first_sample_index(self) -> int:
@@ -104,7 +130,25 @@ class Stack:
 
     def stacked(self) -> np.ndarray:
         """The frames averaged: what the cell search looks at."""
-        return self.rows.mean(axis=0)
+        return self.mean
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """One frame cut from the stream, kept while a stack still needs it."""
+
+    start: int  # stream index of its first sample
+    shift: float  # exact start minus ``start`` (clock remainder), samples
+    samples: np.ndarray  # (frame_samples,) float32, volts
+    clipped: int  # samples at the ADC rails
+
+
+@dataclass(frozen=True)
+class _Block:
+    """The sum of a block's frames, and the clock remainder of its first."""
+
+    total: np.ndarray  # (frame_samples,) float64
+    shift: float
 
 
 class FrameStacker:
@@ -122,10 +166,16 @@ class FrameStacker:
         self._wrong_rate = False  # in a run of chunks at another sample rate
         self._origin = (0, 0)  # (stream index, stamp ns) the stamps are counted from
         self._latest = (0, 0)  # (stream index, stamp ns) of the latest chunk: the timeline a chunk must keep
-        self._buffer = np.empty(0, dtype=np.float32)
+        self._buffer = np.empty(0, dtype=np.float32)  # samples from the next frame's start on
         self._clipped = np.empty(0, dtype=bool)
-        self._parts: list[tuple[np.ndarray, np.ndarray]] = []  # chunks after the buffer, joined once a stack is complete
+        self._parts: list[tuple[np.ndarray, np.ndarray]] = []  # chunks after the buffer, joined once a frame is complete
         self._buffer_start = 0
+        self._next_start = 0.0  # exact stream position of the next frame to cut
+        self._block_origin = (0.0, 0)  # exact and integer start of the block being cut
+        self._frames: deque[_Frame] = deque()  # cut, for the next stack; the first starts a block
+        self._blocks: deque[_Block] = deque()  # sums of the frames, ``_block`` at a time
+        n, hop = self.config.n_frames, self.config.hop
+        self._block = math.gcd(n, hop, max(n // 2, 1))  # frames per block: stacks start and halve on block edges
 
     @property
     def frame_samples(self) -> int:
@@ -133,8 +183,9 @@ class FrameStacker:
 
     @property
     def _held(self) -> int:
-        """Samples received and not yet behind the last stack: the buffer and the parts."""
-        return len(self._buffer) + sum(len(part) for part, _ in self._parts)
+        """Samples received and not yet behind the last stack: its cut frames, the buffer and the parts."""
+        first = self._frames[0].start if self._frames else self._buffer_start
+        return self._buffer_start - first + len(self._buffer) + sum(len(part) for part, _ in self._parts)
 
     def push(self, chunk: EnvelopeChunk) -> list[Stack]:
         """Add a chunk of ADC codes; return the stacks it completes."""
@@ -236,6 +287,9 @@ class FrameStacker:
         self._clipped = np.empty(0, dtype=bool)
         self._parts.clear()
         self._buffer_start = index
+        self._next_start = float(index)
+        self._frames.clear()
+        self._blocks.clear()
         self._origin = (index, stamp_ns)
 
     def _stamp(self, index: int) -> int:
@@ -244,44 +298,95 @@ class FrameStacker:
 
     def _append(self, samples: np.ndarray, clipped: np.ndarray) -> list[Stack]:
         self._parts.append((samples, clipped))
-        frame, n = self.frame_samples, self.config.n_frames
+        frame = self.frame_samples
         stacks = []
-        while True:
-            period = frame * (1 + self.clock_ppm * 1e-6)
-            exact = np.arange(n) * period
-            starts = np.round(exact).astype(np.int64)
-            advance = int(round(self.config.hop * period))  # where the next stack's first row starts
-            if self._held < max(starts[-1] + frame, advance):
-                return stacks
-            if self._parts:  # joined once per stack, not per chunk
+        while self._held_from_next() >= frame:
+            if self._parts:  # joined once per frame, not per chunk
                 self._buffer = np.concatenate([self._buffer, *(part for part, _ in self._parts)])
                 self._clipped = np.concatenate([self._clipped, *(part for _, part in self._parts)])
                 self._parts.clear()
-            rows = np.stack([self._buffer[start : start + frame] for start in starts])
-            flags = []
-            at_rails = sum(int(np.count_nonzero(self._clipped[start : start + frame])) for start in starts)
-            clipped_fraction = at_rails / rows.size
-            if clipped_fraction > self.config.clip_fraction:
-                flags.append(Health(HealthKind.CLIPPED, f"{100 * clipped_fraction:.2f} % of samples at the ADC rails"))
-            held = held_fraction(rows.mean(axis=0))
-            if held > HELD_FRACTION:
-                flags.append(Health(HealthKind.NO_SIGNAL, f"{100 * held:.1f} % of the stacked frame holds one "
-                                    "value (silent or stuck input)"))
-            residual = measure_drift(rows)
-            drift = None if residual is None else self.clock_ppm + residual
-            aligned = residual is None or abs(residual) * 1e-6 * frame * (n - 1) <= self.config.max_drift_samples
-            if not aligned:
-                flags.append(Health(HealthKind.MISALIGNED, f"{residual:+.1f} ppm of clock drift was not compensated"))
-            stacks.append(Stack(rows, self._buffer_start + starts, exact - starts, self.sample_rate,
-                                self._stamp(self._buffer_start), aligned, tuple(flags), drift))
-            self._buffer = self._buffer[advance:]
-            self._clipped = self._clipped[advance:]
-            self._buffer_start += advance
-            if drift is not None:
-                previous = self.measured_drift_ppm
-                self.measured_drift_ppm = drift if previous is None else previous + DRIFT_SMOOTHING * (drift - previous)
-                if self.config.track_clock:
-                    self.clock_ppm = self.measured_drift_ppm
+            start = self._next_frame_start()
+            if len(self._frames) % self._block == 0:
+                self._block_origin = (self._next_start, start)
+            at = start - self._buffer_start
+            self._frames.append(_Frame(start, self._next_start - start, self._buffer[at : at + frame].copy(),
+                                       int(np.count_nonzero(self._clipped[at : at + frame]))))
+            self._next_start += frame * (1 + self.clock_ppm * 1e-6)
+            # no frame needs the samples before the next one's start (which may be beyond what is in)
+            behind = min(self._next_frame_start() - self._buffer_start, len(self._buffer))
+            self._buffer, self._clipped = self._buffer[behind:], self._clipped[behind:]
+            self._buffer_start += behind
+            if len(self._frames) == self.config.n_frames:
+                stacks.append(self._stack())
+        return stacks
+
+    def _next_frame_start(self) -> int:
+        """Stream index of the next frame's first sample: its exact start rounded if it begins
+        a block, else rounded relative to the block's first frame."""
+        if len(self._frames) % self._block == 0:
+            return round(self._next_start)
+        exact, first = self._block_origin
+        return first + round(self._next_start - exact)
+
+    def _held_from_next(self) -> int:
+        """Samples received from the next frame's start on."""
+        return self._buffer_start - self._next_frame_start() + len(self._buffer) + sum(len(p) for p, _ in self._parts)
+
+    def _stack(self) -> Stack:
+        """The stack of the frames cut, then the first ``hop`` of them let go."""
+        n, block, frame = self.config.n_frames, self._block, self.frame_samples
+        frames = list(self._frames)
+        for k in range(len(self._blocks) * block, n, block):  # each block summed once, by the first stack to hold it
+            total = frames[k].samples.astype(np.float64)
+            for f in frames[k + 1 : k + block]:
+                total += f.samples
+            self._blocks.append(_Block(total, frames[k].shift))
+        # each block moved by the whole samples that line it up with row 0 (a frame's content
+        # repeats, so a circular move is exact for everything that repeats); half a sample
+        # of misalignment stays, as within a block
+        moves = [round(frames[0].shift - b.shift) for b in self._blocks]
+        moved = [np.roll(b.total, m) if m else b.total for b, m in zip(self._blocks, moves)]
+        half = len(moved) // 2
+        first, second = np.sum(moved[:half], axis=0), np.sum(moved[len(moved) - half :], axis=0)
+        total = first + second if 2 * half == len(moved) else np.sum(moved, axis=0)
+        mean = (total / n).astype(np.float32)
+        flags = []
+        clipped_fraction = sum(f.clipped for f in frames) / (n * frame)
+        if clipped_fraction > self.config.clip_fraction:
+            flags.append(Health(HealthKind.CLIPPED, f"{100 * clipped_fraction:.2f} % of samples at the ADC rails"))
+        held = held_fraction(mean)
+        if held > HELD_FRACTION:
+            flags.append(Health(HealthKind.NO_SIGNAL, f"{100 * held:.1f} % of the stacked frame holds one "
+                                "value (silent or stuck input)"))
+        starts = np.array([f.start for f in frames], dtype=np.int64)
+        shifts = np.array([f.shift for f in frames])
+        residual = None
+        if half:  # where the halves' contents sit relative to each other, from the alignment alone
+            placed = shifts + np.repeat(moves, block)
+            offset = placed[n - half * block :].mean() - placed[: half * block].mean()
+            residual = measure_drift(first, second, (len(moved) - half) * block, offset)
+        exact = starts + shifts
+        compensated = ((exact[-1] - exact[0]) / ((n - 1) * frame) - 1) * 1e6 if n > 1 else self.clock_ppm
+        drift = None if residual is None else compensated + residual
+        aligned = residual is None or abs(residual) * 1e-6 * frame * (n - 1) <= self.config.max_drift_samples
+        if not aligned:
+            flags.append(Health(HealthKind.MISALIGNED, f"{residual:+.1f} ppm of clock drift was not compensated"))
+        stack = Stack(tuple(f.samples for f in frames), starts, shifts, self.sample_rate,
+                      self._stamp(int(starts[0])), mean, aligned, tuple(flags), drift)
+        for _ in range(self.config.hop):
+            self._frames.popleft()
+        for _ in range(self.config.hop // block):
+            self._blocks.popleft()
+        if drift is not None:
+            previous = self.measured_drift_ppm
+            self.measured_drift_ppm = drift if previous is None else previous + DRIFT_SMOOTHING * (drift - previous)
+            if self.config.track_clock:
+                moved = abs(self.measured_drift_ppm - self.clock_ppm) * 1e-6 * frame * (n - 1)
+                self.clock_ppm = self.measured_drift_ppm
+                if moved > self.config.max_drift_samples / 2:  # the frames kept were cut by a clock now known wrong
+                    self._frames.clear()
+                    self._blocks.clear()
+        return stack
 
 
 def held_fraction(frame: np.ndarray) -> float:
@@ -291,24 +396,24 @@ def held_fraction(frame: np.ndarray) -> float:
     return float(np.mean(frame == np.median(frame)))
 
 
-def measure_drift(rows: np.ndarray, max_ppm: float = MAX_CLOCK_PPM, min_z: float = 5.0) -> float | None:
-    """Residual receiver clock drift (ppm) in a stack's rows, or None if it cannot be told.
+def measure_drift(first: np.ndarray, second: np.ndarray, apart_frames: int, offset: float = 0.0,
+                  max_ppm: float = MAX_CLOCK_PPM, min_z: float = 5.0) -> float | None:
+    """Residual receiver clock drift (ppm) between two sums of a stack's frames (its first and
+    its second half) whose middles are ``apart_frames`` frames apart, or None if it cannot be
+    told; ``offset`` is how much later the second's content sits by the way the rows were cut.
 
-    The mean of the second half of the frames is the first half's shifted by (n/2 frames x
-    drift): the peak of their circular cross-correlation, refined by a parabola, gives it. The
-    peak must stand ``min_z`` robust sigmas out of the correlation, or there is nothing
-    deterministic enough in the stream to time it by.
+    The second half is the first shifted by (apart x frame x drift) + offset: the peak of
+    their circular cross-correlation, refined by a parabola, gives it. The peak must stand
+    ``min_z`` robust sigmas out of the correlation, or there is nothing deterministic enough
+    in the stream to time it by.
     """
-    n, frame = rows.shape
-    if n < 2:
-        return None
-    first, second = rows[: n // 2].mean(axis=0), rows[n // 2 : 2 * (n // 2)].mean(axis=0)
+    frame = len(first)
     first, second = first - first.mean(), second - second.mean()
     c = scipy.fft.irfft(scipy.fft.rfft(second) * np.conj(scipy.fft.rfft(first)), n=frame)
-    reach = int(np.ceil(max_ppm * 1e-6 * frame * (n // 2))) + 1
+    reach = int(np.ceil(max_ppm * 1e-6 * frame * apart_frames + abs(offset))) + 1
     lags = np.arange(-reach, reach + 1)
     lag = int(lags[np.argmax(c[lags % frame])])
     spread = mad_spread(c, centre=0.0)  # zero-mean frames: the correlation sums to zero
     if spread <= 0 or c[lag % frame] / spread < min_z:
         return None
-    return (lag + parabolic_peak(c, lag % frame)) / ((n // 2) * frame) * 1e6
+    return (lag + parabolic_peak(c, lag % frame) - offset) / (apart_frames * frame) * 1e6

@@ -5,8 +5,9 @@ Row f is the envelope of frame f from ``margin`` samples before the coarse code 
 here is larger, to cover the coarse error the timing network is trained for). Rows are cut
 circularly within their frame: the code pattern repeats every frame, so a code near a frame
 edge is read whole. With a compensated receiver clock each frame starts a fraction of a sample
-off the integer grid (``Stack.row_shifts``); that remainder is removed by a band-limited
-(FFT) shift, so all rows put the code at the same place and average coherently. It is exact
+off the integer grid (``Stack.row_shifts``); what each row's remainder differs from row 0's is
+removed by a band-limited (FFT) shift, so all rows put the code where row 0 has it, on row 0's
+sample grid (the stream indices the stack's positions count in), and average coherently. It is exact
 for content below the ADC's Nyquist frequency; what the video filter lets alias (a few % of
 the code's energy with the default filter) is shifted by the wrong amount.
 """
@@ -29,17 +30,18 @@ def extract_windows(stack: Stack, code_start: int, template_length: int, margin:
         raise ValueError(f"margin {margin} does not fit a {stack.frame_samples}-sample frame")
     length = template_length + 2 * margin
     first = code_start - margin
-    if not np.any(stack.row_shifts):
+    shifts = stack.row_shifts - stack.row_shifts[0]
+    if not np.any(shifts):
         index = (first + np.arange(length)) % stack.frame_samples
-        return stack.rows[:, index].astype(np.float32)
+        return stack.columns(index).astype(np.float32)
     index = (first - _PAD + np.arange(length + 2 * _PAD)) % stack.frame_samples
-    padded = stack.rows[:, index].astype(np.float64)
+    padded = stack.columns(index).astype(np.float64)
     means = padded.mean(axis=1, keepdims=True)
     padded -= means
     padded *= scipy.signal.windows.tukey(padded.shape[1], 2 * (_PAD - 8) / padded.shape[1])[None, :]
     frequencies = scipy.fft.rfftfreq(padded.shape[1])
-    # row f's true frame start is row_shifts[f] samples after its integer start: read it that
-    # much later so every row sees the code at the same position
-    ramp = np.exp(2j * np.pi * frequencies[None, :] * stack.row_shifts[:, None])
+    # row f's true frame start is row_shifts[f] samples after its integer start: read it as
+    # much later than row 0 is read, so every row sees the code where row 0 does
+    ramp = np.exp(2j * np.pi * frequencies[None, :] * shifts[:, None])
     shifted = scipy.fft.irfft(scipy.fft.rfft(padded, axis=1) * ramp, n=padded.shape[1], axis=1)
     return (shifted[:, _PAD : _PAD + length] + means).astype(np.float32)
