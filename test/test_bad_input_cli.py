@@ -326,7 +326,7 @@ def test_replay_fusion_names_the_heard_cells_the_database_cannot_place(tmp_path,
             if k % 10 == 0:
                 writer.write("/deepsync/cell_timing", item.message)
     lacking = tmp_path / "lacking.yaml"
-    lacking.write_text(TOWERS.read_text().replace("{pci: 301, earfcn: 2000}", "{pci: 309, earfcn: 2000}"))
+    lacking.write_text(TOWERS.read_text().replace("{pci: 301, earfcn: 2000", "{pci: 309, earfcn: 2000"))
     assert main(replay_args(bag, tmp_path / "out", "--towers", str(lacking), "--stages", "fusion")) == 0
     printed = capsys.readouterr().out
     assert "heard but not in tower database 'campus', so left out of the fixes: PCI 301" in printed

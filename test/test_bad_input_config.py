@@ -297,6 +297,12 @@ BAD_TOWERS = [
                  "PCI 504 is out of range (valid: 0..503)", id="pci-504"),
     pytest.param(_towers({"pci": 1, "earfcn": 2000.5}), "towers.sites[0].cells[0]",
                  "EARFCN 2000.5 is not an integer", id="earfcn-fractional"),
+    pytest.param(_towers({"pci": 1, "bandwidth_mhz": 12}), "towers.sites[0].cells[0].bandwidth_mhz",
+                 "is not an LTE channel bandwidth; choose one of 1.4, 3, 5, 10, 15, 20", id="bandwidth-12MHz"),
+    pytest.param(_towers({"pci": 1, "bandwidth_mhz": "10"}), "towers.sites[0].cells[0].bandwidth_mhz",
+                 "expected a number of MHz, got '10'", id="bandwidth-as-text"),
+    pytest.param(_towers({"pci": 1, "bandwith_mhz": 10}), "towers.sites[0].cells[0]",
+                 "expected keys pci and optional earfcn, bandwidth_mhz", id="bandwidth-misspelt"),
 ]
 
 

@@ -297,7 +297,7 @@ def test_calibrated_database_refuses_what_it_cannot_apply():
 def test_tower_database_to_dict_round_trips_exactly(tmp_path):
     data = database_dict()
     data["sites"][0] |= {"timing_offset_std_us": 0.0123, "timing_drift_std_ns_per_s": 1e-5}
-    data["sites"].append({"name": "plain", "cells": [{"pci": 7}, {"pci": 8}]})
+    data["sites"].append({"name": "plain", "cells": [{"pci": 7}, {"pci": 8, "bandwidth_mhz": 1.4}]})
     data["timing_epoch_utc"] = "2026-03-04T05:06:07.250001Z"
     towers = parse_tower_database(data)
     assert parse_tower_database(tower_database_to_dict(towers)) == towers

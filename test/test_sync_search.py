@@ -15,7 +15,7 @@ from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.frontend.video import VideoFilter
 from deepsync.lte.cell import CellConfig
 from deepsync.sources import BagSource
-from deepsync.sync.search import CellSearch, SearchConfig
+from deepsync.sync.search import CellDetection, CellSearch, SearchConfig
 from deepsync.sync.sites import SiteFit
 from deepsync.sync.stacking import FrameStacker, StackConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
@@ -392,6 +392,10 @@ def test_tower_database_validation(tmp_path):
     mixed = parse_tower_database({"sites": [{"name": "A", "cells": [
         {"pci": 1, "earfcn": 2000}, {"pci": 2, "earfcn": 2300}, {"pci": 3, "earfcn": 2000}]}]})
     assert mixed.cosited_pairs() == [(1, 3)]  # sectors on another carrier do not mix
+    reused = parse_tower_database({"sites": [
+        {"name": "A", "cells": [{"pci": 1, "bandwidth_mhz": 10}, {"pci": 2, "bandwidth_mhz": 20}, {"pci": 3}]},
+        {"name": "B", "cells": [{"pci": 1, "bandwidth_mhz": 10.0}, {"pci": 2, "bandwidth_mhz": 5}]}]})
+    assert reused.bandwidths() == {1: 10.0}  # PCI 2's two cells disagree, PCI 3 gives none
     for broken, message in (
         ({"sites": []}, "lists no sites"),
         ({"sites": [{"name": "A", "cells": [{"pci": 999}]}]}, r"sites\[0\].cells\[0\]: PCI 999"),
@@ -596,6 +600,27 @@ def test_a_known_cells_full_frame_template_is_its_codes_and_crs_as_sent(template
     auto = scipy.fft.irfft(np.abs(scipy.fft.rfft(full)) ** 2, FRAME) / np.sum(full**2)
     comb = auto[18:25]
     assert 0.45 < comb.max() < 0.75 and 20 <= 18 + np.argmax(comb) <= 22 and auto[5:16].max() < comb.max()
+
+
+def test_a_strong_cells_crs_is_modelled_at_the_bandwidth_the_database_gives(templates, strong_cell_frames):
+    """Without one, the best-fitting of the six LTE bandwidths is the cell's (10 MHz); given
+    one, the model is at that bandwidth only, even a wrong one (the database is believed)."""
+    frames, code = strong_cell_frames
+    stacked = frames[:50].mean(axis=0)
+    stacked -= stacked.mean()
+    found = CellDetection(int(code), code - int(code), 456, (), 40.0, 10.0, 1.0)
+
+    def model(bandwidths):
+        return CellSearch(templates, SearchConfig(), [456, 457], bandwidths=bandwidths)._crs_model(stacked, found)
+
+    def shape(bandwidth):
+        start = code - sync_code_offset_seconds() * templates.sample_rate
+        return scipy.fft.irfft(scipy.fft.rfft(templates.crs_envelope(456, bandwidth))
+                               * np.exp(-2j * np.pi * scipy.fft.rfftfreq(FRAME) * start), FRAME)
+
+    for bandwidths, expected in ((None, 10), ({456: 10.0}, 10), ({456: 5.0}, 5), ({457: 5.0}, 10)):
+        fitted = model(bandwidths)
+        assert np.corrcoef(fitted, shape(expected))[0, 1] > 0.999, (bandwidths, expected)
 
 
 def test_a_strong_cells_crs_does_not_pass_for_other_cells_over_long_stacks(templates, strong_cell_frames):

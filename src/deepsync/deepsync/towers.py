@@ -12,6 +12,9 @@ at ``timing_epoch_utc``) plus ``timing_drift_ns_per_s`` for every second since t
 oscillator: a site 20 ppb fast drifts by -20 ns/s). The ``*_std_*`` keys are their 1-sigma
 uncertainties, as a calibration reports them (``deepsync calibrate``).
 
+A cell may give its channel bandwidth (``bandwidth_mhz``, an LTE bandwidth): the cell search
+then models its CRS at that bandwidth alone, rather than fitting each of the six.
+
 Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
 by carrier: a cell without one would silently drop out of the pair search), a PCI appears at
 most once per carrier (two such sectors cannot be told apart), and the position is given
@@ -31,7 +34,7 @@ sites:
     timing_drift_ns_per_s: -12.0 # optional, how fast the timing moves
     timing_drift_std_ns_per_s: 0.5  # optional, its 1-sigma
     cells:
-      - {pci: 120, earfcn: 2000}
+      - {pci: 120, earfcn: 2000, bandwidth_mhz: 10}   # earfcn, bandwidth_mhz optional
 ```
 """
 
@@ -48,6 +51,7 @@ import yaml
 from deepsync.configio import ConfigError, load_yaml, require_list, require_mapping
 from deepsync.lte.cell import check_pci
 from deepsync.lte.earfcn import downlink_frequency_hz
+from deepsync.lte.numerology import check_bandwidth
 
 
 @dataclass(frozen=True)
@@ -55,6 +59,7 @@ class TowerCell:
     pci: int
     earfcn: int | None
     site: str
+    bandwidth_mhz: float | None = None  # channel bandwidth, if known
 
     @property
     def carrier_hz(self) -> float | None:
@@ -111,6 +116,14 @@ class TowerDatabase:
     def cells_with_pci(self, pci: int) -> list[TowerCell]:
         """Every database cell using ``pci`` (PCIs repeat across a network, on other sites)."""
         return [cell for cell in self.cells if cell.pci == pci]
+
+    def bandwidths(self) -> dict[int, float]:
+        """PCI -> channel bandwidth (MHz), for the PCIs whose cells give one and agree on it
+        (a PCI reused by cells of other bandwidths has none: which one is heard is not known)."""
+        given: dict[int, set[float | None]] = {}
+        for cell in self.cells:
+            given.setdefault(cell.pci, set()).add(cell.bandwidth_mhz)
+        return {pci: values.pop() for pci, values in given.items() if len(values) == 1 and None not in values}
 
     def cosited_pairs(self) -> list[tuple[int, int]]:
         """Pairs of PCIs on one site and one carrier (or carriers not given, which the parser
@@ -195,8 +208,8 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
         for j, raw_cell in enumerate(require_list(site.get("cells"), f"{at}.cells")):
             cell_at = f"{at}.cells[{j}]"
             cell = require_mapping(raw_cell, cell_at)
-            if set(cell) - {"pci", "earfcn"} or "pci" not in cell:
-                raise ConfigError(f"{cell_at}: expected keys pci and optional earfcn, got {sorted(cell)}")
+            if set(cell) - {"pci", "earfcn", "bandwidth_mhz"} or "pci" not in cell:
+                raise ConfigError(f"{cell_at}: expected keys pci and optional earfcn, bandwidth_mhz, got {sorted(cell)}")
             try:
                 pci = check_pci(cell["pci"])
                 earfcn = cell.get("earfcn")
@@ -205,7 +218,15 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
                     earfcn = int(earfcn)
             except ValueError as error:
                 raise ConfigError(f"{cell_at}: {error}") from None
-            cells.append(TowerCell(pci, earfcn, name))
+            bandwidth = cell.get("bandwidth_mhz")
+            if bandwidth is not None:
+                if isinstance(bandwidth, bool) or not isinstance(bandwidth, (int, float)):
+                    raise ConfigError(f"{cell_at}.bandwidth_mhz: expected a number of MHz, got {bandwidth!r}")
+                try:
+                    bandwidth = check_bandwidth(bandwidth)
+                except ValueError as error:
+                    raise ConfigError(f"{cell_at}.bandwidth_mhz: {error}") from None
+            cells.append(TowerCell(pci, earfcn, name, bandwidth))
         if not cells:
             raise ConfigError(f"{at}.cells: a site needs at least one cell")
         _check_site_cells(cells, at)
@@ -283,7 +304,8 @@ def tower_database_to_dict(db: TowerDatabase) -> dict:
         for key in ("latitude_deg", "longitude_deg", "height_m", *_TIMING_KEYS):
             if getattr(site, key) is not None:
                 entry[key] = getattr(site, key)
-        entry["cells"] = [{"pci": cell.pci} if cell.earfcn is None else {"pci": cell.pci, "earfcn": cell.earfcn}
+        entry["cells"] = [{key: value for key, value in (("pci", cell.pci), ("earfcn", cell.earfcn),
+                                                         ("bandwidth_mhz", cell.bandwidth_mhz)) if value is not None}
                           for cell in site.cells]
         sites.append(entry)
     top["sites"] = sites

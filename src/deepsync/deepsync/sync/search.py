@@ -18,7 +18,8 @@ at the same timing, shows up in the residual.
 
 A cell found far above the threshold (``crs_cancel_z``) also has its cell-specific reference
 signals cancelled: stacking does not average them away, and over long stacks a strong cell's
-CRS passes for weaker cells' codes (``CellSearch._crs_model``).
+CRS passes for weaker cells' codes (``CellSearch._crs_model``; at the bandwidth the tower
+database gives the PCI, else at whichever LTE bandwidth fits best).
 
 With a tower database, two sectors of one site (same carrier, same timing) are also sought as
 one hypothesis, their codes and the cross term between them (``deepsync.sync.sites``): at
@@ -158,14 +159,18 @@ def cfar_threshold(false_alarm_rate: float, tests: int) -> float:
 
 
 class CellSearch:
-    """Searches stacks for cells; ``allowed_pcis`` restricts identities (tower database), and
+    """Searches stacks for cells; ``allowed_pcis`` restricts identities (tower database),
     ``cosited_pairs`` (PCIs of one site and carrier, see ``TowerDatabase.cosited_pairs``) adds
-    the site hypothesis of ``deepsync.sync.sites`` to the known-PCI search."""
+    the site hypothesis of ``deepsync.sync.sites`` to the known-PCI search, and ``bandwidths``
+    (PCI -> MHz, ``TowerDatabase.bandwidths``) says at which bandwidth a strong cell's CRS is
+    modelled."""
 
     def __init__(self, templates: SyncTemplates, config: SearchConfig | None = None,
-                 allowed_pcis: list[int] | None = None, cosited_pairs: list[tuple[int, int]] | None = None) -> None:
+                 allowed_pcis: list[int] | None = None, cosited_pairs: list[tuple[int, int]] | None = None,
+                 bandwidths: dict[int, float] | None = None) -> None:
         self.templates = templates
         self.config = config or SearchConfig()
+        self.bandwidths = dict(bandwidths or {})
         self.allowed = np.arange(N_CELL_IDS) if allowed_pcis is None else np.unique(allowed_pcis)
         if self.allowed.size == 0 or self.allowed.min() < 0 or self.allowed.max() >= N_CELL_IDS:
             raise ValueError("allowed_pcis must be PCIs in 0..503")
@@ -510,10 +515,10 @@ class CellSearch:
         stands out as far as the codes of weak cells do, at places fixed to its frame timing
         (its symbols 0 and 4 of each slot), and some database PCI's code template always
         matches part of it, in every stack: false cells that persist, which confirmation cannot
-        remove. Its frame timing is known from its code; its bandwidth is not (a tower database
-        does not give it), so each LTE bandwidth is tried and the one that explains the most
-        energy kept (the fits by Parseval, on the spectra). Per-symbol pedestals are left out
-        (the template is zero-mean per symbol)."""
+        remove. Its frame timing is known from its code; its bandwidth is the one the tower
+        database gives, or, where it gives none, each LTE bandwidth is tried and the one that
+        explains the most energy kept (the fits by Parseval, on the spectra). Per-symbol
+        pedestals are left out (the template is zero-mean per symbol)."""
         frame = len(signal)
         start = found.frame_offset + found.fraction - sync_code_offset_seconds() * self.templates.sample_rate
         delay = np.exp(-2j * np.pi * scipy.fft.rfftfreq(frame) * start)
@@ -521,7 +526,8 @@ class CellSearch:
         weights[[0, -1]] = 1.0 / frame
         spectrum = np.conj(scipy.fft.rfft(signal)) * weights
         best, fitted = 0.0, None
-        for bandwidth in SUPPORTED_BANDWIDTHS_MHZ:
+        known = self.bandwidths.get(found.pci)
+        for bandwidth in SUPPORTED_BANDWIDTHS_MHZ if known is None else (known,):
             key = ("crs", found.pci, round(10 * bandwidth))
             if key not in self._cache:
                 self._cache[key] = scipy.fft.rfft(self.templates.crs_envelope(found.pci, bandwidth))

@@ -141,7 +141,8 @@ class SyncStage:
         self.towers = towers
         self.templates = SyncTemplates(frontend)
         self.search = CellSearch(self.templates, self.config.search, None if towers is None else towers.pcis,
-                                 None if towers is None else towers.cosited_pairs())
+                                 None if towers is None else towers.cosited_pairs(),
+                                 None if towers is None else towers.bandwidths())
         self.stacker = FrameStacker(frontend.adc_rate_hz, self.config.stack)
         self._tracks: dict[int, _Track] = {}  # by PCI
         self._since_search = 0  # stacks since the last full search
