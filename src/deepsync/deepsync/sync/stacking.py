@@ -309,7 +309,9 @@ class FrameStacker:
             if len(self._frames) % self._block == 0:
                 self._block_origin = (self._next_start, start)
             at = start - self._buffer_start
-            self._frames.append(_Frame(start, self._next_start - start, self._buffer[at : at + frame].copy(),
+            samples = self._buffer[at : at + frame].copy()
+            samples.flags.writeable = False  # shared by every stack that holds the frame
+            self._frames.append(_Frame(start, self._next_start - start, samples,
                                        int(np.count_nonzero(self._clipped[at : at + frame]))))
             self._next_start += frame * (1 + self.clock_ppm * 1e-6)
             # no frame needs the samples before the next one's start (which may be beyond what is in)
