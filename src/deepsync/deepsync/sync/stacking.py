@@ -15,7 +15,7 @@ kept while a stack still needs it. Frames are summed in blocks of g = gcd(N, hop
 block once, and a stack's mean is the sum of its N/g blocks, each moved by the whole samples
 that line it up with the stack's first row (see the clock below). A sliding stack therefore
 costs its new frames and a few block additions, not N frames again; and the buffer of raw
-samples never holds more than about a frame.
+samples never holds much more than a frame.
 
 The stream arrives in chunks of any size. The stacker checks what a driver or bag can get
 wrong and reports it as a :class:`~deepsync.types.Health` event instead of stacking garbage:
@@ -41,12 +41,11 @@ a block's rows line up within half a sample); the sub-sample remainder of each r
 known: everything deterministic in the envelope (every cell's sync codes and CRS, the symbol
 power profile) repeats each frame and moves only with the receiver clock, so each stack
 measures its own residual drift by cross-correlating the mean of its first and second halves
-of frames. With ``track_clock`` the smoothed measurement becomes the compensation for the
-frames cut after it; a stack whose residual drift across its rows exceeds
-``max_drift_samples`` is marked ``aligned = False``. When the compensation moves so far that
-the frames a sliding stack keeps would be off by more than half that across the stack (the
-first stack of a stream from a receiver whose clock was not configured), they are let go and
-stacking continues with frames cut by the new clock: a stack later than otherwise, aligned.
+of frames. With ``track_clock`` the smoothed measurement becomes the compensation: the frames
+cut after it are cut by it, and the frames a sliding stack keeps are placed by it again (their
+exact starts, whole frame periods of the new clock apart; their samples stay where they were
+cut). A stack whose residual drift across its rows exceeds ``max_drift_samples`` is marked
+``aligned = False``.
 """
 
 from __future__ import annotations
@@ -65,6 +64,7 @@ from deepsync.types import FRAME_SECONDS, EnvelopeChunk, Health, HealthKind
 MAX_CLOCK_PPM = 200.0  # a receiver crystal further off than this is not believed
 HELD_FRACTION = 0.5  # a stacked frame holding one value over more of it than this has no noise to measure
 DRIFT_SMOOTHING = 0.3  # weight of each stack's drift measurement in the running estimate
+CLOCK_REACH = 16  # samples kept before the next frame's start: how far a new clock estimate moves it back
 
 
 @dataclass(frozen=True)
@@ -121,8 +121,10 @@ class Stack:
         return np.stack(self.frames)
 
     def columns(self, index: np.ndarray) -> np.ndarray:
-        """(n_frames, len(index)) the samples at ``index`` of every frame (without copying them all)."""
-        return np.stack([frame[index] for frame in self.frames])
+        """(n_frames, L) the samples at ``index`` of every frame (without copying them all):
+        (L,) the same for every frame, or (n_frames, L) one row per frame."""
+        index = np.broadcast_to(index, (self.n_frames, np.shape(index)[-1]))
+        return np.stack([frame[row] for frame, row in zip(self.frames, index)])
 
     @property
     def first_sample_index(self) -> int:
@@ -138,17 +140,20 @@ class _Frame:
     """One frame cut from the stream, kept while a stack still needs it."""
 
     start: int  # stream index of its first sample
-    shift: float  # exact start minus ``start`` (clock remainder), samples
+    shift: float  # exact start minus ``start`` (clock remainder; whole samples too, once placed again)
     samples: np.ndarray  # (frame_samples,) float32, volts
     clipped: int  # samples at the ADC rails
 
 
 @dataclass(frozen=True)
 class _Block:
-    """The sum of a block's frames, and the clock remainder of its first."""
+    """The sum of a block's frames, and where their content sits in it: what repeats at time u
+    of a frame is at sample u + ``placement`` of the sum (the frames' mean clock remainder, and
+    any whole samples each was moved by to be summed)."""
 
     total: np.ndarray  # (frame_samples,) float64
-    shift: float
+    moves: tuple[int, ...]  # whole samples each frame was moved by to be summed
+    placement: float
 
 
 class FrameStacker:
@@ -314,8 +319,9 @@ class FrameStacker:
             self._frames.append(_Frame(start, self._next_start - start, samples,
                                        int(np.count_nonzero(self._clipped[at : at + frame]))))
             self._next_start += frame * (1 + self.clock_ppm * 1e-6)
-            # no frame needs the samples before the next one's start (which may be beyond what is in)
-            behind = min(self._next_frame_start() - self._buffer_start, len(self._buffer))
+            # no frame needs the samples before the next one's start (which may be beyond what is
+            # in), but a new clock estimate may move that start back by a few
+            behind = max(0, min(self._next_frame_start() - CLOCK_REACH - self._buffer_start, len(self._buffer)))
             self._buffer, self._clipped = self._buffer[behind:], self._clipped[behind:]
             self._buffer_start += behind
             if len(self._frames) == self.config.n_frames:
@@ -339,14 +345,11 @@ class FrameStacker:
         n, block, frame = self.config.n_frames, self._block, self.frame_samples
         frames = list(self._frames)
         for k in range(len(self._blocks) * block, n, block):  # each block summed once, by the first stack to hold it
-            total = frames[k].samples.astype(np.float64)
-            for f in frames[k + 1 : k + block]:
-                total += f.samples
-            self._blocks.append(_Block(total, frames[k].shift))
-        # each block moved by the whole samples that line it up with row 0 (a frame's content
-        # repeats, so a circular move is exact for everything that repeats); half a sample
-        # of misalignment stays, as within a block
-        moves = [round(frames[0].shift - b.shift) for b in self._blocks]
+            self._blocks.append(_sum_block(frames[k : k + block], frame))
+        # each block moved by the whole samples that line it up with the first (a frame's
+        # content repeats, so a circular move is exact for everything that repeats); half a
+        # sample of misalignment stays, as within a block
+        moves = [round(self._blocks[0].placement - b.placement) for b in self._blocks]
         moved = [np.roll(b.total, m) if m else b.total for b, m in zip(self._blocks, moves)]
         half = len(moved) // 2
         first, second = np.sum(moved[:half], axis=0), np.sum(moved[len(moved) - half :], axis=0)
@@ -364,8 +367,8 @@ class FrameStacker:
         shifts = np.array([f.shift for f in frames])
         residual = None
         if half:  # where the halves' contents sit relative to each other, from the alignment alone
-            placed = shifts + np.repeat(moves, block)
-            offset = placed[n - half * block :].mean() - placed[: half * block].mean()
+            placed = np.array([b.placement + m for b, m in zip(self._blocks, moves)])
+            offset = placed[len(moved) - half :].mean() - placed[:half].mean()
             residual = measure_drift(first, second, (len(moved) - half) * block, offset)
         exact = starts + shifts
         compensated = ((exact[-1] - exact[0]) / ((n - 1) * frame) - 1) * 1e6 if n > 1 else self.clock_ppm
@@ -382,13 +385,39 @@ class FrameStacker:
         if drift is not None:
             previous = self.measured_drift_ppm
             self.measured_drift_ppm = drift if previous is None else previous + DRIFT_SMOOTHING * (drift - previous)
-            if self.config.track_clock:
-                moved = abs(self.measured_drift_ppm - self.clock_ppm) * 1e-6 * frame * (n - 1)
-                self.clock_ppm = self.measured_drift_ppm
-                if moved > self.config.max_drift_samples / 2:  # the frames kept were cut by a clock now known wrong
-                    self._frames.clear()
-                    self._blocks.clear()
+            if self.config.track_clock and self.measured_drift_ppm != self.clock_ppm:
+                self._replace(self.measured_drift_ppm)
         return stack
+
+    def _replace(self, clock_ppm: float) -> None:
+        """Follow a new clock estimate: the frames kept are placed by it, each a whole number of
+        its frame periods before the newest (which the next frame follows), so the next stacks
+        line them up by it; where that moves a block's frames against each other by more than
+        a tenth of a sample, the block is summed again, each frame moved by its whole samples."""
+        frame = self.frame_samples
+        old, new = frame * (1 + self.clock_ppm * 1e-6), frame * (1 + clock_ppm * 1e-6)
+        self.clock_ppm = clock_ppm
+        newest = self._next_start - old
+        self._next_start = newest + new
+        kept = len(self._frames)
+        self._frames = deque(_Frame(f.start, newest - (kept - 1 - i) * new - f.start, f.samples, f.clipped)
+                             for i, f in enumerate(self._frames))
+        block, frames = self._block, list(self._frames)
+        if abs(new - old) * (block - 1) > 0.1:  # a block's frames moved against each other
+            self._blocks = deque(_sum_block(frames[k : k + block], frame) for k in range(0, len(self._blocks) * block, block))
+        else:
+            self._blocks = deque(_Block(b.total, b.moves, float(np.mean(
+                [f.shift + move for f, move in zip(frames[k * block : (k + 1) * block], b.moves)])))
+                for k, b in enumerate(self._blocks))
+
+
+def _sum_block(frames: list[_Frame], frame: int) -> _Block:
+    """A block of frames summed, each moved by the whole samples that line it up with the first."""
+    total = np.zeros(frame)
+    moves = tuple(round(frames[0].shift - f.shift) for f in frames)
+    for f, move in zip(frames, moves):
+        total += np.roll(f.samples, move) if move else f.samples
+    return _Block(total, moves, float(np.mean([f.shift + move for f, move in zip(frames, moves)])))
 
 
 def held_fraction(frame: np.ndarray) -> float:

@@ -31,10 +31,12 @@ def extract_windows(stack: Stack, code_start: int, template_length: int, margin:
     length = template_length + 2 * margin
     first = code_start - margin
     shifts = stack.row_shifts - stack.row_shifts[0]
+    whole = np.round(shifts).astype(int)  # read by indexing; the remainder by a band-limited shift
+    shifts = shifts - whole
     if not np.any(shifts):
-        index = (first + np.arange(length)) % stack.frame_samples
+        index = (first + whole[:, None] + np.arange(length)) % stack.frame_samples
         return stack.columns(index).astype(np.float32)
-    index = (first - _PAD + np.arange(length + 2 * _PAD)) % stack.frame_samples
+    index = (first + whole[:, None] - _PAD + np.arange(length + 2 * _PAD)) % stack.frame_samples
     padded = stack.columns(index).astype(np.float64)
     means = padded.mean(axis=1, keepdims=True)
     padded -= means
