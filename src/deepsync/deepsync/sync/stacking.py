@@ -13,7 +13,7 @@ averages: what it measures is the arrival at the stack's middle.
 Stacking is incremental: each frame is cut from the stream once, when its samples are in, and
 kept while a stack still needs it. Frames are summed in blocks of g = gcd(N, hop, N/2), each
 block once, and a stack's mean is the sum of its N/g blocks, each moved by the whole samples
-that line it up with the stack's first row (see the clock below). A sliding stack therefore
+that line it up with the stack's first block (see the clock below). A sliding stack therefore
 costs its new frames and a few block additions, not N frames again; and the buffer of raw
 samples never holds much more than a frame.
 
