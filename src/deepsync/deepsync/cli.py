@@ -23,6 +23,7 @@ from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import stack_record, summarize
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
+from deepsync.numeric import one_blas_thread
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, SampleFormat, Source, open_source
 from deepsync.sync.stage import SyncConfig
@@ -576,7 +577,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _interrupt) if in_main_thread else None
     try:
-        return args.run(args)
+        with one_blas_thread():
+            return args.run(args)
     except (ConfigError, BagError, ValueError) as error:
         print(f"deepsync {args.command}: error: {error}", file=sys.stderr)
         return 2

@@ -34,6 +34,7 @@ from sensor_msgs.msg import NavSatFix
 from deepsync.bag.convert import ns_to_stamp
 from deepsync.bag.topics import NAV_SAT_FIX_TOPIC, POSE_TOPIC, relative_name
 from deepsync.geo import LocalFrame
+from deepsync.numeric import one_blas_thread
 from deepsync.types import EnvelopeChunk, Fix, Severity
 
 from .conversions import RCLPY_TYPES, fix_to_navsat_msg, fix_to_pose_msg
@@ -205,8 +206,14 @@ class PacedPlayer:
 
 
 def run(node_class: type[DeepSyncNode], args: list[str] | None = None) -> int:
-    """rclpy.init, build the node, spin until shutdown; 1 (after one error line) when the node
-    cannot start with its parameters, else 0."""
+    """rclpy.init, build the node, spin until shutdown, BLAS on one thread all along
+    (``deepsync.numeric.one_blas_thread``: several nodes share the computer's cores); 1 (after
+    one error line) when the node cannot start with its parameters, else 0."""
+    with one_blas_thread():
+        return _spin(node_class, args)
+
+
+def _spin(node_class: type[DeepSyncNode], args: list[str] | None) -> int:
     rclpy.init(args=args)
     try:
         node = node_class()

@@ -34,12 +34,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from deepsync.frontend.adc import AdcStage, ReceiverClock, cubic_sample
 from deepsync.frontend.channel import ChannelProvider, Emitter
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.square_law import Detector
+from deepsync.numeric import one_blas_thread
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 
 WORK_UNIT_SECONDS = 1.0
@@ -105,7 +105,7 @@ class EnvelopeSimulator:
         step = max(1, int(self.detector.block_samples * self.config.adc_rate_hz / self.detector.video_rate))
         # The matrix products here are small; BLAS threads would spin against the worker
         # processes (which are the parallelism) and cost more than they save.
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             return np.concatenate([self._analog_piece(n, min(n + step, n1)) for n in range(n0, n1, step)])
 
     def _analog_piece(self, n0: int, n1: int) -> np.ndarray:
