@@ -85,13 +85,13 @@ DETECTORS = ("codes, searched", "full frame, searched", "codes, tracked", "full 
 POWER_GRID = {5: np.arange(-120.0, -97.9, 2.0), 10: np.arange(-122.0, -99.9, 2.0), 20: np.arange(-124.0, -101.9, 2.0)}
 
 
-def unit_templates(templates: SyncTemplates, bandwidth: float) -> dict[str, np.ndarray]:
-    """(FINE, frame) unit-norm templates of the weak cell at 1/FINE-sample phases, per kind."""
+def unit_templates(templates: SyncTemplates, bandwidth: float, pci: int = WEAK) -> dict[str, np.ndarray]:
+    """(FINE, frame) unit-norm templates of a cell at 1/FINE-sample phases, per kind."""
     phases = np.arange(FINE) / FINE
-    full = templates.frame_template(WEAK, bandwidth, phases)
+    full = templates.frame_template(pci, bandwidth, phases)
     codes = np.zeros_like(full)
     for subframe, start in ((0, 0), (5, full.shape[1] // 2)):
-        part = templates.template(WEAK, subframe, phases)
+        part = templates.template(pci, subframe, phases)
         codes[:, start : start + part.shape[1]] = part - part.mean(axis=1, keepdims=True)
     return {kind: t / np.linalg.norm(t, axis=1, keepdims=True) for kind, t in zip(KINDS, (codes, full))}
 

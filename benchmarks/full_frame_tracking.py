@@ -28,18 +28,16 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from deepsync.frontend.templates import SyncTemplates
-from deepsync.numeric import mad_spread, parabolic_peak
+from deepsync.numeric import mad_spread
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources import BagSource
 from deepsync.sync.correlation import correlate, template_spectra
 from deepsync.sync.search import cfar_threshold
 from deepsync.sync.stacking import FrameStacker
 from deepsync.towers import load_tower_database
+from full_frame_template import COARSE, TRACK_LAGS, refine, unit_templates, wrapped
 
 REPO = Path(__file__).resolve().parents[1]
-FINE = 16  # sub-sample phases of the timing grid
-COARSE = [0, FINE // 2]  # the search's two phases
-TRACK_LAGS = np.arange(-1, 2)
 ELSEWHERE = (2311, 5003, 7717, 12007)  # samples from the true position: where the cell is not
 
 
@@ -60,10 +58,8 @@ def main() -> None:
     site_of = {cell.pci: cell.site for cell in towers.cells}
     on_air = [pci for pci in truth if pci in bandwidths]
     frame = stacker.frame_samples
-    spectra = {}
-    for pci in on_air:
-        shapes = templates.frame_template(pci, bandwidths[pci], np.arange(FINE) / FINE)
-        spectra[pci] = template_spectra(shapes / np.linalg.norm(shapes, axis=1, keepdims=True), frame)
+    spectra = {pci: template_spectra(unit_templates(templates, bandwidths[pci], pci)["full frame"], frame)
+               for pci in on_air}
     threshold = cfar_threshold(1e-3, len(COARSE) * len(TRACK_LAGS))
     stacks, false_holds = [], []
     with threadpool_limits(1), tqdm(desc=args.route, unit=" stacks") as bar:
@@ -86,9 +82,7 @@ def main() -> None:
                     if near.max() <= threshold:
                         continue
                     lag = int(lags[np.unravel_index(np.argmax(near), near.shape)[1]])
-                    fine = c[:, (lag + np.arange(-1, 2)) % frame].T.ravel()  # 3 lags x FINE phases, in time order
-                    best = int(np.argmax(fine))
-                    error = (lag - 1 + (best + parabolic_peak(fine, best)) / FINE - position + frame / 2) % frame - frame / 2
+                    error = wrapped(refine(c, lag) - position, frame)
                     site = site_of[pci]
                     held[site] = max(held.get(site, (0.0, 0.0)), (float(near.max()), float(error)))
                 reported = sorted({site_of[c.pci] for c in result.timing.cells if c.pci in site_of})

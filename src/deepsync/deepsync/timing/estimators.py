@@ -516,9 +516,11 @@ def _newton(z: np.ndarray, omega: np.ndarray, lag: float, low: float, high: floa
         phase = z * np.exp(1j * omega * lag)
         slope = float(np.sum(np.real(1j * omega * phase)))
         curvature = float(np.sum(np.real(-(omega**2) * phase)))
-        if curvature >= 0 or not low <= lag - slope / curvature <= high:
+        if curvature >= 0:
             return None
         step = -slope / curvature
+        if not low <= lag + step <= high:
+            return None
         lag += step
         if abs(step) < 1e-9:
             return lag
