@@ -129,6 +129,7 @@ def test_field_types(parsed: dict) -> None:
         "windows": "float32[]",
         "cosited_pci": "int16",
         "site_coefficients": "float32[]",
+        "bandwidth_mhz": "float32",
     }
     assert field_types(parsed, "SyncWindowArray") == {
         "header": "std_msgs/Header",
@@ -136,6 +137,7 @@ def test_field_types(parsed: dict) -> None:
         "sample_rate": "float64",
         "clock_drift_ppm": "float64",
         "cells": "deepsync_msgs/SyncWindow[]",
+        "frame": "float32[]",
     }
     assert field_types(parsed, "CellTiming") == {
         "header": "std_msgs/Header",

@@ -61,10 +61,29 @@ def test_every_confirmed_cell_is_timed_near_its_truth_with_an_honest_sigma(campu
         assert not result.health
         for timing in result.timing.cells:
             assert abs(timing_error(timing.toa, truth[timing.pci])) < 0.5
-            assert timing.estimator == "ml" and 0.02 < timing.toa_std < 0.3
-            # prewhitened ML: its sigma is the plug-in bound, a little above it in quadrature (up to
-            # 1.32x for the weakest cell reported, PCI 301 at -13 dB in one stack)
+            # every campus cell's bandwidth is in the database: timed by its whole known frame
+            assert timing.estimator == "ml_frame" and 0.005 < timing.toa_std < 0.3
+            # its sigma is the plug-in bound, a little above it in quadrature
             assert timing.crlb_std <= timing.toa_std < 1.4 * timing.crlb_std
+
+
+def test_a_known_cells_whole_frame_times_it_closer_to_the_truth_than_its_codes(campus):
+    """The campus database gives every cell's bandwidth, so the default estimator fits codes and
+    CRS in the stack's mean frame: ~10 dB more template energy at 10 MHz than the codes alone
+    (measured on the bag: 0.02-0.03 samples RMS per site against ML's 0.08-0.11)."""
+    source, results = campus
+    truth = source.truth_arrivals()
+    codes = TimingStage(source.frontend, TimingConfig(estimator=Estimator.ML))
+    errors = {"ml_frame": [], "ml": []}
+    for result in results:
+        assert (result.sync.stack_windows.frame is not None) == bool(result.sync.cells)
+        for cell in result.timing.cells:
+            errors["ml_frame"].append(timing_error(cell.toa, truth[cell.pci]))
+        for cell in codes.process(result.sync.stack_windows).cells:
+            errors["ml"].append(timing_error(cell.toa, truth[cell.pci]))
+    rms = {name: float(np.sqrt(np.mean(np.square(e)))) for name, e in errors.items()}
+    assert len(errors["ml_frame"]) == len(errors["ml"]) > 50
+    assert rms["ml_frame"] < 0.5 * rms["ml"]
 
 
 def test_the_timing_stage_fed_from_a_sync_window_message_gives_the_same_arrivals(campus):
@@ -79,7 +98,7 @@ def test_the_timing_stage_fed_from_a_sync_window_message_gives_the_same_arrivals
         base = lambda stack: (stack.stamp_ns, stack.first_sample_index, stack.sample_rate, stack.clock_drift_ppm)
         assert base(received) == base(result.arrivals)  # the timing node's arrivals keep the sync stage's time base
         pairs += sum(w.cosited_pci is not None for w in received.windows)
-        for direct, rebuilt in zip(result.timing.cells, stage.process(received.windows).cells):
+        for direct, rebuilt in zip(result.timing.cells, stage.process(received).cells):
             # float32 on the wire: the pair coefficients and windows round at 1e-7
             assert rebuilt.toa == pytest.approx(direct.toa, abs=1e-4)
             assert rebuilt.toa_std == pytest.approx(direct.toa_std, rel=1e-3)
@@ -91,10 +110,10 @@ def test_every_classical_estimator_times_the_campus_cells(campus, estimator):
     source, results = campus
     stage = TimingStage(source.frontend, TimingConfig(estimator=estimator))
     reference = {t.pci: t.toa for t in results[-1].timing.cells}
-    timed = stage.process(results[-1].sync.windows).cells
+    timed = stage.process(results[-1].sync.stack_windows).cells
     assert sorted(t.pci for t in timed) == sorted(reference) and all(t.estimator == estimator.value for t in timed)
-    for t in timed:
-        assert t.toa == pytest.approx(reference[t.pci], abs=0.1)
+    for t in timed:  # within what multipath makes them differ by on the campus (ML's error there: 0.1 RMS)
+        assert t.toa == pytest.approx(reference[t.pci], abs=0.2)
 
 
 def test_windows_that_cannot_be_timed_are_reported_not_raised(campus):

@@ -288,7 +288,7 @@ def test_runtime_changes_are_checked_and_read_only_ones_refused(ros) -> None:
         assert not refused.successful and "cell_timing.weak_std_samples" in refused.reason
         (refused,) = node.set_parameters([Parameter("frontend", value=CAMPUS_BAG)])
         assert not refused.successful  # read-only: the templates are built once
-        assert node.stage.config.estimator is Estimator.ML
+        assert node.stage.config.estimator is Estimator.ML_FRAME
         (accepted,) = node.set_parameters([Parameter("estimator", value="parabolic")])
         assert accepted.successful
         assert node.stage.config.estimator is Estimator.PARABOLIC

@@ -11,7 +11,7 @@ from deepsync.types import FRAME_SECONDS, EnvelopeChunk, HealthKind, Severity
 from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator
-from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
+from deepsync.frontend.templates import SyncTemplates, code_template, known_frame, sync_code_offset_seconds
 from deepsync.frontend.video import VideoFilter
 from deepsync.lte.cell import CellConfig
 from deepsync.sources import BagSource
@@ -600,6 +600,26 @@ def test_a_known_cells_full_frame_template_is_its_codes_and_crs_as_sent(template
     auto = scipy.fft.irfft(np.abs(scipy.fft.rfft(full)) ** 2, FRAME) / np.sum(full**2)
     comb = auto[18:25]
     assert 0.45 < comb.max() < 0.75 and 20 <= 18 + np.argmax(comb) <= 22 and auto[5:16].max() < comb.max()
+
+
+def test_a_pairs_known_frame_is_its_fitted_codes_and_each_sectors_crs_at_its_power(templates):
+    """What the timing stage fits for two co-sited sectors found together: the pair's code model
+    of the sync stage in subframes 0 and 5, and each sector's CRS scaled by its |s|^2 coefficient
+    (a sector fitted below zero sends no CRS)."""
+    assert np.array_equal(known_frame(templates, 456, 10), templates.frame_template(456, 10, [0.0])[0])
+    coefficients = (0.8, -0.1, 0.3, -0.2)
+    pair = known_frame(templates, 121, 10, 120, coefficients)
+    half = len(pair) // 2
+    for start, subframe in ((0, 0), (half, 5)):
+        code = code_template(templates, 121, 120, coefficients, subframe)
+        crs = 0.8 * templates.placed_crs(120, 10, np.zeros(1))[0]
+        np.testing.assert_allclose(pair[start : start + code.size] - crs[start : start + code.size],
+                                   code - code.mean(), atol=1e-9 * np.abs(code).max())
+    crs = 0.8 * templates.placed_crs(120, 10, np.zeros(1))[0]
+    between = slice(templates.length + 10, half - 10)
+    np.testing.assert_allclose(pair[between], crs[between], atol=1e-9 * np.abs(crs).max())
+    with pytest.raises(ValueError, match="4 site coefficients"):
+        known_frame(templates, 121, 10, 120, None)
 
 
 def test_a_strong_cells_crs_is_modelled_at_the_bandwidth_the_database_gives(templates, strong_cell_frames):

@@ -103,14 +103,14 @@ def test_a_bad_or_missing_checkpoint_fails_at_construction_and_keeps_the_running
     running = TimingStage(frontend)
     with pytest.raises(ValueError, match="none.pt"):
         running.with_config(TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(tmp_path / "none.pt")))
-    assert running.config.estimator is Estimator.ML
+    assert running.config.estimator is Estimator.ML_FRAME
     assert running.with_config(TimingConfig(weak_std_samples=2.0)) is running  # nothing to load
     assert running.with_config(TimingConfig(estimator=Estimator.PARABOLIC)) is running  # templates kept
     switched = running.with_config(TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
     assert switched is not running and switched.network is not None
     assert switched.with_config(TimingConfig(estimator=Estimator.NETWORK_ML, checkpoint=str(checkpoint))) is switched
     back = switched.with_config(TimingConfig())
-    assert back is switched and back.network is None and back.config.estimator is Estimator.ML
+    assert back is switched and back.network is None and back.config.estimator is Estimator.ML_FRAME
 
 
 def test_the_shipped_checkpoint_times_simulated_cells_as_its_evaluation_says(frontend):

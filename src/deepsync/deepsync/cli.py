@@ -456,8 +456,9 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
                          "back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz)")
     command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
                          f"{SyncConfig().search_every}; between, the cells found are tracked; 1: every stack)")
-    command.add_argument("--estimator", default="ml", metavar="NAME",
-                         help="sub-sample timing estimator: ml (default), ml_white, fft_upsampled, parabolic, "
+    command.add_argument("--estimator", default="ml_frame", metavar="NAME",
+                         help="sub-sample timing estimator: ml_frame (default: a known cell's whole frame where the "
+                              "tower database gives its bandwidth, else ml), ml, ml_white, fft_upsampled, parabolic, "
                               "network, network_ml (the last two need torch)")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
 

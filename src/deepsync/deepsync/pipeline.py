@@ -149,7 +149,7 @@ class Pipeline:
         and fusion."""
         if self.timing is None:
             raise ValueError("this pipeline has no front end, so no timing stage: it cannot time windows")
-        timing = self.timing.process(windows.windows)
+        timing = self.timing.process(windows)
         arrivals = windows.arrivals(timing.cells)
         return TimedStack(windows, timing, arrivals, self.fuse_arrivals(arrivals))
 

@@ -171,6 +171,8 @@ class SyncWindow:
     refines it. A co-sited sector found together with this one (``cosited_pci``) shares the
     windows, and ``site_coefficients`` then give the pair's fitted code model (scales of
     |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*), a the lower PCI of the two).
+    ``bandwidth_mhz`` (from a tower database) lets the timing stage time the cell by its whole
+    known frame (codes and CRS) in the stack's mean frame (``StackWindows.frame``).
     """
 
     stamp_ns: int  # receiver time of the stack's first sample
@@ -183,10 +185,13 @@ class SyncWindow:
     carrier_hz: float | None = None
     cosited_pci: int | None = None
     site_coefficients: tuple[float, float, float, float] | None = None
+    bandwidth_mhz: float | None = None  # the cell's channel bandwidth, if the tower database gives it
 
     def __post_init__(self) -> None:
         if not 0 <= self.pci <= MAX_PCI:
             raise ValueError(f"SyncWindow.pci {self.pci!r} must be 0..{MAX_PCI}")
+        if self.bandwidth_mhz is not None and not (math.isfinite(self.bandwidth_mhz) and self.bandwidth_mhz > 0):
+            raise ValueError(f"SyncWindow.bandwidth_mhz {self.bandwidth_mhz!r} must be > 0 MHz or None")
         windows = np.ascontiguousarray(self.windows, dtype=np.float32)
         if windows.ndim != 2 or 0 in windows.shape:
             raise ValueError(f"SyncWindow.windows must be (n_frames, window_length), got shape {windows.shape}")
@@ -278,7 +283,9 @@ class StackWindows:
 
     The same time base as :class:`StackArrivals`, which the timing stage makes of it: stream
     sample ``first_sample_index`` was taken at receiver time ``stamp_ns``; ``clock_drift_ppm``
-    is the receiver clock error the sync stage measured (None: unknown).
+    is the receiver clock error the sync stage measured (None: unknown). ``frame`` (None: not
+    sent) is the stack's mean frame (volts), its sample 0 at ``first_sample_index``: where the
+    timing stage finds a known cell's CRS, which is spread over the whole frame.
     """
 
     stamp_ns: int
@@ -286,10 +293,16 @@ class StackWindows:
     sample_rate: float
     windows: tuple[SyncWindow, ...]
     clock_drift_ppm: float | None = None
+    frame: np.ndarray | None = None  # (frame_samples,) float32, volts
 
     def __post_init__(self) -> None:
         _check_time_base(self)
         object.__setattr__(self, "windows", tuple(self.windows))
+        if self.frame is not None:
+            frame = np.asarray(self.frame, dtype=np.float32)
+            if frame.ndim != 1 or frame.size == 0:
+                raise ValueError(f"StackWindows.frame must be one frame of samples, got shape {frame.shape}")
+            object.__setattr__(self, "frame", frame)
 
     def arrivals(self, cells: Sequence[CellTiming]) -> StackArrivals:
         """The timing stage's arrivals of these cells, on this stack's time base."""

@@ -53,7 +53,7 @@ class CellTimingNode(DeepSyncNode):
         try:
             stack = sync_window_array_from_msg(message)
             started = time.monotonic()
-            result = self.stage.process(stack.windows)
+            result = self.stage.process(stack)
             stage_s = time.monotonic() - started
             out = cell_timing_array_to_msg(stack.arrivals(result.cells), message.header.frame_id)
         except ValueError as error:

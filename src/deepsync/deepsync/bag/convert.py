@@ -197,12 +197,15 @@ def sync_window_array_to_msg(stack: StackWindows, *, frame_id: str = ENVELOPE_FR
             windows=types.sequence(np.ascontiguousarray(w.windows, dtype="<f4").ravel()),
             cosited_pci=-1 if w.cosited_pci is None else int(w.cosited_pci),
             site_coefficients=types.sequence(np.asarray(w.site_coefficients or (), dtype="<f4")),
+            bandwidth_mhz=0.0 if w.bandwidth_mhz is None else float(w.bandwidth_mhz),
         )
         for w in stack.windows
     ]
+    frame = np.zeros(0, dtype="<f4") if stack.frame is None else np.ascontiguousarray(stack.frame, dtype="<f4")
     return types.resolve(SYNC_WINDOW_ARRAY)(
         header=make_header(stack.stamp_ns, frame_id, types), first_sample_index=int(stack.first_sample_index),
-        sample_rate=float(stack.sample_rate), clock_drift_ppm=_optional_drift(stack.clock_drift_ppm), cells=cells)
+        sample_rate=float(stack.sample_rate), clock_drift_ppm=_optional_drift(stack.clock_drift_ppm), cells=cells,
+        frame=types.sequence(frame))
 
 
 def sync_window_array_from_msg(msg: Any) -> StackWindows:
@@ -226,9 +229,11 @@ def sync_window_array_from_msg(msg: Any) -> StackWindows:
             carrier_hz=float(c.carrier_frequency) or None,
             cosited_pci=None if c.cosited_pci < 0 else int(c.cosited_pci),
             site_coefficients=coefficients or None,
+            bandwidth_mhz=float(c.bandwidth_mhz) or None,
         ))
+    frame = np.array(msg.frame, dtype=np.float32)
     return StackWindows(stamp_to_ns(msg.header.stamp), int(msg.first_sample_index), float(msg.sample_rate),
-                        tuple(windows), _drift_from_msg(msg.clock_drift_ppm))
+                        tuple(windows), _drift_from_msg(msg.clock_drift_ppm), frame if frame.size else None)
 
 
 def _pose(types: MessageTypes, x: float, y: float, z: float) -> Any:

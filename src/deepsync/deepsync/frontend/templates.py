@@ -229,16 +229,18 @@ class SyncTemplates:
         carrier (the codes always span 62 subcarriers, the CRS comb the whole band). Its comb
         (every 6th subcarrier) repeats the CRS envelope every 21.3 samples, so this template's
         autocorrelation has sidelobes there that the codes' does not."""
-        frame = len(self.crs_envelope(pci, bandwidth_mhz))
         delays = np.asarray(phases, dtype=float)
-        codes = np.zeros((len(delays), frame))
-        for subframe, start in ((0, 0), (5, frame // 2)):
-            part = self.template(pci, subframe, delays)
-            codes[:, start : start + part.shape[1]] = part - part.mean(axis=1, keepdims=True)
-        shift = delays[:, None] - sync_code_offset_seconds() * self.sample_rate  # the frame's start
+        crs = self.placed_crs(pci, bandwidth_mhz, delays)
+        return place_codes(crs.shape[1], lambda subframe: self.template(pci, subframe, delays)) + crs
+
+    def placed_crs(self, pci: int, bandwidth_mhz: float, delays: np.ndarray) -> np.ndarray:
+        """(delays, frame) ``crs_envelope`` moved so that the subframe-0 code would start at
+        each of ``delays`` samples (band-limited shifts)."""
+        envelope = self.crs_envelope(pci, bandwidth_mhz)
+        frame = len(envelope)
+        shift = np.asarray(delays, dtype=float)[:, None] - sync_code_offset_seconds() * self.sample_rate  # the frame's start
         ramp = np.exp(-2j * np.pi * scipy.fft.rfftfreq(frame) * shift)
-        crs = scipy.fft.irfft(scipy.fft.rfft(self.crs_envelope(pci, bandwidth_mhz)) * ramp, frame)
-        return codes + crs
+        return scipy.fft.irfft(scipy.fft.rfft(envelope) * ramp, frame)
 
     def _periodic_response(self, envelope: np.ndarray, rate_hz: float) -> np.ndarray:
         """ADC-rate samples of one period of a periodic envelope (at ``rate_hz``, a whole number
@@ -283,6 +285,42 @@ def code_template(
         raise ValueError(f"PCI {pci} with co-sited PCI {cosited_pci}: the pair's 4 site coefficients are needed")
     pair = (min(pci, cosited_pci), max(pci, cosited_pci))
     return np.asarray(site_coefficients, dtype=np.float64) @ templates.pair_shapes(pair, subframe, delay_samples)
+
+
+def place_codes(frame: int, codes) -> np.ndarray:
+    """(..., frame) the sync codes of subframes 0 and 5 (``codes(subframe)`` -> (..., L)), each
+    made zero-mean, at the start and the middle of a frame."""
+    first = np.asarray(codes(0))
+    placed = np.zeros((*first.shape[:-1], frame))
+    for subframe, start in ((0, 0), (5, frame // 2)):
+        part = first if subframe == 0 else np.asarray(codes(subframe))
+        placed[..., start : start + part.shape[-1]] = part - part.mean(axis=-1, keepdims=True)
+    return placed
+
+
+def known_frame(
+    templates: SyncTemplates,
+    pci: int,
+    bandwidth_mhz: float,
+    cosited_pci: int | None = None,
+    site_coefficients: Sequence[float] | None = None,
+) -> np.ndarray:
+    """(frame,) everything a detected cell of known bandwidth sends the same in every frame, its
+    subframe-0 code starting at sample 0: ``SyncTemplates.frame_template``, or for two co-sited
+    sectors found together (``code_template``) their fitted code model in subframes 0 and 5
+    plus each sector's CRS scaled by its fitted code power (the |s_a|^2 and |s_b|^2
+    coefficients: CRS and codes are sent at the same power per RE). The sectors' CRS also mix
+    with each other in the square law; that cross term depends on their unknown relative phase
+    at the receiver and is left out (it stays in what the template does not explain)."""
+    if cosited_pci is None:
+        return templates.frame_template(pci, bandwidth_mhz, [0.0])[0]
+    if site_coefficients is None or len(site_coefficients) != 4:
+        raise ValueError(f"PCI {pci} with co-sited PCI {cosited_pci}: the pair's 4 site coefficients are needed")
+    lower, higher = sorted((pci, cosited_pci))
+    crs = sum(max(float(scale), 0.0) * templates.placed_crs(cell, bandwidth_mhz, np.zeros(1))[0]
+              for cell, scale in ((lower, site_coefficients[0]), (higher, site_coefficients[1])))
+    return place_codes(len(crs), lambda subframe: code_template(
+        templates, pci, cosited_pci, site_coefficients, subframe)) + crs
 
 
 def _numerology_for_rate(bandwidth_mhz: float, adc_rate_hz: float) -> Numerology:

@@ -111,6 +111,7 @@ class SyncResult:
     tentative: tuple[DetectedCell, ...]  # found but not reported: not confirmed yet, or held too weakly to time
     clock_drift_ppm: float | None  # receiver clock error measured so far
     searched: bool  # searched for new cells (else only the cells found before were tracked)
+    frame: np.ndarray | None = None  # the stack's mean frame, when a reported cell's bandwidth is known
 
     @property
     def pcis(self) -> list[int]:
@@ -125,7 +126,7 @@ class SyncResult:
     def stack_windows(self) -> StackWindows:
         """The confirmed cells with the stack's time base: what ``cell_sync`` publishes."""
         return StackWindows(self.stamp_ns, self.first_sample_index, self.sample_rate, self.windows,
-                            self.clock_drift_ppm)
+                            self.clock_drift_ppm, self.frame)
 
 
 class SyncStage:
@@ -140,9 +141,9 @@ class SyncStage:
         self.config = config or SyncConfig()
         self.towers = towers
         self.templates = SyncTemplates(frontend)
+        self.bandwidths = {} if towers is None else towers.bandwidths()
         self.search = CellSearch(self.templates, self.config.search, None if towers is None else towers.pcis,
-                                 None if towers is None else towers.cosited_pairs(),
-                                 None if towers is None else towers.bandwidths())
+                                 None if towers is None else towers.cosited_pairs(), self.bandwidths)
         self.stacker = FrameStacker(frontend.adc_rate_hz, self.config.stack)
         self._tracks: dict[int, _Track] = {}  # by PCI
         self._since_search = 0  # stacks since the last full search
@@ -176,6 +177,7 @@ class SyncStage:
         reported = {c.pci for c in cells if streaks[c.pci] >= self.config.confirm_stacks
                     and c.detection.peak_metric >= self.config.report_z}
         self._follow(stack, cells, streaks)
+        known_frame = any(c.window.bandwidth_mhz is not None for c in cells if c.pci in reported)
         return SyncResult(
             stamp_ns=stack.stamp_ns,
             first_sample_index=stack.first_sample_index,
@@ -188,6 +190,7 @@ class SyncStage:
             tentative=tuple(c for c in cells if c.pci not in reported),
             clock_drift_ppm=self.stacker.measured_drift_ppm,
             searched=discover,
+            frame=stack.mean if known_frame else None,
         )
 
     def _window(self, stack: Stack, detection: CellDetection) -> SyncWindow:
@@ -204,6 +207,7 @@ class SyncStage:
             carrier_hz=None if earfcn is None else downlink_frequency_hz(earfcn),
             cosited_pci=None if site is None else next(pci for pci in site.pcis if pci != detection.pci),
             site_coefficients=None if site is None else site.coefficients,
+            bandwidth_mhz=self._bandwidth(detection),
         )
 
     def _follow(self, stack: Stack, cells: list[DetectedCell], streaks: dict[int, int]) -> None:
@@ -248,6 +252,12 @@ class SyncStage:
         if expected is None or abs(cell.code_position - expected) > self.config.confirm_tolerance:
             return 1
         return self._tracks[cell.pci].streak + 1
+
+    def _bandwidth(self, detection: CellDetection) -> float | None:
+        """The channel bandwidth the tower database gives the cell (and its co-sited sector, if
+        found as a pair: both must agree)."""
+        bandwidths = {self.bandwidths.get(pci) for pci in (detection.site.pcis if detection.site else (detection.pci,))}
+        return bandwidths.pop() if len(bandwidths) == 1 else None
 
     def _earfcn(self, pci: int) -> int | None:
         """The EARFCN the tower database gives a PCI, if it gives exactly one."""

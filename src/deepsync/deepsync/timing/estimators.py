@@ -75,6 +75,7 @@ from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
 import numpy as np
+import scipy.fft
 import scipy.optimize
 
 from deepsync.numeric import parabolic_offset
@@ -157,13 +158,18 @@ def _psd_from_rows(rows0: np.ndarray, smooth_half_width: int | None) -> np.ndarr
     residual = rows0 - rows0.mean(axis=0)
     periodogram = np.abs(np.fft.rfft(residual, axis=1)) ** 2 / length
     psd = periodogram.mean(axis=0) * n_frames / (n_frames - 1)
-    half = _smooth_bins(n_frames, psd.size) if smooth_half_width is None else int(smooth_half_width)
+    return _smoothed(psd, _smooth_bins(n_frames, psd.size) if smooth_half_width is None else int(smooth_half_width))
+
+
+def _smoothed(psd: np.ndarray, half: int) -> np.ndarray:
+    """A periodogram averaged over ``2 * half + 1`` neighbouring bins (mirrored at the band's
+    ends); its DC bin, empty for zero-mean data and never used, copies the next one."""
     if half > 0:
         inner = psd[1:]
         padded = np.concatenate([inner[half:0:-1], inner, inner[-2 : -half - 2 : -1]])
         inner = np.convolve(padded, np.ones(2 * half + 1) / (2 * half + 1), mode="valid")
         psd = np.concatenate([psd[:1], inner[: psd.size - 1]])
-    psd[0] = psd[1]  # the DC bin is empty (rows are zero-mean); it is never used
+    psd[0] = psd[1]
     return psd
 
 
@@ -311,7 +317,12 @@ def _posterior(problem: _Problem, stacked_psd: np.ndarray, allowed: np.ndarray |
     z = problem.cross[k] / (length * s)
     energy = float(np.sum(np.abs(problem.t_spec[k]) ** 2 / (length * s)))
     lags, phases = _phase_grid(length, problem.margin)
-    u = np.real(phases @ z)
+    return _posterior_of(lags, np.real(phases @ z), energy, allowed)
+
+
+def _posterior_of(lags: np.ndarray, u: np.ndarray, energy: float, allowed: np.ndarray | None = None) -> _Posterior:
+    """The posterior from the weighted correlation ``u`` on an evenly spaced grid of ``lags``
+    and the template's weighted energy (``_posterior``)."""
     amplitude = float((u if allowed is None else u[allowed]).max()) / energy  # at the best lag, var 1 / (2 E): bias-corrected
     amplitude = math.sqrt(max(amplitude**2 - 1 / (2 * energy), 0.0)) if amplitude > 0 else 0.0
     log_like = 2 * amplitude * u
@@ -497,6 +508,11 @@ def _ml_lag(problem: _Problem, weights: np.ndarray, allowed: np.ndarray | None =
     if allowed is not None:
         inside = grid[allowed]
         low, high = max(low, float(inside[0])), min(high, float(inside[-1]))
+    return _maximum_near(z, omega, best, low, high)
+
+
+def _maximum_near(z: np.ndarray, omega: np.ndarray, best: float, low: float, high: float) -> float:
+    """The maximum of sum Re(z e^{j omega lag}) in [low, high], from its grid point ``best``."""
     lag = _newton(z, omega, best, low, high, NEWTON_STEPS)
     if lag is not None:
         return lag
@@ -512,10 +528,11 @@ def _newton(z: np.ndarray, omega: np.ndarray, lag: float, low: float, high: floa
     """Newton's method on the correlation's slope from ``lag``, at most ``steps`` steps: the
     point where a step falls below 1e-9 samples (else, unless ``settle``, the last one); None if
     a step leaves [low, high] or meets a point where the correlation is not concave."""
+    omega_sq = omega**2
     for _ in range(steps):
         phase = z * np.exp(1j * omega * lag)
-        slope = float(np.sum(np.real(1j * omega * phase)))
-        curvature = float(np.sum(np.real(-(omega**2) * phase)))
+        slope = -float(omega @ phase.imag)  # d/dlag of sum Re(phase)
+        curvature = -float(omega_sq @ phase.real)
         if curvature >= 0:
             return None
         step = -slope / curvature
@@ -570,3 +587,90 @@ def estimate_ml(
     fit = _fit(problem, lag, weights, stacked)
     std = _total_std(lag, fit.sandwich_std, _posterior(problem, stacked, allowed))
     return TimingEstimate(lag - problem.margin, std, fit.snr_db, "ml")
+
+
+# -- maximum likelihood over a known cell's whole frame -----------------------------------------
+
+FRAME_PSD_HALF_WIDTH = 32  # bins either side over which the frame residual's periodogram is averaged (~130 dof)
+FRAME_GRID_FACTOR = 4  # points per sample of the full-frame posterior's lag grid
+# samples either side of the coarse start the full-frame posterior spans: three periods of the
+# CRS comb, whose sidelobes (0.62, 0.45, 0.41 of the peak) would lock a code start that far off
+FRAME_POSTERIOR_REACH = 64
+
+
+@dataclass(frozen=True)
+class FrameTiming:
+    """A full-frame ML estimate with what the bound needs: the template's fitted scale and the
+    stacked frame's noise spectrum."""
+
+    estimate: TimingEstimate  # offset from the ``start`` searched around
+    amplitude: float  # fitted scale of the template, bias-corrected (>= 0)
+    stacked_psd: np.ndarray  # of the frame's residual, rfft bins of the frame
+
+
+def estimate_ml_frame(frame: np.ndarray, template: np.ndarray, start: int, reach: int) -> FrameTiming:
+    """Maximum-likelihood code start of a known cell within ``reach`` samples of ``start``, from
+    everything the cell sends the same in every frame.
+
+    ``frame`` (N,): a stack's mean frame. ``template`` (N,): the cell's known frame
+    (``frontend.templates.known_frame``: codes and CRS), its subframe-0 code starting at sample
+    0. Both repeat every frame, so the circular correlation is exact and the template has no
+    edges. The sync codes are 4 of a frame's 140 symbols, the CRS 40 more: at 10 MHz the
+    template carries ~10 dB more matched-filter energy than the codes alone
+    (``benchmarks/full_frame_template.py``). Its autocorrelation has sidelobes at the CRS comb's
+    period (21.3 samples), beyond the +-``reach`` searched around a code lock.
+
+    White weights (the correlation's maximum, found as ``estimate_ml`` finds it: the best
+    integer lag, then Newton's method). The noise: one stacked frame has no frame-to-frame
+    fluctuation to measure it from, so it is the periodogram of what the fitted template leaves
+    of the frame, averaged over ``2 FRAME_PSD_HALF_WIDTH + 1`` bins. That residual holds
+    everything in the stack that is not this cell: detector noise, the data's self-mixing that
+    stacking did not remove, and the other cells' deterministic envelopes. Those are not noise,
+    but their correlation with this template acts as noise on its delay, so counting them keeps
+    the std honest next to a strong cell. std: sandwich and posterior as in ``estimate_ml``,
+    the posterior on a 1/``FRAME_GRID_FACTOR``-sample grid over +-``FRAME_POSTERIOR_REACH``
+    samples, wider than the search: a code lock a comb period or more off (where the template
+    fits nearly as well) leaves its mass on the true start, and the std says so.
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    t = check_template(template, min_length=8)
+    if f.shape != t.shape:
+        raise ValueError(f"frame ({f.shape}) and template ({t.shape}) must both be one frame long")
+    if not np.all(np.isfinite(f)):
+        raise ValueError("frame contains NaN or inf")
+    n = f.size
+    if isinstance(reach, bool) or not isinstance(reach, (int, np.integer)) or not 1 <= reach <= n // 4:
+        raise ValueError(f"reach must be 1..{n // 4} samples, got {reach!r}")
+    f = f - f.mean()
+    if not np.any(f):
+        raise ValueError("frame carries nothing: it is constant (a dead or saturated input?)")
+    spectrum = scipy.fft.rfft(np.roll(f, reach - int(start)))  # the frame from `reach` samples before `start`
+    t_spec = scipy.fft.rfft(t)
+    cross = spectrum * np.conj(t_spec)
+    cross[0] = 0.0
+    problem = _Problem(1, n, int(reach), t, t_spec, cross[None], np.ones(spectrum.size))
+    inner, omega = problem.inner, problem.omega
+    correlation = scipy.fft.irfft(cross, n)[: 2 * reach + 1]
+    best = int(np.clip(np.argmax(correlation), 1, 2 * reach - 1))
+    near = best + float(np.clip(parabolic_offset(*correlation[best - 1 : best + 2]), -0.5, 0.5))
+    z = cross[inner]
+    lag = _maximum_near(z, omega, near, max(0.0, best - 1.0), min(2.0 * reach, best + 1.0))
+
+    power = np.abs(t_spec[inner]) ** 2
+    moved = t_spec[inner] * np.exp(-1j * omega * lag)  # the template with its code at `lag`
+    scale = float(np.sum(np.real(spectrum[inner] * np.conj(moved)))) / float(np.sum(power))
+    residual = np.abs(spectrum) ** 2
+    residual[inner] = np.abs(spectrum[inner] - scale * moved) ** 2
+    problem.psd = _smoothed(residual / n, FRAME_PSD_HALF_WIDTH)
+    fit = _fit(problem, lag, np.ones(inner.size), problem.psd)
+
+    s = np.maximum(problem.psd[inner], 1e-12 * float(np.max(problem.psd[inner])))
+    points = n * FRAME_GRID_FACTOR
+    weighted = np.zeros(points // 2 + 1, dtype=complex)
+    weighted[inner] = z / (n * s)
+    span = max(FRAME_POSTERIOR_REACH, reach)
+    steps = np.arange((reach - span) * FRAME_GRID_FACTOR, (reach + span) * FRAME_GRID_FACTOR + 1)
+    u = scipy.fft.irfft(weighted, points)[steps % points] * (points / 2)  # circular: negative lags wrap
+    posterior = _posterior_of(steps / FRAME_GRID_FACTOR, u, float(np.sum(power / (n * s))))
+    std = _total_std(lag, fit.sandwich_std, posterior)
+    return FrameTiming(TimingEstimate(lag - reach, std, fit.snr_db, "ml_frame"), fit.amplitude, problem.psd)

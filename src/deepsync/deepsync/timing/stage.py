@@ -33,17 +33,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.templates import SyncTemplates, code_template
+from deepsync.frontend.templates import SyncTemplates, code_template, known_frame
 from deepsync.timing.crlb import delay_crlb, fit_amplitude, snr_db
 from deepsync.timing.estimators import (
     SNR_FLOOR_DB,
     TimingEstimate,
     estimate_fft_upsampled,
     estimate_ml,
+    estimate_ml_frame,
     estimate_parabolic,
     noise_psd,
 )
-from deepsync.types import CellTiming, Health, HealthKind, SyncWindow
+from deepsync.types import FRAME_SECONDS, CellTiming, Health, HealthKind, StackWindows, SyncWindow
 
 # network_ml's sigma, added in quadrature: ML's own std covers noise and the lobe, not the
 # first path that multipath hides behind the envelope's peak. 0.2 samples (31 m) puts 60-72 %
@@ -66,6 +67,7 @@ class Estimator(enum.Enum):
     the value is the name a ``CellTiming`` carries."""
 
     ML = "ml"  # maximum likelihood, prewhitened by the noise spectrum measured from the rows
+    ML_FRAME = "ml_frame"  # ML over a known cell's whole frame (codes and CRS) where the stack's frame comes along, else ML
     ML_WHITE = "ml_white"  # maximum likelihood with white weights
     FFT_UPSAMPLED = "fft_upsampled"  # band-limited correlation on a 32x finer grid
     PARABOLIC = "parabolic"  # integer-lag correlation and a parabola through its peak
@@ -88,7 +90,7 @@ class Estimator(enum.Enum):
 
 @dataclass(frozen=True)
 class TimingConfig:
-    estimator: Estimator = Estimator.ML
+    estimator: Estimator = Estimator.ML_FRAME
     weak_std_samples: float = 1.0  # flag an arrival whose 1-sigma exceeds this (1 sample = 156 m at 1.92 MHz)
     checkpoint: str | None = None  # the network's checkpoint; None: the one shipped with deepsync
 
@@ -117,6 +119,7 @@ class TimingStage:
         self.templates = SyncTemplates(frontend)
         self.sample_rate = frontend.adc_rate_hz
         self._single: dict[int, np.ndarray] = {}  # PCI -> template: 3 ms to compute, the same every stack
+        self._frames: dict[tuple[int, float], np.ndarray] = {}  # (PCI, MHz) -> known frame, as costly
         self.network = None
         if self.config.estimator.uses_network:
             try:
@@ -137,10 +140,12 @@ class TimingStage:
             self.network = None
         return self
 
-    def process(self, windows: Sequence[SyncWindow]) -> TimingResult:
-        """Arrivals of the given cells; what cannot be timed becomes an ``UNTIMEABLE`` event."""
+    def process(self, windows: StackWindows | Sequence[SyncWindow]) -> TimingResult:
+        """Arrivals of one stack's cells (its windows alone, or with its mean frame, which
+        ``ml_frame`` needs); what cannot be timed becomes an ``UNTIMEABLE`` event."""
+        stack = windows if isinstance(windows, StackWindows) else None
         cells, events, fallbacks, for_network = [], [], [], []
-        for window in windows:
+        for window in (windows.windows if stack else windows):
             reason = None if self.network is None else self.network.refusal(
                 window, self.sample_rate, self.templates.length)
             if self.network is not None and reason is None:
@@ -149,6 +154,9 @@ class TimingStage:
             if reason is not None:
                 fallbacks.append((window.pci, reason))
             try:
+                if self.config.estimator is Estimator.ML_FRAME and self._has_frame(window, stack):
+                    cells.append(self._frame_cell(window, stack))
+                    continue
                 cells.append(self.time_cell(window, Estimator.ML if reason else self.config.estimator))
             except ValueError as error:
                 events.append(self._untimeable(window, error))
@@ -180,11 +188,52 @@ class TimingStage:
         estimator = estimator or self.config.estimator
         if estimator.uses_network:
             raise ValueError("time_cell runs the classical estimators; the network times a stack in process()")
+        if estimator is Estimator.ML_FRAME:  # without the stack's frame: the codes
+            estimator = Estimator.ML
         template = self._template(window)
         margin = self._margin(window, template)
         psd = noise_psd(window.windows)
         estimate = self._estimate(estimator, window.windows, template, margin, psd)
         return self._cell(window, template, psd, estimate.offset, estimate.std, estimator, estimate.snr_db)
+
+    def _has_frame(self, window: SyncWindow, stack: StackWindows | None) -> bool:
+        """Whether ``window``'s cell can be timed by its whole frame: its bandwidth known, the
+        stack's mean frame sent, one frame long at this stage's rate."""
+        return (window.bandwidth_mhz is not None and stack is not None and stack.frame is not None
+                and stack.frame.size == round(self.sample_rate * FRAME_SECONDS))
+
+    def _frame_cell(self, window: SyncWindow, stack: StackWindows) -> CellTiming:
+        """A cell timed by its known frame (``estimate_ml_frame``) within the windows' margin
+        of the sync stage's coarse code start."""
+        template = self._known_frame(window)
+        start = (window.coarse_index - stack.first_sample_index) % len(template)
+        timing = estimate_ml_frame(stack.frame, template, start, self._margin(window, self._template(window)))
+        estimate = timing.estimate
+        codes = self._template(window)
+        bound = delay_crlb(template, timing.amplitude, timing.stacked_psd, 1, self.sample_rate, len(template))
+        noise = float(np.mean(timing.stacked_psd))
+        return CellTiming(
+            pci=window.pci,
+            toa=window.coarse_index + estimate.offset,
+            toa_std=estimate.std,
+            # the codes' SNR at the fitted scale, as for the other estimators
+            snr_db=max(snr_db(timing.amplitude, codes, noise), SNR_FLOOR_DB),
+            estimator=Estimator.ML_FRAME.value,
+            crlb_std=bound.std_samples,
+            flags=self._weak(window, estimate.std),
+            earfcn=window.earfcn,
+            amplitude=timing.amplitude * float(np.sqrt(np.mean(codes**2))),
+        )
+
+    def _known_frame(self, window: SyncWindow) -> np.ndarray:
+        """The cell's known frame: a single PCI's is kept, a pair's built from its fit."""
+        if window.cosited_pci is not None:
+            return known_frame(self.templates, window.pci, window.bandwidth_mhz, window.cosited_pci,
+                               window.site_coefficients)
+        key = (window.pci, window.bandwidth_mhz)
+        if key not in self._frames:
+            self._frames[key] = known_frame(self.templates, window.pci, window.bandwidth_mhz)
+        return self._frames[key]
 
     @staticmethod
     def _margin(window: SyncWindow, template: np.ndarray) -> int:
@@ -202,10 +251,6 @@ class TimingStage:
         bound = delay_crlb(template, amplitude, psd, window.n_frames, self.sample_rate, window.window_length)
         if snr is None:  # the estimators' definition: the fitted code against the stacked noise
             snr = max(snr_db(amplitude, template, float(np.mean(psd)) / window.n_frames), SNR_FLOOR_DB)
-        flags = ()
-        if std > self.config.weak_std_samples:
-            flags = (Health(HealthKind.WEAK_TIMING, f"PCI {window.pci}: 1-sigma {std:.2f} samples, beyond "
-                            "the estimator's threshold: the arrival may be far off", window.coarse_index),)
         return CellTiming(
             pci=window.pci,
             toa=window.coarse_index + offset,
@@ -213,12 +258,18 @@ class TimingStage:
             snr_db=snr,
             estimator=estimator.value,
             crlb_std=bound.std_samples,
-            flags=flags,
+            flags=self._weak(window, std),
             earfcn=window.earfcn,
             # RMS volts of the fitted code envelope: comparable between a single code's
             # template and a co-sited pair's, whatever their scale
             amplitude=abs(amplitude) * float(np.sqrt(np.mean(template**2))),
         )
+
+    def _weak(self, window: SyncWindow, std: float) -> tuple[Health, ...]:
+        if std <= self.config.weak_std_samples:
+            return ()
+        return (Health(HealthKind.WEAK_TIMING, f"PCI {window.pci}: 1-sigma {std:.2f} samples, beyond the "
+                       "estimator's threshold: the arrival may be far off", window.coarse_index),)
 
     def _template(self, window: SyncWindow) -> np.ndarray:
         """The cell's code template; a pair's is cheap (cached shapes), a single PCI's is kept."""
