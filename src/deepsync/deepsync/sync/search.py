@@ -75,6 +75,7 @@ class SearchConfig:
     pair_min_gain: float = 0.25  # and what the pair must add to one sector's statistic, relatively
     crs_cancel_z: float = 10.0  # a cell found this many sigmas out also has its CRS cancelled (0: never)
     track_lags: int = 1  # +- samples a confirmed cell's code may have moved from where it should be
+    hold_by_frame: bool = True  # a confirmed cell of known bandwidth its codes miss is held if its whole frame is there
 
     def __post_init__(self) -> None:
         if not 0 < self.false_alarm_rate < 0.5:
@@ -129,6 +130,15 @@ class ExpectedCell:
 _SINGLE, _SITE = 0, 1  # rows of _SearchState.given_up
 
 
+@dataclass(frozen=True)
+class _KnownFrame:
+    """A known cell's whole frame (``SyncTemplates.frame_template``) as the hold tests it."""
+
+    spectra: np.ndarray  # conjugate spectra of the unit-norm template at each of PHASES
+    norm: float  # the template's norm (volts per unit RE power): a fit's z x spread / norm is its amplitude
+    code_share: float  # the codes' share of its energy per code sample: z^2 x this is the codes' SNR
+
+
 @dataclass
 class _SearchState:
     """One stack's search in progress."""
@@ -174,7 +184,7 @@ class CellSearch:
         self.allowed = np.arange(N_CELL_IDS) if allowed_pcis is None else np.unique(allowed_pcis)
         if self.allowed.size == 0 or self.allowed.min() < 0 or self.allowed.max() >= N_CELL_IDS:
             raise ValueError("allowed_pcis must be PCIs in 0..503")
-        self._cache: dict[tuple, np.ndarray] = {}  # template spectra by kind and length (CRS: PCI, bandwidth)
+        self._cache: dict[tuple, np.ndarray | _KnownFrame] = {}  # template spectra by kind and length (CRS: PCI, bandwidth; known frames: PCI)
         self.sites = (SiteSearch(templates, cosited_pairs, self.allowed, PHASES)
                       if cosited_pairs and self.full_code_timing and self.config.site_hypotheses else None)
 
@@ -332,7 +342,59 @@ class CellSearch:
                 self._cancel(state)
             else:
                 self._mark_new(state, before)
+        if self.config.hold_by_frame:
+            self._hold_by_frame(state, expected)
         return state.detections
+
+    def _hold_by_frame(self, state: _SearchState, expected: Sequence[ExpectedCell]) -> None:
+        """Confirmed cells of known bandwidth that their codes no longer show: held if their whole
+        known frame (codes and CRS, ``frontend.templates.known_frame``) is where their code
+        should be, at the tracking threshold over the same ``track_lags`` and phases.
+
+        The CRS adds 40 symbols per frame to the codes' 4: at 10 MHz about 8 dB of SNR for a
+        tracked cell at the same false-alarm rate (``benchmarks/full_frame_template.py``), the
+        difference between hearing 3 sites per stack or 5 on the dense walk
+        (``benchmarks/full_frame_tracking.py``). Only for tracked cells: the comb of the CRS
+        repeats the template's fit every 21.3 samples, so a search over all positions would
+        lock a period off; a track knows the period. Each cell is tested on what the search
+        left of the stack (codes found, and strong cells' CRS, cancelled), its noise the
+        robust spread of that correlation over the frame."""
+        missing = [e for e in expected if e.held and e.pci in self.bandwidths
+                   and all(d.pci != e.pci for d in state.detections)]
+        if not missing:
+            return
+        frame = len(state.residual)
+        spectrum = scipy.fft.rfft(state.residual)
+        for cell in missing:
+            if len(state.detections) >= self.config.max_cells:
+                return
+            known = self._known_frame(cell.pci, frame)
+            correlations = correlate(spectrum, known.spectra, frame)
+            spread = mad_spread(correlations, centre=0.0)
+            lags = (round(cell.frame_offset) + np.arange(-self.config.track_lags, self.config.track_lags + 1)) % frame
+            block = correlations[:, lags] / spread  # (PHASES, lags)
+            if block.max() < cfar_threshold(self.config.false_alarm_rate, block.size):
+                continue
+            # interleaved by phase: code starts every 1 / len(PHASES) sample, in time order
+            fine = block.T.ravel()
+            best = int(np.argmax(fine))
+            start = lags[0] + (best + parabolic_peak(fine, best)) / len(PHASES)
+            z = float(block.max())
+            state.detections.append(CellDetection(
+                frame_offset=int(math.floor(start)) % frame, fraction=start - math.floor(start), pci=cell.pci,
+                candidates=(), peak_metric=z, snr_db=10 * math.log10(z * z * known.code_share),
+                amplitude=float(fine[best]) * spread / known.norm))
+
+    def _known_frame(self, pci: int, frame: int) -> _KnownFrame:
+        """A PCI's whole known frame at the search's ``PHASES``, as the hold tests it. Cached."""
+        key = ("frame", pci)
+        if key not in self._cache:
+            full = self.templates.frame_template(pci, self.bandwidths[pci], PHASES)
+            norm = float(np.linalg.norm(full[0]))
+            codes = sum(float(np.sum((t - t.mean()) ** 2)) for t in (self.templates.template(pci, s, 0.0) for s in (0, 5)))
+            self._cache[key] = _KnownFrame(template_spectra(full / norm, frame), norm,
+                                           codes / norm**2 / (2 * self.templates.length))
+        return self._cache[key]
 
     def _start(self, centred: np.ndarray, rows: np.ndarray | None = None, pss: bool = True) -> _SearchState:
         """The first pass's statistics, noise spreads and CFAR threshold of a stack (the
