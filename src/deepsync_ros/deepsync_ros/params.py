@@ -162,7 +162,8 @@ FUSION = (
               "tracker's when it has one."),
     ParamSpec("multipath_std_m", _FUSION.multipath_std_m, "Range bias multipath and NLOS add to a site, beyond "
               "the timing sigma [m].", range=(0.0, 1e4)),
-    ParamSpec("min_std_m", _FUSION.min_std_m, "Floor of each arrival's 1-sigma [m].", range=(0.0, 1e4)),
+    ParamSpec("min_std_m", _FUSION.min_std_m, "Floor of each arrival's 1-sigma: the scatter multipath adds "
+              "from stack to stack on the move [m].", range=(0.0, 1e4)),
     ParamSpec("receiver_height_m", _SNAPSHOT.receiver_height_m, "Antenna height above the map origin's ground "
               "in a 2-D fix [m].", range=(-500.0, 1e4)),
 )

@@ -29,7 +29,11 @@ from deepsync.types import Fix, Health, HealthKind, NoFix, NoFixReason, StackArr
 @dataclass(frozen=True)
 class FusionConfig:
     """``track``: run the tracker besides the snapshot solver; ``min_std_m`` floors each
-    arrival's 1-sigma (nothing times better than this: ground truth says 0); ``multipath_std_m``
+    arrival's 1-sigma: the timing stage's sigma measures noise, but as the receiver moves, the
+    multipath under a site's arrival fades from stack to stack and scatters it around the
+    site's bias by more than that noise (on the dense walk, 10-frame stacks, full-frame timing:
+    0.05-0.1 samples, 8-15 m, at sigmas of 0.01-0.04 samples), which the fusion, taking the
+    arrival's sigma as its white noise, must be told; ``multipath_std_m``
     is the range bias multipath and NLOS add to a site, beyond the timing stage's sigma (which
     measures noise, not where the channel moved the envelope's peak). Measured along the
     simulated routes (docs/fusion.md): LOS sites 0-15 m, NLOS 40-90 m in the dense scenario,
@@ -38,7 +42,7 @@ class FusionConfig:
     snapshot: SnapshotConfig = field(default_factory=SnapshotConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     track: bool = True
-    min_std_m: float = 1.0
+    min_std_m: float = 8.0
     multipath_std_m: float = 40.0
 
     def __post_init__(self) -> None:

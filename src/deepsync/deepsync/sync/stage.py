@@ -17,8 +17,11 @@ the unconfirmed ones are in ``SyncResult.tentative``. Each cell goes on as a
 
 Cells found in one stack are tracked into the next: looked for near where their codes should
 be (``CellSearch.search``'s expected cells), the confirmed ones at a lower threshold, since
-only a few lags are tested, and for ``hold_stacks`` more stacks after one they were missed in
-(a fade). A confirmed cell held below ``report_z`` sigmas is kept but not reported: below about
+only a few lags are tested (and, where the tower database gives their bandwidth, by their
+whole known frame when their codes miss: ``SearchConfig.hold_by_frame``), and for
+``hold_stacks`` more stacks after one they were missed in (a fade). With such a cell reported,
+the stack's mean frame goes along (``StackWindows.frame``) for the timing stage's ``ml_frame``.
+A confirmed cell held below ``report_z`` sigmas is kept but not reported: below about
 5 sigmas the timing stage's ML estimate breaks down (on the dense walk with 10-frame stacks,
 13-22 % of arrivals a sample or more off at 3.5-4.5 sigmas, 2 % at 5-6). The full search for
 new cells, the costly part, runs every ``search_every`` stacks, on the stack after one where a

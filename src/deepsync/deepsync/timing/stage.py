@@ -15,7 +15,12 @@ estimate is from the best possible. A window that cannot be timed at all (no var
 length that fits no template) is reported as ``UNTIMEABLE`` and skipped; the stage never raises
 on what it is fed.
 
-Estimators: the classical ones of ``timing.estimators``; ``network``, the DeepSync timing
+Estimators: the classical ones of ``timing.estimators``; ``ml_frame`` (the default), ML over
+everything a known cell sends the same in every frame, its codes and its CRS
+(``estimate_ml_frame``), in the stack's mean frame (``StackWindows.frame``, sent by the sync
+stage when the tower database gives a reported cell's bandwidth), searched within the windows'
+margin of the sync stage's code lock, which picks the CRS comb's period; where the frame or the
+bandwidth is missing, ``ml``. ``network``, the DeepSync timing
 network (``timing.network``, all cells of a stack in one batch, its own sigma); and
 ``network_ml``, ML's maximum inside the network's interval: the network says which lobe (where
 ML alone locks onto a wrong one below threshold or next to other cells' codes), ML says where in
@@ -205,11 +210,10 @@ class TimingStage:
     def _frame_cell(self, window: SyncWindow, stack: StackWindows) -> CellTiming:
         """A cell timed by its known frame (``estimate_ml_frame``) within the windows' margin
         of the sync stage's coarse code start."""
-        template = self._known_frame(window)
+        template, codes = self._known_frame(window), self._template(window)
         start = (window.coarse_index - stack.first_sample_index) % len(template)
-        timing = estimate_ml_frame(stack.frame, template, start, self._margin(window, self._template(window)))
+        timing = estimate_ml_frame(stack.frame, template, start, self._margin(window, codes))
         estimate = timing.estimate
-        codes = self._template(window)
         bound = delay_crlb(template, timing.amplitude, timing.stacked_psd, 1, self.sample_rate, len(template))
         noise = float(np.mean(timing.stacked_psd))
         return CellTiming(
