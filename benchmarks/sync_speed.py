@@ -88,11 +88,11 @@ def time_timing(chunks, towers, repeats: int, estimator: Estimator) -> tuple[flo
     sync = SyncStage(frontend, SyncConfig(), towers)
     results = [r for chunk in chunks for r in sync.process(chunk) if r.cells]
     stage = TimingStage(frontend, TimingConfig(estimator=estimator))
-    stage.process(results[0].windows)  # templates, as at start-up
+    stage.process(results[0].stack_windows)  # templates, as at start-up
     times = []
     for r in range(repeats):
         started = time.perf_counter()
-        stage.process(results[r % len(results)].windows)
+        stage.process(results[r % len(results)].stack_windows)
         times.append((time.perf_counter() - started) * 1e3)
     times.sort()
     return statistics.median(times), times[int(0.9 * (len(times) - 1))]

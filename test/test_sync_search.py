@@ -612,10 +612,10 @@ def test_a_pairs_known_frame_is_its_fitted_codes_and_each_sectors_crs_at_its_pow
     half = len(pair) // 2
     for start, subframe in ((0, 0), (half, 5)):
         code = code_template(templates, 121, 120, coefficients, subframe)
-        crs = 0.8 * templates.placed_crs(120, 10, np.zeros(1))[0]
+        crs = 0.8 * templates.code_aligned_crs(120, 10)
         np.testing.assert_allclose(pair[start : start + code.size] - crs[start : start + code.size],
                                    code - code.mean(), atol=1e-9 * np.abs(code).max())
-    crs = 0.8 * templates.placed_crs(120, 10, np.zeros(1))[0]
+    crs = 0.8 * templates.code_aligned_crs(120, 10)
     between = slice(templates.length + 10, half - 10)
     np.testing.assert_allclose(pair[between], crs[between], atol=1e-9 * np.abs(crs).max())
     with pytest.raises(ValueError, match="4 site coefficients"):

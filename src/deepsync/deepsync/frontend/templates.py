@@ -102,6 +102,7 @@ class SyncTemplates:
         self._grid: dict[tuple[int, ...], np.ndarray] = {}  # shapes on a fraction grid, by PCI(s) and subframe
         self._filters: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}  # (n_fft, rate) -> (f, H(f))
         self._crs: dict[tuple[int, int], np.ndarray] = {}  # (PCI, 10 x bandwidth) -> CRS envelope of a frame
+        self._code_aligned_crs: dict[tuple[int, int], np.ndarray] = {}  # the same, its code starting at 0
 
     def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0,
                  length: int | None = None) -> np.ndarray:
@@ -233,6 +234,13 @@ class SyncTemplates:
         crs = self.placed_crs(pci, bandwidth_mhz, delays)
         return place_codes(crs.shape[1], lambda subframe: self.template(pci, subframe, delays)) + crs
 
+    def code_aligned_crs(self, pci: int, bandwidth_mhz: float) -> np.ndarray:
+        """(frame,) ``placed_crs`` with the subframe-0 code starting at sample 0. Cached."""
+        key = (pci, round(10 * bandwidth_mhz))
+        if key not in self._code_aligned_crs:
+            self._code_aligned_crs[key] = self.placed_crs(pci, bandwidth_mhz, np.zeros(1))[0]
+        return self._code_aligned_crs[key]
+
     def placed_crs(self, pci: int, bandwidth_mhz: float, delays: np.ndarray) -> np.ndarray:
         """(delays, frame) ``crs_envelope`` moved so that the subframe-0 code would start at
         each of ``delays`` samples (band-limited shifts)."""
@@ -317,7 +325,7 @@ def known_frame(
     if site_coefficients is None or len(site_coefficients) != 4:
         raise ValueError(f"PCI {pci} with co-sited PCI {cosited_pci}: the pair's 4 site coefficients are needed")
     lower, higher = sorted((pci, cosited_pci))
-    crs = sum(max(float(scale), 0.0) * templates.placed_crs(cell, bandwidth_mhz, np.zeros(1))[0]
+    crs = sum(max(float(scale), 0.0) * templates.code_aligned_crs(cell, bandwidth_mhz)
               for cell, scale in ((lower, site_coefficients[0]), (higher, site_coefficients[1])))
     return place_codes(len(crs), lambda subframe: code_template(
         templates, pci, cosited_pci, site_coefficients, subframe)) + crs

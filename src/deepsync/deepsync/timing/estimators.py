@@ -592,7 +592,7 @@ def estimate_ml(
 # -- maximum likelihood over a known cell's whole frame -----------------------------------------
 
 FRAME_PSD_HALF_WIDTH = 32  # bins either side over which the frame residual's periodogram is averaged (~130 dof)
-FRAME_GRID_FACTOR = 4  # points per sample of the full-frame posterior's lag grid
+FRAME_GRID_FACTOR = 2  # points per sample of the full-frame posterior's lag grid
 # samples either side of the coarse start the full-frame posterior spans: three periods of the
 # CRS comb, whose sidelobes (0.62, 0.45, 0.41 of the peak) would lock a code start that far off
 FRAME_POSTERIOR_REACH = 64
