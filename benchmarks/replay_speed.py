@@ -91,7 +91,7 @@ def stage_speed(bag: Path, seconds: int) -> dict:
             for sync in syncs:
                 windows = sync.stack_windows
                 started = time.perf_counter()
-                timing = pipeline.timing.process(windows.windows)
+                timing = pipeline.timing.process(windows)
                 arrivals = windows.arrivals(timing.cells)
                 timed = time.perf_counter()
                 pipeline.fuse_arrivals(arrivals)
@@ -130,11 +130,11 @@ def pose_latency(bags: dict[str, Path], repeats: int) -> dict:
         frontend = bag_frontend(bag)
         for _ in range(repeats):
             pipeline = Pipeline(frontend, towers=load_tower_database(TOWERS))  # fusion state from scratch
-            pipeline.timing.process(sync_window_array_from_msg(messages[0]).windows)  # templates, as at start-up
+            pipeline.timing.process(sync_window_array_from_msg(messages[0]))  # templates, as at start-up
             for message in messages:
                 started = time.perf_counter()
                 windows = sync_window_array_from_msg(message)  # the timing node
-                timing = pipeline.timing.process(windows.windows)
+                timing = pipeline.timing.process(windows)
                 timing_message = cell_timing_array_to_msg(windows.arrivals(timing.cells))
                 received = time.perf_counter()
                 fix = pipeline.fuse_arrivals(cell_timing_array_from_msg(timing_message)).published  # the fusion node

@@ -21,6 +21,7 @@ from deepsync.timing.estimators import (
     estimate_ml,
     estimate_ml_frame,
     estimate_parabolic,
+    frame_spectrum,
     max_margin,
     noise_psd,
     parabolic_bias,
@@ -315,7 +316,7 @@ def test_full_frame_ml_times_a_known_cell_with_an_honest_sigma(whole_frame):
     for _ in range(60):
         start = 5000 + rng.uniform(-3, 3)
         frame = at(start) * scale + rng.normal(size=template.size) * 10 + 0.3
-        timing = estimate_ml_frame(frame, template, 5000, 10)
+        timing = estimate_ml_frame(frame_spectrum(frame), template, 5000, 10)
         errors.append(5000 + timing.estimate.offset - start)
         stds.append(timing.estimate.std)
         assert timing.stacked_psd.shape == (template.size // 2 + 1,)
@@ -333,23 +334,30 @@ def test_full_frame_ml_does_not_trust_a_code_lock_a_comb_period_off(whole_frame)
     template, at = whole_frame
     rng = np.random.default_rng(12)
     frame = at(5021.3) / np.std(template) + rng.normal(size=template.size) * 10
-    timing = estimate_ml_frame(frame, template, 5000, 10)
+    timing = estimate_ml_frame(frame_spectrum(frame), template, 5000, 10)
     assert abs(timing.estimate.offset) < 1.5  # the sidelobe, within the reach searched
     assert timing.estimate.std > 10
-    right = estimate_ml_frame(frame, template, 5021, 10)
+    right = estimate_ml_frame(frame_spectrum(frame), template, 5021, 10)
     assert abs(right.estimate.offset - 0.3) < 0.2 and right.estimate.std < 0.2
 
 
 def test_full_frame_ml_refuses_bad_input(whole_frame):
     template, at = whole_frame
     frame = at(100.0)
+    spectrum = frame_spectrum(frame)
     with pytest.raises(ValueError, match="NaN or inf"):
-        estimate_ml_frame(np.where(np.arange(frame.size) == 5, np.nan, frame), template, 100, 10)
-    with pytest.raises(ValueError, match="one frame long"):
-        estimate_ml_frame(frame[:-1], template, 100, 10)
+        frame_spectrum(np.where(np.arange(frame.size) == 5, np.nan, frame))
     with pytest.raises(ValueError, match="constant"):
-        estimate_ml_frame(np.full(frame.size, 2.0), template, 100, 10)
+        frame_spectrum(np.full(frame.size, 2.0))
+    with pytest.raises(ValueError, match="one frame"):
+        frame_spectrum(np.ones((2, 100)))
+    with pytest.raises(ValueError, match="as long as the template"):
+        estimate_ml_frame(spectrum[:-1], template, 100, 10)
     with pytest.raises(ValueError, match="reach"):
-        estimate_ml_frame(frame, template, 100, 0)
+        estimate_ml_frame(spectrum, template, 100, 0)
     with pytest.raises(ValueError, match="template"):
-        estimate_ml_frame(frame, np.zeros(frame.size), 100, 10)
+        estimate_ml_frame(spectrum, np.zeros(frame.size), 100, 10)
+    # the template's spectrum, kept by the caller, gives the same estimate
+    kept = estimate_ml_frame(spectrum, template, 100, 10, np.fft.rfft(template)).estimate
+    fresh = estimate_ml_frame(spectrum, template, 100, 10).estimate
+    assert kept.offset == pytest.approx(fresh.offset, abs=1e-9) and kept.std == pytest.approx(fresh.std, rel=1e-9)

@@ -373,7 +373,7 @@ def _cmd_evaluate_timing(args: argparse.Namespace) -> int:
         summary = evaluate_timing_bag(source, towers, args.out, args.checkpoint, frames[0], progress=not args.quiet)
         print(f"timing side by side on {source.description}, {frames[0]} frames: {summary['cells_timed']} cells timed, "
               f"{summary['fallbacks_to_ml']} of them by ML instead of the network")
-        for name in ("network", "network_ml", "ml", "fft_upsampled", "parabolic"):
+        for name in ("ml_frame", "network", "network_ml", "ml", "fft_upsampled", "parabolic"):
             stats = summary[name]
             print(f"  {name:14s} median {stats['median']:.3f}  p90 {stats['p90']:.3f}  RMSE {stats['rmse']:.3f} samples, "
                   f"{100 * stats['within_1_sigma']:.0f} % within 1 sigma")

@@ -15,6 +15,7 @@ and the range of the calibration over SNR bins.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Callable, Sequence
@@ -44,6 +45,8 @@ CLASSICAL: dict[str, Callable] = {
     "parabolic": lambda w, t, m, psd: estimate_parabolic(w, t, m),
 }
 ESTIMATORS = ("network", "network_ml", *CLASSICAL)
+# on a recording the stack's mean frame comes along: a known cell can be timed by its whole frame
+BAG_ESTIMATORS = ("ml_frame", *ESTIMATORS)
 
 
 OUTLIER_SAMPLES = 1.0  # an error beyond this is a wrong lobe, not noise (156 m)
@@ -219,12 +222,13 @@ def evaluate_timing_bag(source: BagSource, towers: TowerDatabase | None, out: st
     pipeline = Pipeline(source.frontend, PipelineConfig().with_choices(frames), towers)
     stages = {name: TimingStage(source.frontend, TimingConfig(Estimator(name), checkpoint=None if checkpoint is None
                                                               else str(checkpoint)))
-              for name in ESTIMATORS}
+              for name in BAG_ESTIMATORS}
     records: dict[str, list[tuple[float, float, float]]] = {name: [] for name in stages}
     fallbacks: list[str] = []
     for chunk in tqdm(source.chunks(), desc="timing on the recording", unit="chunk", disable=not progress):
         for result in pipeline.process(chunk):
-            windows = [w for w in result.sync.windows if w.pci in truth]
+            stack = result.sync.stack_windows
+            windows = dataclasses.replace(stack, windows=tuple(w for w in stack.windows if w.pci in truth))
             for name, stage in stages.items():
                 timed = stage.process(windows)
                 if name == "network":  # network_ml falls back for the same cells

@@ -252,6 +252,18 @@ GRID_STEP = 1 / 16  # samples: lag grid of the posterior (and of the ML coarse s
 NEWTON_STEPS = 8  # Newton steps to the ML maximum from its grid point (on the campus bag it settles in 2-4)
 
 
+def _phases(omega: np.ndarray, lag: float) -> np.ndarray:
+    """exp(j omega lag) for the bins' omega = k omega_1, k = 1, 2, ... (every caller's): for
+    long windows as the outer product of two short ramps, a few hundred complex exponentials
+    instead of one per bin (a frame's 9,599 cost 0.25 ms), equal to rounding."""
+    if omega.size < 1024:
+        return np.exp(1j * omega * lag)
+    step, width = float(omega[0]) * lag, 64
+    rows = -(-(omega.size + 1) // width)
+    ramp = np.exp(1j * step * width * np.arange(rows))[:, None] * np.exp(1j * step * np.arange(width))[None, :]
+    return ramp.ravel()[1 : omega.size + 1]
+
+
 @lru_cache(maxsize=32)
 def _phase_grid(length: int, margin: int) -> tuple[np.ndarray, np.ndarray]:
     """Lags 0..2*margin every ``GRID_STEP`` and exp(j w_k lag) for the bins between DC and Nyquist."""
@@ -275,7 +287,7 @@ def _fit(problem: _Problem, lag: float, weights: np.ndarray, stacked_psd: np.nda
     power = np.abs(problem.t_spec[k]) ** 2
     s = stacked_psd[k]
     z = problem.cross[k]
-    a_hat = float(np.sum(2 * np.real(z * np.exp(1j * omega * lag)) * weights) / np.sum(2 * power * weights))
+    a_hat = float(np.sum(2 * np.real(z * _phases(omega, lag)) * weights) / np.sum(2 * power * weights))
     a_var = float(np.sum(2 * power * weights**2 * length * s) / np.sum(2 * power * weights) ** 2)
     amplitude = math.sqrt(max(a_hat**2 - a_var, 0.0)) if a_hat > 0 else 0.0
 
@@ -511,9 +523,11 @@ def _ml_lag(problem: _Problem, weights: np.ndarray, allowed: np.ndarray | None =
     return _maximum_near(z, omega, best, low, high)
 
 
-def _maximum_near(z: np.ndarray, omega: np.ndarray, best: float, low: float, high: float) -> float:
-    """The maximum of sum Re(z e^{j omega lag}) in [low, high], from its grid point ``best``."""
-    lag = _newton(z, omega, best, low, high, NEWTON_STEPS)
+def _maximum_near(z: np.ndarray, omega: np.ndarray, best: float, low: float, high: float,
+                  tolerance: float = 1e-9) -> float:
+    """The maximum of sum Re(z e^{j omega lag}) in [low, high], from its grid point ``best``
+    (Newton's method, settled when a step falls below ``tolerance`` samples)."""
+    lag = _newton(z, omega, best, low, high, NEWTON_STEPS, tolerance=tolerance)
     if lag is not None:
         return lag
     result = scipy.optimize.minimize_scalar(
@@ -524,13 +538,13 @@ def _maximum_near(z: np.ndarray, omega: np.ndarray, best: float, low: float, hig
 
 
 def _newton(z: np.ndarray, omega: np.ndarray, lag: float, low: float, high: float, steps: int,
-            settle: bool = True) -> float | None:
+            settle: bool = True, tolerance: float = 1e-9) -> float | None:
     """Newton's method on the correlation's slope from ``lag``, at most ``steps`` steps: the
-    point where a step falls below 1e-9 samples (else, unless ``settle``, the last one); None if
-    a step leaves [low, high] or meets a point where the correlation is not concave."""
+    point where a step falls below ``tolerance`` samples (else, unless ``settle``, the last one);
+    None if a step leaves [low, high] or meets a point where the correlation is not concave."""
     omega_sq = omega**2
     for _ in range(steps):
-        phase = z * np.exp(1j * omega * lag)
+        phase = z * _phases(omega, lag)
         slope = -float(omega @ phase.imag)  # d/dlag of sum Re(phase)
         curvature = -float(omega_sq @ phase.real)
         if curvature >= 0:
@@ -539,7 +553,7 @@ def _newton(z: np.ndarray, omega: np.ndarray, lag: float, low: float, high: floa
         if not low <= lag + step <= high:
             return None
         lag += step
-        if abs(step) < 1e-9:
+        if abs(step) < tolerance:
             return lag
     return None if settle else lag
 
@@ -608,56 +622,68 @@ class FrameTiming:
     stacked_psd: np.ndarray  # of the frame's residual, rfft bins of the frame
 
 
-def estimate_ml_frame(frame: np.ndarray, template: np.ndarray, start: int, reach: int) -> FrameTiming:
-    """Maximum-likelihood code start of a known cell within ``reach`` samples of ``start``, from
-    everything the cell sends the same in every frame.
-
-    ``frame`` (N,): a stack's mean frame. ``template`` (N,): the cell's known frame
-    (``frontend.templates.known_frame``: codes and CRS), its subframe-0 code starting at sample
-    0. Both repeat every frame, so the circular correlation is exact and the template has no
-    edges. The sync codes are 4 of a frame's 140 symbols, the CRS 40 more: at 10 MHz the
-    template carries ~10 dB more matched-filter energy than the codes alone
-    (``benchmarks/full_frame_template.py``). Its autocorrelation has sidelobes at the CRS comb's
-    period (21.3 samples), beyond the +-``reach`` searched around a code lock.
-
-    White weights (the correlation's maximum, found as ``estimate_ml`` finds it: the best
-    integer lag, then Newton's method). The noise: one stacked frame has no frame-to-frame
-    fluctuation to measure it from, so it is the periodogram of what the fitted template leaves
-    of the frame, averaged over ``2 FRAME_PSD_HALF_WIDTH + 1`` bins. That residual holds
-    everything in the stack that is not this cell: detector noise, the data's self-mixing that
-    stacking did not remove, and the other cells' deterministic envelopes. Those are not noise,
-    but their correlation with this template acts as noise on its delay, so counting them keeps
-    the std honest next to a strong cell. std: sandwich and posterior as in ``estimate_ml``,
-    the posterior on a 1/``FRAME_GRID_FACTOR``-sample grid over +-``FRAME_POSTERIOR_REACH``
-    samples, wider than the search: a code lock a comb period or more off (where the template
-    fits nearly as well) leaves its mass on the true start, and the std says so.
-    """
+def frame_spectrum(frame: np.ndarray) -> np.ndarray:
+    """The rfft of a stack's mean frame, its mean removed: what ``estimate_ml_frame`` takes,
+    computed once for all the stack's cells. ValueError if it is not one finite, varying frame."""
     f = np.asarray(frame, dtype=np.float64)
-    t = check_template(template, min_length=8)
-    if f.shape != t.shape:
-        raise ValueError(f"frame ({f.shape}) and template ({t.shape}) must both be one frame long")
+    if f.ndim != 1 or f.size < 16:
+        raise ValueError(f"frame must be one frame of samples, got shape {f.shape}")
     if not np.all(np.isfinite(f)):
         raise ValueError("frame contains NaN or inf")
-    n = f.size
-    if isinstance(reach, bool) or not isinstance(reach, (int, np.integer)) or not 1 <= reach <= n // 4:
-        raise ValueError(f"reach must be 1..{n // 4} samples, got {reach!r}")
     f = f - f.mean()
     if not np.any(f):
         raise ValueError("frame carries nothing: it is constant (a dead or saturated input?)")
-    spectrum = scipy.fft.rfft(np.roll(f, reach - int(start)))  # the frame from `reach` samples before `start`
-    t_spec = scipy.fft.rfft(t)
+    return scipy.fft.rfft(f)
+
+
+def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, reach: int,
+                      template_spectrum: np.ndarray | None = None) -> FrameTiming:
+    """Maximum-likelihood code start of a known cell within ``reach`` samples of ``start``, from
+    everything the cell sends the same in every frame.
+
+    ``spectrum``: ``frame_spectrum`` of a stack's mean frame (N samples). ``template`` (N,): the
+    cell's known frame (``frontend.templates.known_frame``: codes and CRS), its subframe-0 code
+    starting at sample 0; ``template_spectrum`` its rfft, if the caller keeps it. Both repeat
+    every frame, so the circular correlation is exact and the template has no edges. The sync
+    codes are 4 of a frame's 140 symbols, the CRS 40 more: at 10 MHz the template carries ~10 dB
+    more matched-filter energy than the codes alone (``benchmarks/full_frame_template.py``). Its
+    autocorrelation has sidelobes at the CRS comb's period (21.3 samples), beyond the
+    +-``reach`` searched around a code lock.
+
+    White weights (the correlation's maximum, found as ``estimate_ml`` finds it: the best
+    integer lag, then Newton's method, here to 1e-6 samples). The noise: one stacked frame has
+    no frame-to-frame fluctuation to measure it from, so it is the periodogram of what the
+    fitted template leaves of the frame, averaged over ``2 FRAME_PSD_HALF_WIDTH + 1`` bins. That
+    residual holds everything in the stack that is not this cell: detector noise, the data's
+    self-mixing that stacking did not remove, and the other cells' deterministic envelopes.
+    Those are not noise, but their correlation with this template acts as noise on its delay,
+    so counting them keeps the std honest next to a strong cell. std: sandwich and posterior as
+    in ``estimate_ml``, the posterior on a 1/``FRAME_GRID_FACTOR``-sample grid over
+    +-``FRAME_POSTERIOR_REACH`` samples, wider than the search: a code lock a comb period or more
+    off (where the template fits nearly as well) leaves its mass on the true start, and the std
+    says so. Lags below are stream-frame positions (any real number; the frame is periodic).
+    """
+    t = check_template(template, min_length=16)
+    n = t.size
+    if np.shape(spectrum) != (n // 2 + 1,):
+        raise ValueError(f"spectrum ({np.shape(spectrum)}) is not that of a frame as long as the template ({n})")
+    if isinstance(reach, bool) or not isinstance(reach, (int, np.integer)) or not 1 <= reach <= n // 4:
+        raise ValueError(f"reach must be 1..{n // 4} samples, got {reach!r}")
+    t_spec = scipy.fft.rfft(t) if template_spectrum is None else template_spectrum
     cross = spectrum * np.conj(t_spec)
     cross[0] = 0.0
     problem = _Problem(1, n, int(reach), t, t_spec, cross[None], np.ones(spectrum.size))
     inner, omega = problem.inner, problem.omega
-    correlation = scipy.fft.irfft(cross, n)[: 2 * reach + 1]
+    lags = int(start) - reach + np.arange(2 * reach + 1)  # whole-sample code starts searched
+    correlation = scipy.fft.irfft(cross, n)[lags % n]
     best = int(np.clip(np.argmax(correlation), 1, 2 * reach - 1))
-    near = best + float(np.clip(parabolic_offset(*correlation[best - 1 : best + 2]), -0.5, 0.5))
+    near = lags[best] + float(np.clip(parabolic_offset(*correlation[best - 1 : best + 2]), -0.5, 0.5))
     z = cross[inner]
-    lag = _maximum_near(z, omega, near, max(0.0, best - 1.0), min(2.0 * reach, best + 1.0))
+    lag = _maximum_near(z, omega, near, max(lags[0], lags[best] - 1.0), min(lags[-1], lags[best] + 1.0),
+                        tolerance=1e-6)
 
     power = np.abs(t_spec[inner]) ** 2
-    moved = t_spec[inner] * np.exp(-1j * omega * lag)  # the template with its code at `lag`
+    moved = t_spec[inner] * np.conj(_phases(omega, lag))  # the template with its code at `lag`
     scale = float(np.sum(np.real(spectrum[inner] * np.conj(moved)))) / float(np.sum(power))
     residual = np.abs(spectrum) ** 2
     residual[inner] = np.abs(spectrum[inner] - scale * moved) ** 2
@@ -669,8 +695,8 @@ def estimate_ml_frame(frame: np.ndarray, template: np.ndarray, start: int, reach
     weighted = np.zeros(points // 2 + 1, dtype=complex)
     weighted[inner] = z / (n * s)
     span = max(FRAME_POSTERIOR_REACH, reach)
-    steps = np.arange((reach - span) * FRAME_GRID_FACTOR, (reach + span) * FRAME_GRID_FACTOR + 1)
-    u = scipy.fft.irfft(weighted, points)[steps % points] * (points / 2)  # circular: negative lags wrap
+    steps = np.arange((int(start) - span) * FRAME_GRID_FACTOR, (int(start) + span) * FRAME_GRID_FACTOR + 1)
+    u = scipy.fft.irfft(weighted, points)[steps % points] * (points / 2)  # circular: the frame repeats
     posterior = _posterior_of(steps / FRAME_GRID_FACTOR, u, float(np.sum(power / (n * s))))
     std = _total_std(lag, fit.sandwich_std, posterior)
-    return FrameTiming(TimingEstimate(lag - reach, std, fit.snr_db, "ml_frame"), fit.amplitude, problem.psd)
+    return FrameTiming(TimingEstimate(lag - int(start), std, fit.snr_db, "ml_frame"), fit.amplitude, problem.psd)

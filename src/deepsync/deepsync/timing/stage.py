@@ -36,6 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.fft
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates, code_template, known_frame
@@ -47,6 +48,7 @@ from deepsync.timing.estimators import (
     estimate_ml,
     estimate_ml_frame,
     estimate_parabolic,
+    frame_spectrum,
     noise_psd,
 )
 from deepsync.types import FRAME_SECONDS, CellTiming, Health, HealthKind, StackWindows, SyncWindow
@@ -124,7 +126,7 @@ class TimingStage:
         self.templates = SyncTemplates(frontend)
         self.sample_rate = frontend.adc_rate_hz
         self._single: dict[int, np.ndarray] = {}  # PCI -> template: 3 ms to compute, the same every stack
-        self._frames: dict[tuple[int, float], np.ndarray] = {}  # (PCI, MHz) -> known frame, as costly
+        self._frames: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}  # (PCI, MHz) -> known frame, its rfft
         self.network = None
         if self.config.estimator.uses_network:
             try:
@@ -149,6 +151,7 @@ class TimingStage:
         """Arrivals of one stack's cells (its windows alone, or with its mean frame, which
         ``ml_frame`` needs); what cannot be timed becomes an ``UNTIMEABLE`` event."""
         stack = windows if isinstance(windows, StackWindows) else None
+        spectrum = self._frame_spectrum(stack)
         cells, events, fallbacks, for_network = [], [], [], []
         for window in (windows.windows if stack else windows):
             reason = None if self.network is None else self.network.refusal(
@@ -159,8 +162,8 @@ class TimingStage:
             if reason is not None:
                 fallbacks.append((window.pci, reason))
             try:
-                if self.config.estimator is Estimator.ML_FRAME and self._has_frame(window, stack):
-                    cells.append(self._frame_cell(window, stack))
+                if spectrum is not None and window.bandwidth_mhz is not None:
+                    cells.append(self._frame_cell(window, stack, spectrum))
                     continue
                 cells.append(self.time_cell(window, Estimator.ML if reason else self.config.estimator))
             except ValueError as error:
@@ -201,18 +204,24 @@ class TimingStage:
         estimate = self._estimate(estimator, window.windows, template, margin, psd)
         return self._cell(window, template, psd, estimate.offset, estimate.std, estimator, estimate.snr_db)
 
-    def _has_frame(self, window: SyncWindow, stack: StackWindows | None) -> bool:
-        """Whether ``window``'s cell can be timed by its whole frame: its bandwidth known, the
-        stack's mean frame sent, one frame long at this stage's rate."""
-        return (window.bandwidth_mhz is not None and stack is not None and stack.frame is not None
-                and stack.frame.size == round(self.sample_rate * FRAME_SECONDS))
+    def _frame_spectrum(self, stack: StackWindows | None) -> np.ndarray | None:
+        """The spectrum of the stack's mean frame, if ``ml_frame`` is to use it: sent, one frame
+        long at this stage's rate, finite and varying (else its cells are timed on their windows,
+        which then say what is wrong)."""
+        if (self.config.estimator is not Estimator.ML_FRAME or stack is None or stack.frame is None
+                or stack.frame.size != round(self.sample_rate * FRAME_SECONDS)):
+            return None
+        try:
+            return frame_spectrum(stack.frame)
+        except ValueError:
+            return None
 
-    def _frame_cell(self, window: SyncWindow, stack: StackWindows) -> CellTiming:
+    def _frame_cell(self, window: SyncWindow, stack: StackWindows, spectrum: np.ndarray) -> CellTiming:
         """A cell timed by its known frame (``estimate_ml_frame``) within the windows' margin
         of the sync stage's coarse code start."""
-        template, codes = self._known_frame(window), self._template(window)
+        (template, template_spectrum), codes = self._known_frame(window), self._template(window)
         start = (window.coarse_index - stack.first_sample_index) % len(template)
-        timing = estimate_ml_frame(stack.frame, template, start, self._margin(window, codes))
+        timing = estimate_ml_frame(spectrum, template, start, self._margin(window, codes), template_spectrum)
         estimate = timing.estimate
         bound = delay_crlb(template, timing.amplitude, timing.stacked_psd, 1, self.sample_rate, len(template))
         noise = float(np.mean(timing.stacked_psd))
@@ -229,14 +238,16 @@ class TimingStage:
             amplitude=timing.amplitude * float(np.sqrt(np.mean(codes**2))),
         )
 
-    def _known_frame(self, window: SyncWindow) -> np.ndarray:
-        """The cell's known frame: a single PCI's is kept, a pair's built from its fit."""
+    def _known_frame(self, window: SyncWindow) -> tuple[np.ndarray, np.ndarray | None]:
+        """The cell's known frame and, for a single PCI (kept), its spectrum; a pair's is built
+        from its fit."""
         if window.cosited_pci is not None:
             return known_frame(self.templates, window.pci, window.bandwidth_mhz, window.cosited_pci,
-                               window.site_coefficients)
+                               window.site_coefficients), None
         key = (window.pci, window.bandwidth_mhz)
         if key not in self._frames:
-            self._frames[key] = known_frame(self.templates, window.pci, window.bandwidth_mhz)
+            template = known_frame(self.templates, window.pci, window.bandwidth_mhz)
+            self._frames[key] = (template, scipy.fft.rfft(template))
         return self._frames[key]
 
     @staticmethod
