@@ -661,7 +661,10 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     in ``estimate_ml``, the posterior on a 1/``FRAME_GRID_FACTOR``-sample grid over
     +-``FRAME_POSTERIOR_REACH`` samples, wider than the search: a code lock a comb period or more
     off (where the template fits nearly as well) leaves its mass on the true start, and the std
-    says so. Lags below are stream-frame positions (any real number; the frame is periodic).
+    says so; where the best fit over that span is within the reach searched, the code lock is
+    believed and the posterior spans the reach only (else stacks the comb's sidelobes nearly
+    pass would all be told they might be a period off). Lags below are positions in the frame
+    (any real number; the frame is periodic).
     """
     t = check_template(template, min_length=16)
     n = t.size
@@ -697,6 +700,10 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     span = max(FRAME_POSTERIOR_REACH, reach)
     steps = np.arange((int(start) - span) * FRAME_GRID_FACTOR, (int(start) + span) * FRAME_GRID_FACTOR + 1)
     u = scipy.fft.irfft(weighted, points)[steps % points] * (points / 2)  # circular: the frame repeats
-    posterior = _posterior_of(steps / FRAME_GRID_FACTOR, u, float(np.sum(power / (n * s))))
+    lags = steps / FRAME_GRID_FACTOR
+    searched = np.abs(lags - int(start)) <= reach
+    if searched[np.argmax(u)]:  # the code lock agrees with the frame: the prior is the reach searched
+        lags, u = lags[searched], u[searched]
+    posterior = _posterior_of(lags, u, float(np.sum(power / (n * s))))
     std = _total_std(lag, fit.sandwich_std, posterior)
     return FrameTiming(TimingEstimate(lag - int(start), std, fit.snr_db, "ml_frame"), fit.amplitude, problem.psd)
