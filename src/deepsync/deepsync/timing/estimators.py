@@ -166,8 +166,9 @@ def _smoothed(psd: np.ndarray, half: int) -> np.ndarray:
     ends); its DC bin, empty for zero-mean data and never used, copies the next one."""
     if half > 0:
         inner = psd[1:]
-        padded = np.concatenate([inner[half:0:-1], inner, inner[-2 : -half - 2 : -1]])
-        inner = np.convolve(padded, np.ones(2 * half + 1) / (2 * half + 1), mode="valid")
+        padded = np.concatenate([[0.0], inner[half:0:-1], inner, inner[-2 : -half - 2 : -1]])
+        running = np.cumsum(padded)  # a moving average as differences of a running sum: O(bins)
+        inner = (running[2 * half + 1 :] - running[: -2 * half - 1]) / (2 * half + 1)
         psd = np.concatenate([psd[:1], inner[: psd.size - 1]])
     psd[0] = psd[1]
     return psd
