@@ -16,7 +16,7 @@ video filter delays the envelope by about one sample at 1.92 MHz).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import lru_cache
 
 import numpy as np
@@ -295,7 +295,7 @@ def code_template(
     return np.asarray(site_coefficients, dtype=np.float64) @ templates.pair_shapes(pair, subframe, delay_samples)
 
 
-def place_codes(frame: int, codes) -> np.ndarray:
+def place_codes(frame: int, codes: Callable[[int], np.ndarray]) -> np.ndarray:
     """(..., frame) the sync codes of subframes 0 and 5 (``codes(subframe)`` -> (..., L)), each
     made zero-mean, at the start and the middle of a frame."""
     first = np.asarray(codes(0))

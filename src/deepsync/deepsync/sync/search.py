@@ -184,7 +184,8 @@ class CellSearch:
         self.allowed = np.arange(N_CELL_IDS) if allowed_pcis is None else np.unique(allowed_pcis)
         if self.allowed.size == 0 or self.allowed.min() < 0 or self.allowed.max() >= N_CELL_IDS:
             raise ValueError("allowed_pcis must be PCIs in 0..503")
-        self._cache: dict[tuple, np.ndarray | _KnownFrame] = {}  # template spectra by kind and length (CRS: PCI, bandwidth; known frames: PCI)
+        # template spectra by kind and length (CRS: PCI, bandwidth), known frames by PCI
+        self._cache: dict[tuple, np.ndarray | _KnownFrame] = {}
         self.sites = (SiteSearch(templates, cosited_pairs, self.allowed, PHASES)
                       if cosited_pairs and self.full_code_timing and self.config.site_hypotheses else None)
 
@@ -348,7 +349,7 @@ class CellSearch:
 
     def _hold_by_frame(self, state: _SearchState, expected: Sequence[ExpectedCell]) -> None:
         """Confirmed cells of known bandwidth that their codes no longer show: held if their whole
-        known frame (codes and CRS, ``frontend.templates.known_frame``) is where their code
+        known frame (codes and CRS, ``SyncTemplates.frame_template``) is where their code
         should be, at the tracking threshold over the same ``track_lags`` and phases.
 
         The CRS adds 40 symbols per frame to the codes' 4: at 10 MHz about 8 dB of SNR for a
@@ -391,7 +392,8 @@ class CellSearch:
         if key not in self._cache:
             full = self.templates.frame_template(pci, self.bandwidths[pci], PHASES)
             norm = float(np.linalg.norm(full[0]))
-            codes = sum(float(np.sum((t - t.mean()) ** 2)) for t in (self.templates.template(pci, s, 0.0) for s in (0, 5)))
+            codes = sum(float(np.sum((t - t.mean()) ** 2))
+                        for t in (self.templates.template(pci, subframe, 0.0) for subframe in (0, 5)))
             self._cache[key] = _KnownFrame(template_spectra(full / norm, frame), norm,
                                            codes / norm**2 / (2 * self.templates.length))
         return self._cache[key]

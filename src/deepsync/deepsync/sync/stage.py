@@ -180,7 +180,7 @@ class SyncStage:
         reported = {c.pci for c in cells if streaks[c.pci] >= self.config.confirm_stacks
                     and c.detection.peak_metric >= self.config.report_z}
         self._follow(stack, cells, streaks)
-        known_frame = any(c.window.bandwidth_mhz is not None for c in cells if c.pci in reported)
+        frame_wanted = any(c.window.bandwidth_mhz is not None for c in cells if c.pci in reported)
         return SyncResult(
             stamp_ns=stack.stamp_ns,
             first_sample_index=stack.first_sample_index,
@@ -193,7 +193,7 @@ class SyncStage:
             tentative=tuple(c for c in cells if c.pci not in reported),
             clock_drift_ppm=self.stacker.measured_drift_ppm,
             searched=discover,
-            frame=stack.mean if known_frame else None,
+            frame=stack.mean if frame_wanted else None,
         )
 
     def _window(self, stack: Stack, detection: CellDetection) -> SyncWindow:
