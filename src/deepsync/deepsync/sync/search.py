@@ -371,7 +371,7 @@ class CellSearch:
                 return
             known = self._known_frame(cell.pci, frame)
             correlations = correlate(spectrum, known.spectra, frame)
-            spread = mad_spread(correlations, centre=0.0)
+            spread = mad_spread(correlations[:, ::4], centre=0.0)  # every 4th lag, as _normalised
             lags = (round(cell.frame_offset) + np.arange(-self.config.track_lags, self.config.track_lags + 1)) % frame
             block = correlations[:, lags] / spread  # (PHASES, lags)
             if block.max() < cfar_threshold(self.config.false_alarm_rate, block.size):
