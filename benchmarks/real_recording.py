@@ -6,8 +6,8 @@ with more gain would have written it), both read as a source with the default en
 the search's code positions and the timing stage's arrivals lie from the coherent timing
 (median over stacks and spread across them, samples; 1 sample = 156 m). The database gives no
 bandwidth, so the cells are timed on their code windows (ML); the recording is also run with
-the database claiming 5, 10 and 20 MHz for every cell, so that each cell's whole known frame is
-fitted (``ml_frame``). Needs ``../shared/data/real_lte``.
+the database claiming 1.4 and 10 MHz for every cell, so that each cell's whole known frame is
+fitted (``ml_frame``), as far as the recording's 1.92 MHz passband shows it. Needs ``../shared/data/real_lte``.
 
     .venv/bin/python benchmarks/real_recording.py   # -> docs/results/real_recording.json
 """
@@ -31,7 +31,9 @@ REPO = Path(__file__).resolve().parents[1]
 RECORDING = REPO.parent / "shared" / "data" / "real_lte" / "f1860_s1.92_g0_1s_strong_rtlsdr.bin"
 TOWERS = REPO / "config" / "towers" / "real_lte_1860.yaml"
 OUT = REPO / "docs" / "results" / "real_recording.json"
-BANDWIDTHS_MHZ = (5.0, 10.0, 20.0)  # LTE carriers of band 3; the recording's is not known
+# the recording's carrier is not known; through its 1.92 MHz passband every carrier of 3 MHz or
+# more gives the same CRS template (10 MHz stands for them), 1.4 MHz only the middle 72 subcarriers
+BANDWIDTHS_MHZ = (1.4, 10.0)
 
 
 def offset(reference, position: float) -> float:

@@ -14,7 +14,7 @@ from deepsync.frontend.simulator import EnvelopeSimulator
 from deepsync.frontend.templates import SyncTemplates, code_template, known_frame, sync_code_offset_seconds
 from deepsync.frontend.video import VideoFilter
 from deepsync.lte.cell import CellConfig
-from deepsync.sources import BagSource
+from deepsync.sources import BagSource, squared_iq_frontend
 from deepsync.sync.search import CellDetection, CellSearch, ExpectedCell, SearchConfig
 from deepsync.sync.sites import SiteFit
 from deepsync.sync.stacking import FrameStacker, StackConfig
@@ -644,6 +644,16 @@ def test_a_tracked_cell_its_codes_miss_is_held_by_its_whole_frame(templates):
             found[name] += [d.frame_offset + d.fraction for d in search.search(stacked, expected, discover=False)]
     assert len(found["frame"]) == 6 and len(found["codes"]) <= 2 and len(found["no bandwidth"]) <= 2
     assert all(abs(start - code) < 1.0 for start in found["frame"])
+
+
+def test_an_iq_radios_passband_slices_a_cells_crs(templates):
+    """An I/Q recording at 1.92 MS/s squared afterwards saw only the middle 1.92 MHz of a carrier:
+    the CRS template there is the same for every carrier of 3 MHz or more (the CRS sequence is
+    indexed from the carrier's centre), where the envelope detector's whole-carrier CRS differs."""
+    iq = SyncTemplates(squared_iq_frontend(1.92e6))
+    wide, wider = iq.crs_envelope(142, 10), iq.crs_envelope(142, 20)
+    np.testing.assert_allclose(wide, wider, atol=1e-9 * np.abs(wide).max())
+    assert np.corrcoef(templates.crs_envelope(142, 10), templates.crs_envelope(142, 20))[0, 1] < 0.9
 
 
 def test_a_strong_cells_crs_is_modelled_at_the_bandwidth_the_database_gives(templates, strong_cell_frames):

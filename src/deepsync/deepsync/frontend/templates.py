@@ -31,6 +31,7 @@ from deepsync.lte.frame import FrameGenerator
 from deepsync.lte.numerology import (
     BASE_FFT,
     BASE_RATE_HZ,
+    SUBCARRIER_SPACING_HZ,
     SYNC_CODE_BASE_SAMPLES,
     Numerology,
     sync_code_start_base,
@@ -200,9 +201,10 @@ class SyncTemplates:
 
     def crs_envelope(self, pci: int, bandwidth_mhz: float) -> np.ndarray:
         """(frame,) one frame of a cell's cell-specific reference signals (port 0) in the
-        envelope, the frame starting at sample 0: |CRS|^2 through the video filter and the AC
-        coupling, per unit RE power, with its mean over each of the cell's OFDM symbols removed
-        (the load-dependent pedestal of the data there is unknown). Sent the same in every
+        envelope, the frame starting at sample 0: |CRS|^2 of the subcarriers within the front
+        end's RF passband (``rf_bandwidth_hz``), through the video filter and the AC coupling,
+        per unit RE power, with its mean over each of the cell's OFDM symbols removed (the
+        load-dependent pedestal of the data there is unknown). Sent the same in every
         frame, it survives stacking as the sync codes do; a strong cell's, over long stacks,
         rises above the search's threshold (``deepsync.sync.search``). Cached."""
         key = (pci, round(10 * bandwidth_mhz))
@@ -211,6 +213,10 @@ class SyncTemplates:
             grid = FrameGenerator(CellConfig(pci=pci, bandwidth_mhz=bandwidth_mhz), seed=0).deterministic_grid
             for slot in G.SYNC_SLOTS:  # the sync codes have templates of their own
                 grid[[G.frame_symbol(slot, G.SSS_SYMBOL_IN_SLOT), G.frame_symbol(slot, G.PSS_SYMBOL_IN_SLOT)]] = 0
+            # what the RF passband lets through: all of any carrier for an envelope detector
+            # behind a band filter, only the middle of it for an I/Q radio squared afterwards
+            outside = np.abs(numerology.subcarrier_offsets()) * SUBCARRIER_SPACING_HZ > self.config.rf_bandwidth_hz / 2
+            grid[:, outside] = 0
             shape = self._periodic_response(np.abs(modulate(grid, numerology)) ** 2, numerology.sample_rate_hz)
             frame = len(shape)
             starts = np.round(Numerology.for_bandwidth(1.4).symbol_starts * self.sample_rate / BASE_RATE_HZ)

@@ -154,10 +154,12 @@ def envelope_codes(values: np.ndarray, sample_format: SampleFormat | str, scale:
 
 def squared_iq_frontend(sample_rate: float) -> FrontendConfig:
     """The front end equivalent to squaring an I/Q recording digitally: no video filter (the
-    radio's channel filter acts before the square) and no AC coupling. Templates built with it
-    match the envelope codes of such a recording at ``sample_rate``."""
+    radio's channel filter acts before the square), no AC coupling, and an RF passband as wide
+    as the sample rate: the radio saw only the middle of a wider carrier, so a cell's CRS
+    template holds only the subcarriers there. Templates built with it match the envelope codes
+    of such a recording at ``sample_rate``."""
     default = FrontendConfig.video_cutoff_hz
     # The cutoff is unused without a video filter, but FrontendConfig wants it below the rate.
     cutoff = default if default < sample_rate else sample_rate / 2
     return FrontendConfig(adc_rate_hz=sample_rate, video_filter_order=0, video_highpass_hz=0.0,
-                          video_cutoff_hz=cutoff)
+                          video_cutoff_hz=cutoff, rf_bandwidth_hz=sample_rate)
