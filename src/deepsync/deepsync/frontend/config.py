@@ -50,8 +50,9 @@ FRONTEND_RANGES: dict[str, tuple[float, float, str]] = {
     "noise_figure_db": (0.0, 100.0, "dB"),
     # a bare diode (0 dB) to two LNA stages; more would drive the diode out of its square law
     "rf_gain_db": (0.0, 60.0, "dB"),
-    # the narrowest LTE carrier (1.4 MHz) up to an unfiltered wideband input (6 GHz)
-    "rf_bandwidth_hz": (1e6, 6e9, "Hz"),
+    # an I/Q radio's passband at its sample rate (as narrow as adc_rate_hz) up to an unfiltered
+    # wideband input (6 GHz)
+    "rf_bandwidth_hz": (0.1e6, 6e9, "Hz"),
     # 0 switches the RF noise off; electronics run at 233..358 K (-40..85 C), an antenna
     # seeing hot surroundings somewhat more
     "noise_temperature_k": (0.0, 1000.0, "K"),
