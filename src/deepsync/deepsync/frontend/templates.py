@@ -102,8 +102,8 @@ class SyncTemplates:
         self._highpass = highpass_sos(config, config.adc_rate_hz)
         self._grid: dict[tuple[int, ...], np.ndarray] = {}  # shapes on a fraction grid, by PCI(s) and subframe
         self._filters: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}  # (n_fft, rate) -> (f, H(f))
-        self._crs: dict[tuple[int, int], np.ndarray] = {}  # (PCI, 10 x bandwidth) -> CRS envelope of a frame
-        self._code_aligned_crs: dict[tuple[int, int], np.ndarray] = {}  # the same, its code starting at 0
+        self._crs: dict[tuple[int, ...], np.ndarray] = {}  # (PCI(s), 10 x bandwidth) -> CRS envelope(s) of a frame
+        self._code_aligned_crs: dict[tuple, np.ndarray] = {}  # the same, its code starting at 0
 
     def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0,
                  length: int | None = None) -> np.ndarray:
@@ -209,21 +209,40 @@ class SyncTemplates:
         rises above the search's threshold (``deepsync.sync.search``). Cached."""
         key = (pci, round(10 * bandwidth_mhz))
         if key not in self._crs:
-            numerology = _numerology_for_rate(bandwidth_mhz, self.sample_rate)
-            grid = FrameGenerator(CellConfig(pci=pci, bandwidth_mhz=bandwidth_mhz), seed=0).deterministic_grid
-            for slot in G.SYNC_SLOTS:  # the sync codes have templates of their own
-                grid[[G.frame_symbol(slot, G.SSS_SYMBOL_IN_SLOT), G.frame_symbol(slot, G.PSS_SYMBOL_IN_SLOT)]] = 0
-            # what the RF passband lets through: all of any carrier for an envelope detector
-            # behind a band filter, only the middle of it for an I/Q radio squared afterwards
-            outside = np.abs(numerology.subcarrier_offsets()) * SUBCARRIER_SPACING_HZ > self.config.rf_bandwidth_hz / 2
-            grid[:, outside] = 0
-            shape = self._periodic_response(np.abs(modulate(grid, numerology)) ** 2, numerology.sample_rate_hz)
-            frame = len(shape)
-            starts = np.round(Numerology.for_bandwidth(1.4).symbol_starts * self.sample_rate / BASE_RATE_HZ)
-            symbol = np.searchsorted(starts.astype(int), np.arange(frame), side="right") - 1
-            shape -= (np.bincount(symbol, shape) / np.bincount(symbol))[symbol]
-            self._crs[key] = shape
+            waveform, rate = self._crs_waveform(pci, bandwidth_mhz)
+            self._crs[key] = self._symbol_demeaned(self._periodic_response(np.abs(waveform) ** 2, rate))
         return self._crs[key]
+
+    def crs_cross_envelopes(self, pci_a: int, pci_b: int, bandwidth_mhz: float) -> np.ndarray:
+        """(2, frame) the envelopes of 2Re(x_a x_b*) and 2Im(x_a x_b*) of two co-sited sectors'
+        CRS (``crs_envelope``'s units and treatment), frames starting at sample 0: what the
+        square law makes of the two together beyond each one's own, scaled by the channels'
+        product as the codes' cross terms are (``cross_terms``). Cached."""
+        key = (pci_a, pci_b, round(10 * bandwidth_mhz))
+        if key not in self._crs:
+            (a, rate), (b, _) = (self._crs_waveform(pci, bandwidth_mhz) for pci in (pci_a, pci_b))
+            product = a * np.conj(b)
+            self._crs[key] = np.stack([self._symbol_demeaned(self._periodic_response(2 * part, rate))
+                                       for part in (product.real, product.imag)])
+        return self._crs[key]
+
+    def _crs_waveform(self, pci: int, bandwidth_mhz: float) -> tuple[np.ndarray, float]:
+        """One frame of a cell's port-0 CRS at its numerology's rate, the subcarriers outside the
+        front end's RF passband left out (an envelope detector behind a band filter sees all of
+        any carrier, an I/Q radio squared afterwards only its middle), and that rate."""
+        numerology = _numerology_for_rate(bandwidth_mhz, self.sample_rate)
+        grid = FrameGenerator(CellConfig(pci=pci, bandwidth_mhz=bandwidth_mhz), seed=0).deterministic_grid
+        for slot in G.SYNC_SLOTS:  # the sync codes have templates of their own
+            grid[[G.frame_symbol(slot, G.SSS_SYMBOL_IN_SLOT), G.frame_symbol(slot, G.PSS_SYMBOL_IN_SLOT)]] = 0
+        outside = np.abs(numerology.subcarrier_offsets()) * SUBCARRIER_SPACING_HZ > self.config.rf_bandwidth_hz / 2
+        grid[:, outside] = 0
+        return modulate(grid, numerology), numerology.sample_rate_hz
+
+    def _symbol_demeaned(self, shape: np.ndarray) -> np.ndarray:
+        """A frame's envelope less its mean over each OFDM symbol (ADC rate)."""
+        starts = np.round(Numerology.for_bandwidth(1.4).symbol_starts * self.sample_rate / BASE_RATE_HZ)
+        symbol = np.searchsorted(starts.astype(int), np.arange(len(shape)), side="right") - 1
+        return shape - (np.bincount(symbol, shape) / np.bincount(symbol))[symbol]
 
     def frame_template(self, pci: int, bandwidth_mhz: float, phases: Sequence[float]) -> np.ndarray:
         """(phases, frame) everything a cell sends the same in every frame, as the envelope
@@ -240,21 +259,28 @@ class SyncTemplates:
         crs = self.placed_crs(pci, bandwidth_mhz, delays)
         return place_codes(crs.shape[1], lambda subframe: self.template(pci, subframe, delays)) + crs
 
-    def code_aligned_crs(self, pci: int, bandwidth_mhz: float) -> np.ndarray:
-        """(frame,) ``placed_crs`` with the subframe-0 code starting at sample 0. Cached."""
-        key = (pci, round(10 * bandwidth_mhz))
+    def code_aligned_crs(self, pci: int, bandwidth_mhz: float, cosited_pci: int | None = None) -> np.ndarray:
+        """(frame,) ``placed_crs`` with the subframe-0 code starting at sample 0; with a
+        ``cosited_pci``, (2, frame) the two sectors' ``crs_cross_envelopes`` so placed. Cached."""
+        key = (pci, round(10 * bandwidth_mhz), cosited_pci)
         if key not in self._code_aligned_crs:
-            self._code_aligned_crs[key] = self.placed_crs(pci, bandwidth_mhz, np.zeros(1))[0]
+            envelope = (self.crs_envelope(pci, bandwidth_mhz) if cosited_pci is None
+                        else self.crs_cross_envelopes(pci, cosited_pci, bandwidth_mhz))
+            self._code_aligned_crs[key] = self._placed(envelope, np.zeros(1))[..., 0, :]
         return self._code_aligned_crs[key]
 
     def placed_crs(self, pci: int, bandwidth_mhz: float, delays: np.ndarray) -> np.ndarray:
         """(delays, frame) ``crs_envelope`` moved so that the subframe-0 code would start at
         each of ``delays`` samples (band-limited shifts)."""
-        envelope = self.crs_envelope(pci, bandwidth_mhz)
-        frame = len(envelope)
+        return self._placed(self.crs_envelope(pci, bandwidth_mhz), delays)
+
+    def _placed(self, envelopes: np.ndarray, delays: np.ndarray) -> np.ndarray:
+        """(..., delays, frame) frame envelopes (..., frame), their frame starting at sample 0,
+        moved so that the subframe-0 code would start at each of ``delays`` samples."""
+        frame = envelopes.shape[-1]
         shift = np.asarray(delays, dtype=float)[:, None] - sync_code_offset_seconds() * self.sample_rate  # the frame's start
         ramp = np.exp(-2j * np.pi * scipy.fft.rfftfreq(frame) * shift)
-        return scipy.fft.irfft(scipy.fft.rfft(envelope) * ramp, frame)
+        return scipy.fft.irfft(scipy.fft.rfft(envelopes, axis=-1)[..., None, :] * ramp, frame, axis=-1)
 
     def _periodic_response(self, envelope: np.ndarray, rate_hz: float) -> np.ndarray:
         """ADC-rate samples of one period of a periodic envelope (at ``rate_hz``, a whole number
@@ -321,18 +347,18 @@ def known_frame(
 ) -> np.ndarray:
     """(frame,) everything a detected cell of known bandwidth sends the same in every frame, its
     subframe-0 code starting at sample 0: ``SyncTemplates.frame_template``, or for two co-sited
-    sectors found together (``code_template``) their fitted code model in subframes 0 and 5
-    plus each sector's CRS scaled by its fitted code power (the |s_a|^2 and |s_b|^2
-    coefficients: CRS and codes are sent at the same power per RE). The sectors' CRS also mix
-    with each other in the square law; that cross term depends on their unknown relative phase
-    at the receiver and is left out (it stays in what the template does not explain)."""
+    sectors found together (``code_template``) their fitted code model in subframes 0 and 5,
+    and their CRS with the same four coefficients: each sector's own (|s_a|^2 and |s_b|^2: CRS
+    and codes are sent at the same power per RE) and the two sectors' cross terms (2Re and
+    2Im: the same product of their channels, taken as flat across the carrier)."""
     if cosited_pci is None:
         return templates.frame_template(pci, bandwidth_mhz, [0.0])[0]
     if site_coefficients is None or len(site_coefficients) != 4:
         raise ValueError(f"PCI {pci} with co-sited PCI {cosited_pci}: the pair's 4 site coefficients are needed")
     lower, higher = sorted((pci, cosited_pci))
-    crs = sum(max(float(scale), 0.0) * templates.code_aligned_crs(cell, bandwidth_mhz)
-              for cell, scale in ((lower, site_coefficients[0]), (higher, site_coefficients[1])))
+    own_a, own_b, real, imaginary = (float(c) for c in site_coefficients)
+    crs = (own_a * templates.code_aligned_crs(lower, bandwidth_mhz) + own_b * templates.code_aligned_crs(higher, bandwidth_mhz)
+           + np.array([real, imaginary]) @ templates.code_aligned_crs(lower, bandwidth_mhz, higher))
     return place_codes(len(crs), lambda subframe: code_template(
         templates, pci, cosited_pci, site_coefficients, subframe)) + crs
 
