@@ -50,7 +50,7 @@ def test_the_pipeline_reproduces_the_cell_search_of_main_on_the_bundled_bag(camp
     assert len(got) == len(expected) == 30
     for stack, (mine, theirs) in enumerate(zip(got, expected)):
         assert [pci for pci, _ in mine] == [pci for pci, _ in theirs], f"stack {stack}"
-        np.testing.assert_allclose([toa for _, toa in mine], [toa for _, toa in theirs], atol=2e-6)
+        np.testing.assert_allclose([toa for _, toa in mine], [toa for _, toa in theirs], rtol=0, atol=2e-6)
 
 
 def test_every_confirmed_cell_is_timed_near_its_truth_with_an_honest_sigma(campus):
