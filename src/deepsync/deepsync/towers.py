@@ -13,7 +13,10 @@ oscillator: a site 20 ppb fast drifts by -20 ns/s). The ``*_std_*`` keys are the
 uncertainties, as a calibration reports them (``deepsync calibrate``).
 
 A cell may give its channel bandwidth (``bandwidth_mhz``, an LTE bandwidth): the cell search
-then models its CRS at that bandwidth alone, rather than fitting each of the six.
+then models its CRS at that bandwidth alone, rather than fitting each of the six, holds the
+cell through fades by its whole known frame (codes and CRS), and the timing stage times it by
+that frame (``ml_frame``): 2-4x closer to the truth than by its codes alone. Without one, the
+codes alone.
 
 Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
 by carrier: a cell without one would silently drop out of the pair search), a PCI appears at
