@@ -15,8 +15,8 @@ uncertainties, as a calibration reports them (``deepsync calibrate``).
 A cell may give its channel bandwidth (``bandwidth_mhz``, an LTE bandwidth): the cell search
 then models its CRS at that bandwidth alone, rather than fitting each of the six, holds the
 cell through fades by its whole known frame (codes and CRS), and the timing stage times it by
-that frame (``ml_frame``): on the campus bag 0.02 samples RMS from the truth, against 0.08-0.11 by its codes alone. Without one, the
-codes alone.
+that frame (``ml_frame``): on the campus bag 0.02 samples RMS from the truth, against 0.08-0.11
+by its codes alone. Without one, the codes alone.
 
 Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
 by carrier: a cell without one would silently drop out of the pair search), a PCI appears at
