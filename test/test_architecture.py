@@ -62,7 +62,7 @@ def test_only_the_pipeline_chains_stages():
 
 def test_sync_holds_only_the_cell_search():
     assert sorted(p.stem for p in (CORE / "sync").glob("*.py")) == [
-        "__init__", "correlation", "search", "sites", "stacking", "stage", "windows"]
+        "__init__", "bandwidths", "correlation", "search", "sites", "stacking", "stage", "windows"]
 
 
 @pytest.mark.parametrize("pattern, home", [

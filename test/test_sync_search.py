@@ -1,10 +1,12 @@
 """Frame stacking, envelope-domain cell search, windows and the sync stage."""
 
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.fft
+import yaml
 
 from deepsync.bag import read_envelope
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk, HealthKind, Severity
@@ -677,6 +679,35 @@ def test_a_tracked_cell_its_codes_miss_is_held_by_its_whole_frame(templates):
             found[name] += [d.frame_offset + d.fraction for d in search.search(stacked, expected, discover=False)]
     assert len(found["frame"]) == 6 and len(found["codes"]) <= 2 and len(found["no bandwidth"]) <= 2
     assert all(abs(start - code) < 1.0 for start in found["frame"])
+
+
+def test_a_cells_bandwidth_is_learned_where_the_database_gives_none():
+    """The campus database without its bandwidths: each confirmed cell's stacks vote for the LTE
+    bandwidth whose known frame explains them best, and after 5 agreeing votes it is the cell's
+    (10 MHz, as sent), so its windows carry it and the stack's frame goes along for ml_frame.
+    A 5 MHz cell is learned as 5 MHz, not as the campus's 10. Switched off, nothing is learned."""
+    text = (REPO / "config" / "towers" / "campus.yaml").read_text()
+    towers = parse_tower_database(yaml.safe_load(re.sub(r",\s*bandwidth_mhz:\s*[0-9.]+", "", text)))
+    assert towers.bandwidths() == {}
+    source = BagSource(REPO / "bags" / "campus")
+    stage = SyncStage(source.frontend, towers=towers)
+    results = [r for chunk in source.chunks() for r in stage.process(chunk)]
+    assert stage.search.bandwidths == {56: 10.0, 120: 10.0, 121: 10.0, 301: 10.0}
+    assert all(w.bandwidth_mhz == 10.0 for w in results[-1].windows) and results[-1].frame is not None
+    assert any(r.cells and r.frame is None for r in results)  # the first stacks, before the votes
+    off = SyncStage(source.frontend, SyncConfig(learn_bandwidths=False), towers)
+    for chunk in source.chunks():
+        off.process(chunk)
+    assert off.search.bandwidths == {}
+
+    cell = Emitter(CellConfig(pci=200, bandwidth_mhz=5, load=0.6), 2115e6, 1.0, 0.0, 0.0, "5 MHz")
+    sim = EnvelopeSimulator([cell], FixedChannel([Paths([1e-6], [np.sqrt(10 ** ((-80 - 30) / 10))], [0.0])]),
+                            FrontendConfig(), seed=8)
+    narrow = SyncStage(FrontendConfig(), towers=parse_tower_database(
+        {"name": "five", "sites": [{"name": "S", "cells": [{"pci": 200}, {"pci": 17}]}]}))
+    for chunk in sim.stream(0.9, workers=2):
+        narrow.process(chunk)
+    assert narrow.search.bandwidths == {200: 5.0}
 
 
 def test_an_iq_radios_passband_slices_a_cells_crs(templates):

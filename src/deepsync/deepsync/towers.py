@@ -16,7 +16,8 @@ A cell may give its channel bandwidth (``bandwidth_mhz``, an LTE bandwidth): the
 then models its CRS at that bandwidth alone, rather than fitting each of the six, holds the
 cell through fades by its whole known frame (codes and CRS), and the timing stage times it by
 that frame (``ml_frame``): on the campus bag 0.02 samples RMS from the truth, against 0.08-0.11
-by its codes alone. Without one, the codes alone.
+by its codes alone. Without one, the sync stage learns it from the cell's stacks once the cell
+is confirmed (``deepsync.sync.bandwidths``); until then, the codes alone.
 
 Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
 by carrier: a cell without one would silently drop out of the pair search), a PCI appears at

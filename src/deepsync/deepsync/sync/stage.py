@@ -21,6 +21,8 @@ only a few lags are tested (and, where the tower database gives their bandwidth,
 whole known frame when their codes miss: ``SearchConfig.hold_by_frame``), and for
 ``hold_stacks`` more stacks after one they were missed in (a fade). With such a cell reported,
 the stack's mean frame goes along (``StackWindows.frame``) for the timing stage's ``ml_frame``.
+Where the database gives a confirmed cell no bandwidth, its stacks learn it
+(``deepsync.sync.bandwidths``, ``learn_bandwidths``).
 A confirmed cell held below ``report_z`` sigmas is kept but not reported: below about
 5 sigmas the timing stage's ML estimate breaks down (on the dense walk with 10-frame stacks,
 13-22 % of arrivals a sample or more off at 3.5-4.5 sigmas, 2 % at 5-6). The full search for
@@ -39,6 +41,7 @@ import numpy as np
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.lte.earfcn import downlink_frequency_hz
+from deepsync.sync.bandwidths import BandwidthLearner
 from deepsync.sync.search import CellDetection, CellSearch, ExpectedCell, SearchConfig
 from deepsync.sync.stacking import FrameStacker, Stack, StackConfig
 from deepsync.sync.windows import extract_windows
@@ -56,6 +59,7 @@ class SyncConfig:
     search_every: int = 5  # stacks per full search for new cells; between, the cells found are tracked
     hold_stacks: int = 2  # stacks a confirmed cell is still looked for after a stack it was missed in
     report_z: float = 5.0  # a confirmed cell found below this many sigmas is kept tracked but not reported
+    learn_bandwidths: bool = True  # with a tower database, learn the bandwidth of cells it gives none (sync.bandwidths)
 
     def __post_init__(self) -> None:
         if not 0 <= self.window_margin <= 100:
@@ -144,9 +148,12 @@ class SyncStage:
         self.config = config or SyncConfig()
         self.towers = towers
         self.templates = SyncTemplates(frontend)
-        self.bandwidths = {} if towers is None else towers.bandwidths()
         self.search = CellSearch(self.templates, self.config.search, None if towers is None else towers.pcis,
-                                 None if towers is None else towers.cosited_pairs(), self.bandwidths)
+                                 None if towers is None else towers.cosited_pairs(),
+                                 None if towers is None else towers.bandwidths())
+        # the search's bandwidths are the one source: the database's, and those learned into it
+        self.learner = (BandwidthLearner(self.templates, self.search.bandwidths)
+                        if towers is not None and self.config.learn_bandwidths else None)
         self.stacker = FrameStacker(frontend.adc_rate_hz, self.config.stack)
         self._tracks: dict[int, _Track] = {}  # by PCI
         self._since_search = 0  # stacks since the last full search
@@ -180,6 +187,8 @@ class SyncStage:
         reported = {c.pci for c in cells if streaks[c.pci] >= self.config.confirm_stacks
                     and c.detection.peak_metric >= self.config.report_z}
         self._follow(stack, cells, streaks)
+        if self.learner is not None:
+            self.learner.observe(stack.mean, [c.detection for c in cells if c.pci in reported])
         frame_wanted = any(c.window.bandwidth_mhz is not None for c in cells if c.pci in reported)
         return SyncResult(
             stamp_ns=stack.stamp_ns,
@@ -257,9 +266,10 @@ class SyncStage:
         return self._tracks[cell.pci].streak + 1
 
     def _bandwidth(self, detection: CellDetection) -> float | None:
-        """The channel bandwidth the tower database gives the cell (and its co-sited sector, if
-        found as a pair: both must agree)."""
-        bandwidths = {self.bandwidths.get(pci) for pci in (detection.site.pcis if detection.site else (detection.pci,))}
+        """The channel bandwidth the tower database gives the cell, or that was learned (and its
+        co-sited sector's, if found as a pair: both must agree)."""
+        bandwidths = {self.search.bandwidths.get(pci)
+                      for pci in (detection.site.pcis if detection.site else (detection.pci,))}
         return bandwidths.pop() if len(bandwidths) == 1 else None
 
     def _earfcn(self, pci: int) -> int | None:
