@@ -148,6 +148,10 @@ SYNC = (
     ParamSpec("crs_cancel_z", _SEARCH.crs_cancel_z, "A cell found this many sigmas out also has its CRS cancelled "
               "before weaker cells are sought: over long stacks a strong cell's CRS passes for other cells' codes. "
               "0: never.", range=(0.0, 1000.0)),
+    ParamSpec("hold_by_frame", _SEARCH.hold_by_frame, "Hold a confirmed cell of known bandwidth whose codes a "
+              "stack misses if its whole known frame (codes and CRS) is there."),
+    ParamSpec("learn_bandwidths", _SYNC.learn_bandwidths, "Learn the bandwidth of confirmed cells the tower "
+              "database gives none from their stacks."),
 )
 TIMING = (
     ParamSpec("estimator", _TIMING.estimator.value, "Sub-sample timing estimator.",
@@ -226,13 +230,14 @@ def _config(build: Callable[..., T], specs: tuple[ParamSpec, ...], values: Mappi
 
 def _sync(n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int,
           search_every: int, hold_stacks: int, report_z: float, false_alarm_rate: float, max_cells: int,
-          full_code_timing: bool, crs_cancel_z: float) -> SyncConfig:
+          full_code_timing: bool, crs_cancel_z: float, hold_by_frame: bool, learn_bandwidths: bool) -> SyncConfig:
     return SyncConfig(
         stack=StackConfig(n_frames=n_frames, hop_frames=hop_frames or None, clock_ppm=clock_ppm,
                           track_clock=track_clock),
         search=SearchConfig(false_alarm_rate=false_alarm_rate, max_cells=max_cells, full_code_timing=full_code_timing,
-                            crs_cancel_z=crs_cancel_z),
-        confirm_stacks=confirm_stacks, search_every=search_every, hold_stacks=hold_stacks, report_z=report_z)
+                            crs_cancel_z=crs_cancel_z, hold_by_frame=hold_by_frame),
+        confirm_stacks=confirm_stacks, search_every=search_every, hold_stacks=hold_stacks, report_z=report_z,
+        learn_bandwidths=learn_bandwidths)
 
 
 def _timing(estimator: str, weak_std_samples: float, checkpoint: str) -> TimingConfig:
