@@ -695,6 +695,15 @@ def test_a_cells_bandwidth_is_learned_where_the_database_gives_none():
     assert stage.search.bandwidths == {56: 10.0, 120: 10.0, 121: 10.0, 301: 10.0}
     assert all(w.bandwidth_mhz == 10.0 for w in results[-1].windows) and results[-1].frame is not None
     assert any(r.cells and r.frame is None for r in results)  # the first stacks, before the votes
+    # a PCI the database gives two bandwidths (reused on two carriers) stays unknown, not learned
+    reused = parse_tower_database({"name": "reused", "sites": [
+        {"name": "A", "cells": [{"pci": 56, "earfcn": 2300, "bandwidth_mhz": 5}, {"pci": 301, "earfcn": 2000}]},
+        {"name": "B", "cells": [{"pci": 56, "earfcn": 2000, "bandwidth_mhz": 20}]}]})
+    assert reused.unsized_pcis() == {301} and reused.bandwidths() == {}
+    careful = SyncStage(source.frontend, towers=reused)
+    for chunk in source.chunks():
+        careful.process(chunk)
+    assert careful.search.bandwidths == {301: 10.0}
     off = SyncStage(source.frontend, SyncConfig(learn_bandwidths=False), towers)
     for chunk in source.chunks():
         off.process(chunk)

@@ -117,6 +117,10 @@ class TowerDatabase:
     def pcis(self) -> list[int]:
         return sorted({cell.pci for cell in self.cells})
 
+    def unsized_pcis(self) -> set[int]:
+        """PCIs none of whose cells gives a bandwidth (what the sync stage may learn)."""
+        return {pci for pci in self.pcis if all(cell.bandwidth_mhz is None for cell in self.cells_with_pci(pci))}
+
     def cells_with_pci(self, pci: int) -> list[TowerCell]:
         """Every database cell using ``pci`` (PCIs repeat across a network, on other sites)."""
         return [cell for cell in self.cells if cell.pci == pci]

@@ -33,18 +33,20 @@ AGREEMENT = 0.8  # share of them the winner needs
 
 class BandwidthLearner:
     """Learns the bandwidth of confirmed cells that ``known`` (PCI -> MHz: the database's, and
-    what was learned, updated in place) does not give."""
+    what was learned, updated in place) does not give, of the PCIs in ``learnable`` (those
+    whose database cells give none: a PCI whose cells give different ones stays unknown)."""
 
-    def __init__(self, templates: SyncTemplates, known: dict[int, float]) -> None:
+    def __init__(self, templates: SyncTemplates, known: dict[int, float], learnable: set[int]) -> None:
         self.templates = templates
         self.known = known
+        self.learnable = learnable
         self._votes: dict[int, list[float]] = {}
         self._spectra: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # PCI -> (bandwidths, bins) conj spectra, energies
 
     def observe(self, frame: np.ndarray, cells: Sequence[CellDetection]) -> list[int]:
         """One stack (its mean frame) and the confirmed cells found in it: each cell of unknown
         bandwidth votes; the PCIs whose bandwidth this settled."""
-        pending = [cell for cell in cells if cell.pci not in self.known]
+        pending = [cell for cell in cells if cell.pci not in self.known and cell.pci in self.learnable]
         if not pending:
             return []
         spectrum = scipy.fft.rfft(frame - frame.mean())

@@ -152,7 +152,7 @@ class SyncStage:
                                  None if towers is None else towers.cosited_pairs(),
                                  None if towers is None else towers.bandwidths())
         # the search's bandwidths are the one source: the database's, and those learned into it
-        self.learner = (BandwidthLearner(self.templates, self.search.bandwidths)
+        self.learner = (BandwidthLearner(self.templates, self.search.bandwidths, towers.unsized_pcis())
                         if towers is not None and self.config.learn_bandwidths else None)
         self.stacker = FrameStacker(frontend.adc_rate_hz, self.config.stack)
         self._tracks: dict[int, _Track] = {}  # by PCI
