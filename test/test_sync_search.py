@@ -643,7 +643,7 @@ def test_the_cross_terms_of_two_sectors_crs_are_in_their_stacks():
     for result in reported:
         window = result.cells[0].window
         start = (window.coarse_index - result.first_sample_index) % FRAME
-        a, b, real, imaginary = window.site_coefficients
+        _, _, real, imaginary = window.site_coefficients
         full = known_frame(stage.templates, window.pci, 10, window.cosited_pci, window.site_coefficients)
         own = full - np.array([real, imaginary]) @ stage.templates.code_aligned_crs(120, 10, 121)
         frame = result.frame - result.frame.mean()

@@ -25,6 +25,7 @@ import scipy.fft
 
 from deepsync.frontend.templates import SyncTemplates, known_frame
 from deepsync.lte.numerology import SUPPORTED_BANDWIDTHS_MHZ
+from deepsync.sync.correlation import parseval_weights
 from deepsync.sync.search import CellDetection
 
 VOTES = 5  # stacks a cell's bandwidth is judged on
@@ -43,22 +44,18 @@ class BandwidthLearner:
         self._votes: dict[int, list[float]] = {}
         self._spectra: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # PCI -> (bandwidths, bins) conj spectra, energies
 
-    def observe(self, frame: np.ndarray, cells: Sequence[CellDetection]) -> list[int]:
+    def observe(self, frame: np.ndarray, cells: Sequence[CellDetection]) -> None:
         """One stack (its mean frame) and the confirmed cells found in it: each cell of unknown
-        bandwidth votes; the PCIs whose bandwidth this settled."""
+        bandwidth votes, and a bandwidth enough votes agree on becomes the cell's."""
         pending = [cell for cell in cells if cell.pci not in self.known and cell.pci in self.learnable]
         if not pending:
-            return []
-        spectrum = scipy.fft.rfft(frame - frame.mean())
+            return
+        weighted = scipy.fft.rfft(frame - frame.mean()) * parseval_weights(len(frame))
         omega = 2 * np.pi * scipy.fft.rfftfreq(len(frame))
-        settled = []
         for cell in pending:
-            spectra, energies = self._known_frames(cell.pci, len(frame))
+            spectra, energies = self._known_frames(cell.pci)
             # each template's correlation with the frame at the cell's code start, by Parseval
-            ramp = np.exp(1j * omega * (cell.frame_offset + cell.fraction))
-            weights = np.full(len(omega), 2.0)
-            weights[[0, -1]] = 1.0
-            correlation = np.real(spectra @ (spectrum * ramp * weights)) / len(frame)
+            correlation = np.real(spectra @ (weighted * np.exp(1j * omega * (cell.frame_offset + cell.fraction))))
             explained = np.where(correlation > 0, correlation**2 / energies, 0.0)
             votes = self._votes.setdefault(cell.pci, [])
             votes.append(SUPPORTED_BANDWIDTHS_MHZ[int(np.argmax(explained))])
@@ -67,15 +64,11 @@ class BandwidthLearner:
                 if count >= AGREEMENT * VOTES:
                     self.known[cell.pci] = best
                     del self._votes[cell.pci]
-                    settled.append(cell.pci)
-        return settled
 
-    def _known_frames(self, pci: int, frame: int) -> tuple[np.ndarray, np.ndarray]:
+    def _known_frames(self, pci: int) -> tuple[np.ndarray, np.ndarray]:
         """Conjugate spectra (bandwidths, bins) of a PCI's known frame at every LTE bandwidth,
         code at sample 0, and their energies. Cached."""
         if pci not in self._spectra:
             templates = np.stack([known_frame(self.templates, pci, bandwidth) for bandwidth in SUPPORTED_BANDWIDTHS_MHZ])
-            if templates.shape[1] != frame:
-                raise ValueError(f"a frame of {frame} samples is not the templates' ({templates.shape[1]})")
             self._spectra[pci] = np.conj(scipy.fft.rfft(templates, axis=1)), np.sum(templates**2, axis=1)
         return self._spectra[pci]

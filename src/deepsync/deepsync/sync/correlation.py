@@ -19,6 +19,17 @@ def unit_frame_parts(parts: np.ndarray) -> np.ndarray:
     return centred / np.linalg.norm(centred, axis=(-2, -1), keepdims=True)
 
 
+def parseval_weights(n: int) -> np.ndarray:
+    """(n // 2 + 1,) weights w with sum_j x[j] y[j] = sum_k w_k Re(X_k conj(Y_k)) for real
+    n-sample x and y and their rffts X and Y: each bin stands for itself and its negative-frequency
+    twin, except DC and (n even) Nyquist; over n."""
+    weights = np.full(n // 2 + 1, 2.0 / n)
+    weights[0] = 1.0 / n
+    if n % 2 == 0:
+        weights[-1] = 1.0 / n
+    return weights
+
+
 def template_spectra(templates: np.ndarray, n: int) -> np.ndarray:
     """Conjugate spectra (complex64) of (..., L) templates starting at lag 0 of an n-periodic signal."""
     padded = np.zeros((*templates.shape[:-1], n))

@@ -52,7 +52,7 @@ from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.lte.cell import N_CELL_IDS
 from deepsync.lte.numerology import SUPPORTED_BANDWIDTHS_MHZ
 from deepsync.numeric import mad_spread, parabolic_peak
-from deepsync.sync.correlation import correlate, frame_spectra, template_spectra, unit_frame_parts
+from deepsync.sync.correlation import correlate, frame_spectra, parseval_weights, template_spectra, unit_frame_parts
 from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
 from deepsync.sync.stacking import HELD_FRACTION, held_fraction
 
@@ -372,7 +372,7 @@ class CellSearch:
             known = self._known_frame(cell.pci, frame)
             correlations = correlate(spectrum, known.spectra, frame)
             spread = mad_spread(correlations[:, ::4], centre=0.0)  # every 4th lag, as _normalised
-            lags = (round(cell.frame_offset) + np.arange(-self.config.track_lags, self.config.track_lags + 1)) % frame
+            lags = self._tracked_lags(cell) % frame
             block = correlations[:, lags] / spread  # (PHASES, lags)
             if block.max() < cfar_threshold(self.config.false_alarm_rate, block.size):
                 continue
@@ -443,7 +443,7 @@ class CellSearch:
                 return
             if any(d.pci == cell.pci for d in state.detections):
                 continue  # found with its co-sited partner
-            lags = round(cell.frame_offset) + np.arange(-self.config.track_lags, self.config.track_lags + 1)
+            lags = self._tracked_lags(cell)
             overlaps = state.near_new[self._timing_lags(lags, state.period)].any()
             if state.cancelled < len(state.detections) and (overlaps or not cell.held):
                 self._cancel(state)
@@ -451,6 +451,11 @@ class CellSearch:
             if not self._track_pair(state, cell, lags):
                 self._track_single(state, cell, lags, discover)
             self._mark_new(state, before)
+
+    def _tracked_lags(self, cell: ExpectedCell) -> np.ndarray:
+        """The whole-sample code starts an expected cell is looked for at: ``track_lags`` either
+        side of where it should be."""
+        return round(cell.frame_offset) + np.arange(-self.config.track_lags, self.config.track_lags + 1)
 
     def _timing_lags(self, code_starts: np.ndarray, period: int) -> np.ndarray:
         """Lags of the timing statistic at which a code starting at ``code_starts`` peaks."""
@@ -586,8 +591,7 @@ class CellSearch:
         frame = len(signal)
         start = found.frame_offset + found.fraction - sync_code_offset_seconds() * self.templates.sample_rate
         delay = np.exp(-2j * np.pi * scipy.fft.rfftfreq(frame) * start)
-        weights = np.full(frame // 2 + 1, 2.0 / frame)  # sum(x y) from rfft(x) rfft(y)*, frame even
-        weights[[0, -1]] = 1.0 / frame
+        weights = parseval_weights(frame)
         spectrum = np.conj(scipy.fft.rfft(signal)) * weights
         best, fitted = 0.0, None
         known = self.bandwidths.get(found.pci)

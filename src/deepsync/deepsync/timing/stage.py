@@ -153,7 +153,7 @@ class TimingStage:
         stack = windows if isinstance(windows, StackWindows) else None
         spectrum = self._frame_spectrum(stack)
         cells, events, fallbacks, for_network = [], [], [], []
-        for window in (windows.windows if stack else windows):
+        for window in (windows if stack is None else stack.windows):
             reason = None if self.network is None else self.network.refusal(
                 window, self.sample_rate, self.templates.length)
             if self.network is not None and reason is None:
