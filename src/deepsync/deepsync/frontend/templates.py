@@ -321,10 +321,15 @@ def code_template(
     timing stage fed from one rebuilds the very template the sync stage saw."""
     if cosited_pci is None:
         return templates.template(pci, subframe, delay_samples)
+    pair = (min(pci, cosited_pci), max(pci, cosited_pci))
+    return pair_coefficients(pci, cosited_pci, site_coefficients) @ templates.pair_shapes(pair, subframe, delay_samples)
+
+
+def pair_coefficients(pci: int, cosited_pci: int, site_coefficients: Sequence[float] | None) -> np.ndarray:
+    """(4,) a co-sited pair's site coefficients as floats, or ValueError naming the pair."""
     if site_coefficients is None or len(site_coefficients) != 4:
         raise ValueError(f"PCI {pci} with co-sited PCI {cosited_pci}: the pair's 4 site coefficients are needed")
-    pair = (min(pci, cosited_pci), max(pci, cosited_pci))
-    return np.asarray(site_coefficients, dtype=np.float64) @ templates.pair_shapes(pair, subframe, delay_samples)
+    return np.asarray(site_coefficients, dtype=np.float64)
 
 
 def place_codes(frame: int, codes: Callable[[int], np.ndarray]) -> np.ndarray:
@@ -353,14 +358,21 @@ def known_frame(
     2Im: the same product of their channels, taken as flat across the carrier)."""
     if cosited_pci is None:
         return templates.frame_template(pci, bandwidth_mhz, [0.0])[0]
-    if site_coefficients is None or len(site_coefficients) != 4:
-        raise ValueError(f"PCI {pci} with co-sited PCI {cosited_pci}: the pair's 4 site coefficients are needed")
-    lower, higher = sorted((pci, cosited_pci))
-    own_a, own_b, real, imaginary = (float(c) for c in site_coefficients)
-    crs = (own_a * templates.code_aligned_crs(lower, bandwidth_mhz) + own_b * templates.code_aligned_crs(higher, bandwidth_mhz)
-           + np.array([real, imaginary]) @ templates.code_aligned_crs(lower, bandwidth_mhz, higher))
-    return place_codes(len(crs), lambda subframe: code_template(
-        templates, pci, cosited_pci, site_coefficients, subframe)) + crs
+    pair = (min(pci, cosited_pci), max(pci, cosited_pci))
+    return pair_coefficients(pci, cosited_pci, site_coefficients) @ pair_frame_parts(templates, pair, bandwidth_mhz)
+
+
+def pair_frame_parts(templates: SyncTemplates, pair: tuple[int, int], bandwidth_mhz: float) -> np.ndarray:
+    """(4, frame) the parts of two co-sited sectors' known frame (``known_frame``) that their
+    four site coefficients scale, the subframe-0 codes starting at sample 0: the codes' and
+    CRS's |s_a|^2, |s_b|^2, 2Re(s_a s_b*) and 2Im(s_a s_b*) (a the lower PCI). Fixed for a pair
+    and bandwidth: a stage that keeps them (and their spectra) builds a pair's frame as one
+    small product per stack."""
+    lower, higher = pair
+    crs = np.concatenate([templates.code_aligned_crs(lower, bandwidth_mhz)[None],
+                          templates.code_aligned_crs(higher, bandwidth_mhz)[None],
+                          templates.code_aligned_crs(lower, bandwidth_mhz, higher)])
+    return place_codes(crs.shape[1], lambda subframe: templates.pair_shapes(pair, subframe, 0.0)) + crs
 
 
 def _numerology_for_rate(bandwidth_mhz: float, adc_rate_hz: float) -> Numerology:

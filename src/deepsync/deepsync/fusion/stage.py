@@ -15,8 +15,11 @@ stage reports the restart; fusion does not report it twice).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 from deepsync.fusion.anchors import Anchors, SiteArrival, frame_reference_ns
 from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
@@ -62,12 +65,21 @@ def _metres(value: object) -> bool:
 @dataclass(frozen=True)
 class FusionResult:
     """What fusion made of one stack: the snapshot's answer, the tracker's (None when not
-    tracking), the site ranges both used, and the cells that could not be used."""
+    tracking), the site ranges both used, and the cells that could not be used.
 
-    snapshot: Fix | NoFix
+    The snapshot is solved when first asked for (``solve_snapshot``: it is what a node
+    publishes while the tracker has no fix, and what an evaluation compares): while the
+    tracker has a fix, a node never needs it, and at 1-2 ms a stack it cost the replay more
+    than the tracker did. The answer is the same whenever it is asked for."""
+
     tracked: Fix | NoFix | None
     sites: tuple[SiteArrival, ...]
-    events: tuple[Health, ...] = ()
+    events: tuple[Health, ...]
+    solve: Callable[[], Fix | NoFix] = field(repr=False, compare=False)
+
+    @cached_property
+    def snapshot(self) -> Fix | NoFix:
+        return self.solve()
 
     @property
     def published(self) -> Fix | NoFix:
@@ -112,8 +124,9 @@ class FusionStage:
             tracked = self.tracker.update(sites, arrivals.stamp_ns, time_s, clock_rate)
             prior = tracked.position_enu if isinstance(tracked, Fix) else None
         if problems and not sites:
-            snapshot = NoFix(arrivals.stamp_ns, NoFixReason.UNKNOWN_SITES, "; ".join(problems))
-        else:
-            snapshot = solve_snapshot(sites, self.config.snapshot, stamp_ns=arrivals.stamp_ns,
-                                      clock_rate=clock_rate or 0.0, prior_enu=prior)
-        return FusionResult(snapshot, tracked, tuple(sites), tuple(events))
+            unknown = NoFix(arrivals.stamp_ns, NoFixReason.UNKNOWN_SITES, "; ".join(problems))
+            return FusionResult(tracked, (), tuple(events), lambda: unknown)
+        sites = tuple(sites)
+        return FusionResult(tracked, sites, tuple(events), functools.partial(
+            solve_snapshot, sites, self.config.snapshot, stamp_ns=arrivals.stamp_ns, clock_rate=clock_rate or 0.0,
+            prior_enu=prior))

@@ -170,7 +170,8 @@ class SiteSearch:
                  / np.einsum("kpim,kpim->kpm", weights, gram)[..., None]).max(axis=2)  # (pairs, phases, lags)
         k, p, n = np.unravel_index(np.argmax(full), full.shape)
         gain = full[k, p, n] - alone[k, p, n]
-        if gain < scipy.stats.chi2.isf(pair_false_alarm / len(pairs), COMPONENTS - 1) or gain < min_gain * alone[k, p, n]:
+        # chdtri is chi2's isf without scipy.stats' overhead (0.2 ms a call)
+        if gain < scipy.special.chdtri(COMPONENTS - 1, pair_false_alarm / len(pairs)) or gain < min_gain * alone[k, p, n]:
             return None
         # positions lag + phase on a half-sample grid; a parabola through the best and its neighbours
         positions = (lags[:, None] + self.phases[None, :]).ravel()

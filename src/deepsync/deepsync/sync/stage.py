@@ -179,8 +179,12 @@ class SyncStage:
         expected = self._expected(stack)
         discover = not expected or self._lost or self._since_search + 1 >= self.config.search_every
         if not any(flag.kind is HealthKind.NO_SIGNAL for flag in stack.flags):
+            windows: dict[int, np.ndarray] = {}  # by code start: a co-sited pair's two sectors share theirs
             for detection in self.search.search(stack.stacked(), expected, discover):
-                cells.append(DetectedCell(detection, self._window(stack, detection)))
+                if detection.frame_offset not in windows:
+                    windows[detection.frame_offset] = extract_windows(
+                        stack, detection.frame_offset, self.templates.length, self.config.window_margin)
+                cells.append(DetectedCell(detection, self._window(stack, detection, windows[detection.frame_offset])))
         self._since_search = 0 if discover else self._since_search + 1
         self._lost = not {e.pci for e in expected} <= {c.pci for c in cells}
         streaks = {c.pci: self._streak(stack, c) for c in cells}
@@ -205,14 +209,14 @@ class SyncStage:
             frame=stack.mean if frame_wanted else None,
         )
 
-    def _window(self, stack: Stack, detection: CellDetection) -> SyncWindow:
+    def _window(self, stack: Stack, detection: CellDetection, windows: np.ndarray) -> SyncWindow:
         earfcn = self._earfcn(detection.pci)
         site = detection.site
         return SyncWindow(
             stamp_ns=stack.stamp_ns,
             pci=detection.pci,
             coarse_index=stack.first_sample_index + detection.frame_offset,
-            windows=extract_windows(stack, detection.frame_offset, self.templates.length, self.config.window_margin),
+            windows=windows,
             peak_metric=detection.peak_metric,
             snr_db=detection.snr_db,
             earfcn=earfcn,

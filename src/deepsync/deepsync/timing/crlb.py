@@ -113,12 +113,14 @@ def fisher_information(
     noise_psd: float | np.ndarray,
     n_frames: int = 1,
     window_length: int | None = None,
+    template_spectrum: np.ndarray | None = None,
 ) -> float:
     """Whittle Fisher information of the delay (1 / samples^2); see the module docstring.
 
     ``noise_psd``: per-frame two-sided PSD per sample, a scalar (white, = variance) or the
     ``window_length // 2 + 1`` rfft bins of the window (``window_length`` defaults to
     ``2 * (len(noise_psd) - 1)``, or to the template length for a scalar).
+    ``template_spectrum``: the template's rfft at ``window_length``, if the caller keeps it.
     """
     t = check_template(template)
     if not (math.isfinite(amplitude)):
@@ -127,7 +129,13 @@ def fisher_information(
         raise ValueError(f"n_frames must be a positive integer, got {n_frames!r}")
     length = _resolve_length(t, noise_psd, window_length)
     psd = psd_bins(noise_psd, length) / n_frames
-    spectrum = np.fft.rfft(t, length)
+    if template_spectrum is None:
+        spectrum = np.fft.rfft(t, length)
+    elif np.shape(template_spectrum) == (length // 2 + 1,):
+        spectrum = np.asarray(template_spectrum)
+    else:
+        raise ValueError(f"template_spectrum ({np.shape(template_spectrum)}) is not the rfft of a "
+                         f"{length}-sample window")
     k = np.arange(1, (length + 1) // 2)
     omega = 2 * np.pi * k / length
     return float(np.sum(2 * omega**2 * amplitude**2 * np.abs(spectrum[k]) ** 2 / (length * psd[k])))
@@ -140,6 +148,7 @@ def delay_crlb(
     n_frames: int = 1,
     sample_rate: float = BASE_RATE_HZ,
     window_length: int | None = None,
+    template_spectrum: np.ndarray | None = None,
 ) -> Bound:
     """CRLB of the delay of ``amplitude * template(t - tau)`` in Gaussian noise of ``noise_psd``.
 
@@ -149,7 +158,7 @@ def delay_crlb(
     """
     if not (math.isfinite(sample_rate) and sample_rate > 0):
         raise ValueError(f"sample_rate must be a positive number, got {sample_rate!r}")
-    info = fisher_information(template, amplitude, noise_psd, n_frames, window_length)
+    info = fisher_information(template, amplitude, noise_psd, n_frames, window_length, template_spectrum)
     std = math.inf if info <= 0 else 1 / math.sqrt(info)
     return Bound(std, std * SPEED_OF_LIGHT_M_S / sample_rate)
 

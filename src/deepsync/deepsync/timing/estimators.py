@@ -212,13 +212,14 @@ class _Problem:
         return self.row_cross.mean(axis=0)
 
     @property
-    def inner(self) -> np.ndarray:
-        """Bins strictly between DC and Nyquist."""
-        return np.arange(1, (self.length + 1) // 2)
+    def inner(self) -> slice:
+        """Bins strictly between DC and Nyquist (a slice: their arrays are views, not copies)."""
+        return slice(1, (self.length + 1) // 2)
 
-    @property
+    @cached_property
     def omega(self) -> np.ndarray:
-        return 2 * np.pi * self.inner / self.length
+        """Their angular frequencies (radians per sample)."""
+        return 2 * np.pi * np.arange(1, (self.length + 1) // 2) / self.length
 
 
 def _problem(windows: np.ndarray, template: np.ndarray, margin: int) -> _Problem:
@@ -285,15 +286,17 @@ class _Fit:
 def _fit(problem: _Problem, lag: float, weights: np.ndarray, stacked_psd: np.ndarray) -> _Fit:
     """Amplitude, sandwich std and SNR at the estimated ``lag`` (= margin + offset)."""
     k, omega, length = problem.inner, problem.omega, problem.length
-    power = np.abs(problem.t_spec[k]) ** 2
     s = stacked_psd[k]
-    z = problem.cross[k]
-    a_hat = float(np.sum(2 * np.real(z * _phases(omega, lag)) * weights) / np.sum(2 * power * weights))
-    a_var = float(np.sum(2 * power * weights**2 * length * s) / np.sum(2 * power * weights) ** 2)
+    weighted_power = 2 * np.abs(problem.t_spec[k]) ** 2 * weights  # 2 w |T|^2
+    spread = weighted_power * weights * (length * s)  # 2 w^2 |T|^2 L S: the variance each bin adds
+    total = float(np.sum(weighted_power))
+    a_hat = float(np.real(problem.cross[k] * _phases(omega, lag)) @ weights) * 2 / total
+    a_var = float(np.sum(spread)) / total**2
     amplitude = math.sqrt(max(a_hat**2 - a_var, 0.0)) if a_hat > 0 else 0.0
 
-    curvature = amplitude * float(np.sum(2 * omega**2 * power * weights))
-    slope_var = float(np.sum(2 * omega**2 * power * weights**2 * length * s))
+    omega_sq = omega**2
+    curvature = amplitude * float(omega_sq @ weighted_power)
+    slope_var = float(omega_sq @ spread)
     sandwich = math.sqrt(slope_var) / curvature if curvature > 0 else math.inf
 
     noise_var = (2 * float(np.sum(s)) + (stacked_psd[-1] if length % 2 == 0 else 0.0)) / length
@@ -437,7 +440,7 @@ def estimate_parabolic(windows: np.ndarray, template: np.ndarray, margin: int) -
         true = lag - _parabolic_bias(problem, true - problem.margin)
     bias = _parabolic_bias(problem, true - problem.margin)
     stacked = problem.psd / problem.n_frames
-    fit = _fit(problem, lag, np.ones(problem.inner.size), stacked)
+    fit = _fit(problem, lag, np.ones(problem.omega.size), stacked)
     std = _total_std(lag, core, _posterior(problem, stacked), bias)
     return TimingEstimate(lag - problem.margin, std, fit.snr_db, "parabolic")
 
@@ -483,7 +486,7 @@ def estimate_fft_upsampled(windows: np.ndarray, template: np.ndarray, margin: in
     lag = float(_upsampled_lags(problem, problem.cross, int(factor))[0])
     core = _jackknife(problem, lambda cross: _upsampled_lags_near(problem, cross, int(factor), lag))
     stacked = problem.psd / problem.n_frames
-    fit = _fit(problem, lag, np.ones(problem.inner.size), stacked)
+    fit = _fit(problem, lag, np.ones(problem.omega.size), stacked)
     std = _total_std(lag, core, _posterior(problem, stacked))
     return TimingEstimate(lag - problem.margin, std, fit.snr_db, "fft_upsampled")
 
@@ -589,7 +592,7 @@ def estimate_ml(
     """
     problem = _problem(windows, template, margin)
     if noise_psd is None:
-        weights = np.ones(problem.inner.size)
+        weights = np.ones(problem.omega.size)
         stacked = problem.psd / problem.n_frames
     else:
         given = psd_bins(noise_psd, problem.length)
@@ -692,7 +695,7 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     residual = np.abs(spectrum) ** 2
     residual[inner] = np.abs(spectrum[inner] - scale * moved) ** 2
     problem.psd = _smoothed(residual / n, FRAME_PSD_HALF_WIDTH)
-    fit = _fit(problem, lag, np.ones(inner.size), problem.psd)
+    fit = _fit(problem, lag, np.ones(omega.size), problem.psd)
 
     s = np.maximum(problem.psd[inner], 1e-12 * float(np.max(problem.psd[inner])))
     points = n * FRAME_GRID_FACTOR

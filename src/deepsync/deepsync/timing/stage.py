@@ -39,10 +39,11 @@ import numpy as np
 import scipy.fft
 
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.templates import SyncTemplates, code_template, known_frame
-from deepsync.timing.crlb import delay_crlb, fit_amplitude, snr_db
+from deepsync.frontend.templates import SyncTemplates, code_template, known_frame, pair_coefficients, pair_frame_parts
+from deepsync.timing.crlb import Bound, delay_crlb, fit_amplitude, snr_db
 from deepsync.timing.estimators import (
     SNR_FLOOR_DB,
+    FrameTiming,
     TimingEstimate,
     estimate_fft_upsampled,
     estimate_ml,
@@ -126,7 +127,8 @@ class TimingStage:
         self.templates = SyncTemplates(frontend)
         self.sample_rate = frontend.adc_rate_hz
         self._single: dict[int, np.ndarray] = {}  # PCI -> template: 3 ms to compute, the same every stack
-        self._frames: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}  # (PCI, MHz) -> known frame, its rfft
+        # (PCI, MHz) -> known frame and its rfft; (PCI, PCI, MHz) -> a pair's parts and theirs
+        self._frames: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self.network = None
         if self.config.estimator.uses_network:
             try:
@@ -153,6 +155,7 @@ class TimingStage:
         stack = windows if isinstance(windows, StackWindows) else None
         spectrum = self._frame_spectrum(stack)
         cells, events, fallbacks, for_network = [], [], [], []
+        frame_fits: dict[tuple, tuple[FrameTiming, Bound]] = {}  # a co-sited pair's two windows: one fit
         for window in (windows if stack is None else stack.windows):
             reason = None if self.network is None else self.network.refusal(
                 window, self.sample_rate, self.templates.length)
@@ -163,7 +166,7 @@ class TimingStage:
                 fallbacks.append((window.pci, reason))
             try:
                 if spectrum is not None and window.bandwidth_mhz is not None:
-                    cells.append(self._frame_cell(window, stack, spectrum))
+                    cells.append(self._frame_cell(window, stack, spectrum, frame_fits))
                     continue
                 cells.append(self.time_cell(window, Estimator.ML if reason else self.config.estimator))
             except ValueError as error:
@@ -216,14 +219,23 @@ class TimingStage:
         except ValueError:
             return None
 
-    def _frame_cell(self, window: SyncWindow, stack: StackWindows, spectrum: np.ndarray) -> CellTiming:
+    def _frame_cell(self, window: SyncWindow, stack: StackWindows, spectrum: np.ndarray,
+                    fits: dict[tuple, tuple[FrameTiming, Bound]]) -> CellTiming:
         """A cell timed by its known frame (``estimate_ml_frame``) within the windows' margin
-        of the sync stage's coarse code start."""
-        (template, template_spectrum), codes = self._known_frame(window), self._template(window)
-        start = (window.coarse_index - stack.first_sample_index) % len(template)
-        timing = estimate_ml_frame(spectrum, template, start, self._margin(window, codes), template_spectrum)
+        of the sync stage's coarse code start. ``fits``: those of the stack so far, by what
+        decides them (the two sectors of a pair found together share one window, template and fit)."""
+        codes = self._template(window)
+        coefficients = None if window.site_coefficients is None else tuple(map(float, window.site_coefficients))
+        key = (frozenset((window.pci, window.cosited_pci)), window.coarse_index, window.bandwidth_mhz, coefficients)
+        if key not in fits:
+            template, template_spectrum = self._known_frame(window)
+            start = (window.coarse_index - stack.first_sample_index) % len(template)
+            timing = estimate_ml_frame(spectrum, template, start, self._margin(window, codes), template_spectrum)
+            bound = delay_crlb(template, timing.amplitude, timing.stacked_psd, 1, self.sample_rate, len(template),
+                               template_spectrum)
+            fits[key] = timing, bound
+        timing, bound = fits[key]
         estimate = timing.estimate
-        bound = delay_crlb(template, timing.amplitude, timing.stacked_psd, 1, self.sample_rate, len(template))
         noise = float(np.mean(timing.stacked_psd))
         return CellTiming(
             pci=window.pci,
@@ -238,17 +250,23 @@ class TimingStage:
             amplitude=timing.amplitude * float(np.sqrt(np.mean(codes**2))),
         )
 
-    def _known_frame(self, window: SyncWindow) -> tuple[np.ndarray, np.ndarray | None]:
-        """The cell's known frame and, for a single PCI (kept), its spectrum; a pair's is built
-        from its fit."""
-        if window.cosited_pci is not None:
-            return known_frame(self.templates, window.pci, window.bandwidth_mhz, window.cosited_pci,
-                               window.site_coefficients), None
-        key = (window.pci, window.bandwidth_mhz)
+    def _known_frame(self, window: SyncWindow) -> tuple[np.ndarray, np.ndarray]:
+        """The cell's known frame and its spectrum: a single PCI's kept; a pair's built from its fit
+        and the pair's kept parts (``pair_frame_parts``)."""
+        if window.cosited_pci is None:
+            key = (window.pci, window.bandwidth_mhz)
+            if key not in self._frames:
+                template = known_frame(self.templates, window.pci, window.bandwidth_mhz)
+                self._frames[key] = (template, scipy.fft.rfft(template))
+            return self._frames[key]
+        coefficients = pair_coefficients(window.pci, window.cosited_pci, window.site_coefficients)
+        pair = (min(window.pci, window.cosited_pci), max(window.pci, window.cosited_pci))
+        key = (*pair, window.bandwidth_mhz)
         if key not in self._frames:
-            template = known_frame(self.templates, window.pci, window.bandwidth_mhz)
-            self._frames[key] = (template, scipy.fft.rfft(template))
-        return self._frames[key]
+            parts = pair_frame_parts(self.templates, pair, window.bandwidth_mhz)
+            self._frames[key] = (parts, scipy.fft.rfft(parts, axis=1))
+        parts, spectra = self._frames[key]
+        return coefficients @ parts, coefficients @ spectra
 
     @staticmethod
     def _margin(window: SyncWindow, template: np.ndarray) -> int:
