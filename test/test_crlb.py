@@ -98,6 +98,11 @@ def test_stacking_units_and_amplitude():
     assert delay_crlb(pulse, 1.0, flat).std_samples == pytest.approx(one.std_samples)
     assert fisher_information(pulse, 1.0, 0.04, window_length=80) == pytest.approx(one.std_samples**-2)
     assert delay_crlb(pulse, 0.0, 0.04).std_samples == math.inf
+    # the template's spectrum, where the caller keeps it, is the template's: the same bound
+    kept = delay_crlb(pulse, 1.0, flat, template_spectrum=np.fft.rfft(pulse, 80))
+    assert kept.std_samples == pytest.approx(one.std_samples, rel=1e-12)
+    with pytest.raises(ValueError, match="rfft of a 80-sample window"):
+        delay_crlb(pulse, 1.0, flat, template_spectrum=np.fft.rfft(pulse))
 
 
 def test_amplitude_and_snr_helpers(templates):

@@ -301,6 +301,27 @@ def test_stage_fixes_along_stacks_and_starts_afresh_when_stamps_go_back() -> Non
     assert isinstance(back.snapshot, Fix) and isinstance(back.tracked, Fix)  # restarted from this stack
 
 
+def test_the_stages_snapshot_is_the_same_whenever_it_is_asked_for() -> None:
+    """The snapshot is solved when first asked for (a node publishing the tracker's fix never
+    asks): asked at once or after the tracker has moved on many stacks, it is the same fix,
+    solved from that stack's sites and the tracker's position then."""
+    rng = np.random.default_rng(4)
+    stacks = [stack(RECEIVER + [1.4 * k * 0.1, 0.0, 0.0], stamp_ns=EPOCH_NS + (37 + 10 * k) * FRAME_NS + 1234567,
+                    sites=[0, 1, 2, 3] if k % 3 else [0, 1], noise_samples=rng.normal(0, 0.05, 6)) for k in range(12)]
+    at_once, later = FusionStage(TOWERS), FusionStage(TOWERS)
+    asked = [at_once.process(arrivals).snapshot for arrivals in stacks]
+    kept = [later.process(arrivals) for arrivals in stacks]
+    assert "snapshot" not in vars(kept[0])  # not solved until asked
+    assert sum(isinstance(fix, Fix) for fix in asked) >= 7 and sum(isinstance(fix, NoFix) for fix in asked) >= 4
+    for fix, result in zip(asked, kept):
+        assert type(result.snapshot) is type(fix)
+        if isinstance(fix, Fix):
+            np.testing.assert_array_equal(result.snapshot.position_enu, fix.position_enu)
+            np.testing.assert_array_equal(result.snapshot.covariance, fix.covariance)
+        else:
+            assert result.snapshot.reason is fix.reason
+
+
 def test_four_sites_with_a_second_position_that_passes_the_residual_test_are_refused_without_a_prior() -> None:
     """A receiver outside the sites' hull: a mirror position 0.5-1 km away fits exact ranges
     within the residual test (one spare site cannot rule it out). On random 4-site geometries

@@ -12,6 +12,7 @@ from deepsync.eval.cell_search import timing_error
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources import BagSource
 from deepsync.sync.stage import SyncConfig
+from deepsync.timing import stage as timing_stage
 from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
 from deepsync.towers import load_tower_database
 from deepsync.types import HealthKind, Severity
@@ -84,6 +85,30 @@ def test_a_known_cells_whole_frame_times_it_closer_to_the_truth_than_its_codes(c
     rms = {name: float(np.sqrt(np.mean(np.square(e)))) for name, e in errors.items()}
     assert len(errors["ml_frame"]) == len(errors["ml"]) > 50
     assert rms["ml_frame"] < 0.5 * rms["ml"]
+
+
+def test_a_pair_found_together_is_fitted_once_and_each_sector_is_timed_as_alone(campus, monkeypatch):
+    """The two sectors of a co-sited pair share one window, known frame and fit in a stack: the
+    timing stage fits it once (one fewer full-frame fit per pair and stack), and each sector
+    gets the arrival it gets when its window is timed on its own."""
+    source, results = campus
+    stage = TimingStage(source.frontend)
+    fits = []
+    fit = timing_stage.estimate_ml_frame
+    monkeypatch.setattr(timing_stage, "estimate_ml_frame", lambda *args: fits.append(args) or fit(*args))
+    pairs = 0
+    for result in results[-5:]:
+        stack = result.sync.stack_windows
+        fits.clear()
+        cells = stage.process(stack).cells
+        assert len(fits) == len({frozenset((w.pci, w.cosited_pci)) for w in stack.windows}) < len(stack.windows)
+        for window, cell in zip(stack.windows, cells):
+            alone = stage.process(dataclasses.replace(stack, windows=(window,))).cells[0]
+            assert (cell.pci, cell.earfcn) == (window.pci, window.earfcn)
+            assert (cell.toa, cell.toa_std, cell.crlb_std, cell.snr_db) == (alone.toa, alone.toa_std, alone.crlb_std,
+                                                                            alone.snr_db)
+            pairs += window.cosited_pci is not None
+    assert pairs >= 10
 
 
 def test_the_timing_stage_fed_from_a_sync_window_message_gives_the_same_arrivals(campus):
