@@ -767,11 +767,11 @@ def _normalised(c: np.ndarray, spreads: np.ndarray | None,
     if rows is None:
         if spreads is None:
             spreads = mad_spread(c[:, ::4], axis=1, centre=0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(spreads[:, None] > 0, c / spreads[:, None], 0.0), spreads
+        with np.errstate(divide="ignore", invalid="ignore"):  # in the correlations' precision
+            return np.where(spreads[:, None] > 0, c / spreads[:, None].astype(c.dtype), 0.0).astype(c.dtype, copy=False), spreads
     if spreads is None:
         spreads = np.zeros(len(c))
         spreads[rows] = mad_spread(c[rows, ::4], axis=1, centre=0.0)
-    z = np.zeros(c.shape)
+    z = np.zeros(c.shape, dtype=c.dtype)
     z[rows] = _normalised(c[rows], spreads[rows])[0]
     return z, spreads

@@ -14,6 +14,8 @@ the code's energy with the default filter) is shifted by the wrong amount.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import scipy.fft
 import scipy.signal
@@ -40,10 +42,18 @@ def extract_windows(stack: Stack, code_start: int, template_length: int, margin:
     padded = stack.columns(index).astype(np.float64)
     means = padded.mean(axis=1, keepdims=True)
     padded -= means
-    padded *= scipy.signal.windows.tukey(padded.shape[1], 2 * (_PAD - 8) / padded.shape[1])[None, :]
+    padded *= _taper(padded.shape[1])[None, :]
     frequencies = scipy.fft.rfftfreq(padded.shape[1])
     # row f's true frame start is row_shifts[f] samples after its integer start: read it as
     # much later than row 0 is read, so every row sees the code where row 0 does
     ramp = np.exp(2j * np.pi * frequencies[None, :] * shifts[:, None])
     shifted = scipy.fft.irfft(scipy.fft.rfft(padded, axis=1) * ramp, n=padded.shape[1], axis=1)
     return (shifted[:, _PAD : _PAD + length] + means).astype(np.float32)
+
+
+@lru_cache(maxsize=8)
+def _taper(length: int) -> np.ndarray:
+    """The rows' taper: flat but for ``_PAD - 8`` samples at either end (the same every stack)."""
+    taper = scipy.signal.windows.tukey(length, 2 * (_PAD - 8) / length)
+    taper.flags.writeable = False
+    return taper
