@@ -37,8 +37,12 @@ def mad_spread(values: ArrayLike, axis: int | None = None, keepdims: bool = Fals
     from ``centre`` where the centre is known (a circular correlation with a zero-mean template
     sums to zero over its lags): one median instead of two, the costly part."""
     values = np.asarray(values)
-    middle = np.median(values, axis=axis, keepdims=True) if centre is None else centre
-    return MAD_TO_SIGMA * np.median(np.abs(values - middle), axis=axis, keepdims=keepdims)
+    if centre is None:
+        deviations = np.abs(values - np.median(values, axis=axis, keepdims=True))
+    else:
+        deviations = np.abs(values - centre) if centre else np.abs(values)
+    # the deviations are this function's own: the median may reorder them in place (no copy)
+    return MAD_TO_SIGMA * np.median(deviations, axis=axis, keepdims=keepdims, overwrite_input=True)
 
 
 def one_blas_thread() -> threadpool_limits:

@@ -421,10 +421,13 @@ def _sum_block(frames: list[_Frame], frame: int) -> _Block:
 
 
 def held_fraction(frame: np.ndarray) -> float:
-    """Share of a frame's samples equal to its median: 1 for silent or stuck input, a little
-    above 0 for anything with noise in it. Where most of a frame holds one value, correlations
-    are exactly zero at most lags and no noise level can be measured from them."""
-    return float(np.mean(frame == np.median(frame)))
+    """Share of a frame's samples equal to its (upper) median: 1 for silent or stuck input, a
+    little above 0 for anything with noise in it. Where most of a frame holds one value,
+    correlations are exactly zero at most lags and no noise level can be measured from them.
+    (A value on more than half the samples is the median: one selection finds it, at half the
+    cost of ``np.median``'s two and their mean.)"""
+    middle = len(frame) // 2
+    return float(np.mean(frame == np.partition(frame, middle)[middle]))
 
 
 def measure_drift(first: np.ndarray, second: np.ndarray, apart_frames: int, offset: float = 0.0,
