@@ -297,6 +297,36 @@ def test_runtime_changes_are_checked_and_read_only_ones_refused(ros) -> None:
         node.destroy_node()
 
 
+def test_diagnostics_go_on_under_sim_time_while_no_clock_is_published(ros) -> None:
+    """The launch file's default is use_sim_time: before a bag plays (and after it ends) /clock
+    stands still, and a ROS-time timer with it. The diagnostics run on the steady clock, so the
+    node still says it waits for input."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from deepsync_ros.cell_timing_node import CellTimingNode
+
+    node = CellTimingNode(namespace=NAMESPACE, parameter_overrides=parameters(use_sim_time=True))
+    bench = Bench(node)
+    try:
+        diagnostics = bench.collect(DiagnosticArray, "/diagnostics", 10)
+        statuses = lambda: [s for array in diagnostics for s in array.status  # noqa: E731
+                            if s.name.startswith("cell_timing: ") and s.message != "Node starting up"]
+        assert node.get_clock().now().nanoseconds == 0  # no /clock: ROS time stands at zero
+        assert bench.spin_until(lambda: len(statuses()) >= 2)
+    finally:
+        bench.close()
+
+
+def test_a_misspelt_parameter_is_named_not_silently_ignored(ros) -> None:
+    from deepsync_ros.cell_sync_node import CellSyncNode
+
+    node = CellSyncNode(namespace=NAMESPACE, parameter_overrides=parameters(towers=CAMPUS_TOWERS, n_frame=50))
+    try:
+        assert node.unknown_overrides == ["n_frame"] and node.get_parameter("n_frames").value == 10
+    finally:
+        node.destroy_node()
+
+
 def test_descriptors_carry_description_range_and_read_only(ros) -> None:
     from deepsync_ros.cell_sync_node import CellSyncNode
 

@@ -91,12 +91,33 @@ class DeepSyncNode(Node):
             self.values = checked(self.SPECS, declared, self.NAME)
             self.updater = Updater(self)
             self.updater.setHardwareID("none")  # software: no device of its own
+            self._diagnostics_on_steady_time()
             self.setup(self.values)
         except BaseException:
             self.destroy_node()
             raise
         if any(not spec.read_only for spec in self.SPECS):
             self.add_on_set_parameters_callback(self._on_set_parameters)
+        # rclpy keeps a value given for a name the node never declares (a parameters file, -p) and
+        # says nothing, so a misspelt parameter would run at its default unnoticed: one warning
+        # names them (rclpy has no public accessor of the overrides: Node._parameter_overrides)
+        self.unknown_overrides = sorted(name for name in getattr(self, "_parameter_overrides", {})
+                                        if not self.has_parameter(name))
+        if self.unknown_overrides:
+            self.get_logger().warning(f"ignored, not parameters of {self.NAME}: {', '.join(self.unknown_overrides)} "
+                                      f"(its own: {', '.join(spec.name for spec in self.SPECS)})")
+
+    def _diagnostics_on_steady_time(self) -> None:
+        """diagnostic_updater's timer runs on the node's clock, which under ``use_sim_time`` (the
+        launch file's default) is /clock: it would stand still before a bag plays, after it ends
+        and whenever it pauses, and with it the very diagnostics that say so ("no stack yet",
+        "end of source"). Its period runs on the steady clock instead."""
+        timer = getattr(self.updater, "timer", None)  # the updater's own (diagnostic_updater >= 3)
+        if timer is not None:
+            timer.cancel()
+            self.destroy_timer(timer)
+        self.updater.timer = self.create_timer(self.updater.period, self.updater.update,
+                                               clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def setup(self, values: Mapping[str, ParamValue]) -> None:
         """Build the stage, publishers and subscriptions; ParameterError for a value it cannot use."""
