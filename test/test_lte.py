@@ -74,6 +74,19 @@ def test_gold_sequence_known_start():
     np.testing.assert_array_equal(c, x1[1600 : 1600 + 64])
 
 
+@pytest.mark.parametrize("length", [440, 1000])  # a CRS's (the kept x2 bases) and beyond them
+def test_gold_sequence_is_the_two_registers_of_36_211_bit_by_bit(length):
+    rng = np.random.default_rng(3)
+    for c_init in [1, 2**30, 2**31 - 1, *rng.integers(0, 2**31, 5).tolist()]:
+        x1 = [1] + [0] * 30
+        x2 = [(c_init >> i) & 1 for i in range(31)]
+        for n in range(1600 + length):
+            x1.append(x1[n + 3] ^ x1[n])
+            x2.append(x2[n + 3] ^ x2[n + 2] ^ x2[n + 1] ^ x2[n])
+        expected = [x1[n + 1600] ^ x2[n + 1600] for n in range(length)]
+        np.testing.assert_array_equal(gold_sequence(c_init, length), expected)
+
+
 def test_crs_is_qpsk_and_depends_on_cell_slot_symbol():
     r = crs(7, 3, 4)
     assert r.shape == (220,)
