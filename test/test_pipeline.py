@@ -130,6 +130,15 @@ def test_the_timing_stage_fed_from_a_sync_window_message_gives_the_same_arrivals
     assert pairs == 10  # 120 and 121 in each of the 5 stacks
 
 
+def test_the_pipelines_stages_share_one_set_of_templates_of_its_front_end():
+    source = BagSource(BAG)
+    pipeline = Pipeline(source.frontend, towers=load_tower_database(TOWERS))
+    assert pipeline.timing.templates is pipeline.sync.templates
+    other = dataclasses.replace(source.frontend, adc_rate_hz=2 * source.frontend.adc_rate_hz)
+    with pytest.raises(ValueError, match="not those of this front end"):
+        TimingStage(other, templates=pipeline.sync.templates)
+
+
 @pytest.mark.parametrize("estimator", [e for e in Estimator if not e.uses_network])
 def test_every_classical_estimator_times_the_campus_cells(campus, estimator):
     source, results = campus

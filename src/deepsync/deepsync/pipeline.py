@@ -135,7 +135,7 @@ class Pipeline:
         self.config = config or PipelineConfig()
         self.frontend = frontend
         self.sync = None if frontend is None else SyncStage(frontend, self.config.sync, towers)
-        self.timing = None if frontend is None else TimingStage(frontend, self.config.timing)
+        self.timing = None if frontend is None else TimingStage(frontend, self.config.timing, self.sync.templates)
         self.fusion = FusionStage(towers, self.config.fusion) if places_sites(towers) else None
 
     def process(self, chunk: EnvelopeChunk) -> list[StackResult]:

@@ -121,10 +121,15 @@ class TimingResult:
 class TimingStage:
     """Times every detected cell with the configured estimator (``TimingConfig.estimator``)."""
 
-    def __init__(self, frontend: FrontendConfig, config: TimingConfig | None = None) -> None:
+    def __init__(self, frontend: FrontendConfig, config: TimingConfig | None = None,
+                 templates: SyncTemplates | None = None) -> None:
+        """``templates``: the front end's, where another stage of the process keeps them (the
+        pipeline's sync stage): built once instead of twice (start-up, ~0.1-0.2 s)."""
+        if templates is not None and templates.config != frontend:
+            raise ValueError("the templates given are not those of this front end")
         self.config = config or TimingConfig()
         self.frontend = frontend
-        self.templates = SyncTemplates(frontend)
+        self.templates = templates or SyncTemplates(frontend)
         self.sample_rate = frontend.adc_rate_hz
         self._single: dict[int, np.ndarray] = {}  # PCI -> template: 3 ms to compute, the same every stack
         # (PCI, MHz) -> known frame and its rfft; (PCI, PCI, MHz) -> a pair's parts and theirs
@@ -143,7 +148,7 @@ class TimingStage:
         must be loaded (ValueError if it cannot be: this stage is then unchanged), else this one
         with its templates kept."""
         if config.estimator.uses_network and (self.network is None or config.checkpoint != self.config.checkpoint):
-            return TimingStage(self.frontend, config)
+            return TimingStage(self.frontend, config, self.templates)
         self.config = config
         if not config.estimator.uses_network:
             self.network = None
