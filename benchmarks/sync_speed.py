@@ -58,8 +58,8 @@ def time_mode(chunks, towers, repeats: int, config: SyncConfig) -> tuple[float, 
 
 
 def time_stream(chunks, towers, stacks: int, config: SyncConfig) -> dict:
-    """ms per stack of one running stage over the bag looped: full searches and tracked-only
-    stacks apart (median, p90) and the mean over all of them."""
+    """ms per stack of one running stage over the bag looped: median, p90 and mean over all its
+    stacks, and full searches and tracked-only stacks apart (median, p90)."""
     stage = SyncStage(bag_frontend(BAG), config, towers)
     stream = Stream(chunks)
     for _ in range(len(chunks)):  # templates, CRS templates of the cells found, the tracks
@@ -72,8 +72,9 @@ def time_stream(chunks, towers, stacks: int, config: SyncConfig) -> dict:
         spent = (time.perf_counter() - started) * 1e3
         if results:  # the chunk that completes a stack (stacking the others costs ~0.1 ms each)
             times[results[0].searched].append(spent)
-    every = times[True] + times[False]
-    row = {"mean_ms": statistics.fmean(every), "full_search_stacks": len(times[True]),
+    every = sorted(times[True] + times[False])
+    row = {"mean_ms": statistics.fmean(every), "median_ms": statistics.median(every),
+           "p90_ms": every[int(0.9 * (len(every) - 1))], "full_search_stacks": len(times[True]),
            "tracked_only_stacks": len(times[False])}
     for searched, name in ((True, "full_search"), (False, "tracked_only")):
         if times[searched]:
@@ -123,7 +124,8 @@ def main() -> None:
             row = time_stream(chunks, towers, 10 * args.repeats, SyncConfig())
             out[mode] = row
             tracked = row.get("tracked_only", {}).get("median_ms", float("nan"))
-            print(f"{'running stage, ' + label:40s}: {row['mean_ms']:6.1f} ms mean per stack; full search "
+            print(f"{'running stage, ' + label:40s}: {row['median_ms']:6.1f} ms median, {row['p90_ms']:.1f} p90, "
+                  f"{row['mean_ms']:.1f} mean per stack; full search "
                   f"{row['full_search']['median_ms']:.1f} ms median ({row['full_search_stacks']} stacks), tracked "
                   f"only {tracked:.1f} ms ({row['tracked_only_stacks']} stacks)")
         for estimator in Estimator:
