@@ -8,7 +8,8 @@ the message conversions of ``deepsync.bag`` that the nodes and ``deepsync replay
   chunks looped on one continuing stream (``soak.Stream``) for ``--seconds`` seconds after one
   loop of warm-up (templates are built at start-up, as a node builds them), median and p90 over
   the seconds. The target is 50 ms per second of data (20x real time). Also the whole
-  ``replay_bag`` (reading, converting and writing the bag too) once over each bag, as a real-time factor.
+  ``replay_bag`` (reading, converting and writing the bag too) once over each bag, as a real-time
+  factor; and the stages again with 50-frame stacks (a fix every 0.5 s: a tracker's choice).
 * **latency**: from a stack's ``SyncWindowArray`` message (as the timing node receives it) to
   the ``PoseWithCovarianceStamped`` message (timing, fusion and every conversion between: what
   the timing and fusion nodes do, without DDS), and from a ``CellTimingArray`` (the fusion node
@@ -54,7 +55,7 @@ from deepsync.bag import (
     typestore,
 )
 from deepsync.bag.convert import CELL_TIMING_ARRAY, ENVELOPE_SAMPLES, SYNC_WINDOW_ARRAY
-from deepsync.pipeline import Pipeline
+from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.replay import replay_bag
 from deepsync.sources import bag_frontend
 from deepsync.towers import load_tower_database
@@ -73,10 +74,10 @@ def percentiles(values: list[float]) -> dict:
             "n": len(values)}
 
 
-def stage_speed(bag: Path, seconds: int) -> dict:
+def stage_speed(bag: Path, seconds: int, config: PipelineConfig | None = None) -> dict:
     """ms of each stage per second of ADC data, the bag looped on one stream."""
     chunks = list(read_envelope(bag))
-    pipeline = Pipeline(bag_frontend(bag), towers=load_tower_database(TOWERS))
+    pipeline = Pipeline(bag_frontend(bag), config, towers=load_tower_database(TOWERS))
     stream = Stream(chunks)
     for _ in range(len(chunks)):  # warm-up: templates and caches, as at a node's start
         pipeline.process(stream.next())
@@ -226,6 +227,11 @@ def main() -> int:
             report["speed"][name] = {"stages_ms_per_second_of_data": stage_speed(bag, args.seconds),
                                      "replay_bag": whole_replay(bag)}
             print(name, json.dumps(report["speed"][name], indent=1))
+        # a tracker's choice: a fix every half second from 50 frames (docs/fusion.md: the best
+        # track on the dense walk), the per-stack work done a fifth as often
+        report["speed_50_frames"] = {name: {"stages_ms_per_second_of_data": stage_speed(
+            bag, args.seconds, PipelineConfig().with_choices(n_frames=50))} for name, bag in BAGS.items()}
+        print("50-frame stacks", json.dumps(report["speed_50_frames"], indent=1))
         report["latency"] = pose_latency(BAGS, args.repeats)
         print("latency", json.dumps(report["latency"], indent=1))
         report["split_nodes"] = {name: split_cost(bag, args.repeats) for name, bag in BAGS.items()}
