@@ -112,7 +112,7 @@ class DeepSyncNode(Node):
         launch file's default) is /clock: it would stand still before a bag plays, after it ends
         and whenever it pauses, and with it the very diagnostics that say so ("no stack yet",
         "end of source"). Its period runs on the steady clock instead."""
-        timer = getattr(self.updater, "timer", None)  # the updater's own (diagnostic_updater >= 3)
+        timer = getattr(self.updater, "timer", None)  # the updater's own, on the node's clock
         if timer is not None:
             timer.cancel()
             self.destroy_timer(timer)

@@ -767,8 +767,9 @@ def _normalised(c: np.ndarray, spreads: np.ndarray | None,
     if rows is None:
         if spreads is None:
             spreads = mad_spread(c[:, ::4], axis=1, centre=0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):  # in the correlations' precision
-            return np.where(spreads[:, None] > 0, c / spreads[:, None].astype(c.dtype), 0.0).astype(c.dtype, copy=False), spreads
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(spreads[:, None] > 0, c / spreads[:, None].astype(c.dtype), 0.0)
+        return z.astype(c.dtype, copy=False), spreads  # in the correlations' precision (float32)
     if spreads is None:
         spreads = np.zeros(len(c))
         spreads[rows] = mad_spread(c[rows, ::4], axis=1, centre=0.0)
