@@ -124,7 +124,8 @@ FRONTEND = ParamSpec("frontend", "", "Receiver chain the stream went through, fo
                      "(its recorded front end), a YAML of FrontendConfig fields, or empty: the default chain.")
 SYNC = (
     ParamSpec("n_frames", _STACK.n_frames, "LTE frames (10 ms) stacked per search; the timing stage needs 2 to "
-              "measure the noise.", range=(2, 1000)),
+              "measure the noise. 50: a fix every 0.5 s for a fifth of the processing, and on a walk the "
+              "better track (a slow tracker's choice).", range=(2, 1000)),
     ParamSpec("hop_frames", 0, "Frames from one stack's start to the next; 0: n_frames (back to back). Fewer "
               "gives sliding stacks: n_frames 50, hop_frames 10 hears as 50 frames do and answers at 10 Hz.",
               range=(0, 1000)),
