@@ -442,15 +442,12 @@ def measure_drift(first: np.ndarray, second: np.ndarray, apart_frames: int, offs
     in the stream to time it by.
     """
     frame = len(first)
-    # single precision, as the search's correlations: its rounding is far below the noise
-    first = (first - first.mean()).astype(np.float32)
-    second = (second - second.mean()).astype(np.float32)
+    first, second = first - first.mean(), second - second.mean()
     c = scipy.fft.irfft(scipy.fft.rfft(second) * np.conj(scipy.fft.rfft(first)), n=frame)
     reach = int(np.ceil(max_ppm * 1e-6 * frame * apart_frames + abs(offset))) + 1
     lags = np.arange(-reach, reach + 1)
     lag = int(lags[np.argmax(c[lags % frame])])
-    # zero-mean frames: the correlation sums to zero; every 4th lag is enough for the median, as the search's
-    spread = mad_spread(c[::4], centre=0.0)
+    spread = mad_spread(c, centre=0.0)  # zero-mean frames: the correlation sums to zero
     if spread <= 0 or c[lag % frame] / spread < min_z:
         return None
     return (lag + parabolic_peak(c, lag % frame) - offset) / (apart_frames * frame) * 1e6
