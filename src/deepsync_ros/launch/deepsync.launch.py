@@ -51,7 +51,8 @@ def generate_launch_description():
             "towers",
             default_value=_share("config", "towers", "campus.yaml"),
             description="Tower database YAML (sites, PCIs, positions, timing, map origin) for cell_sync "
-                        "and tdoa_fusion. It must hold the PCIs the receiver hears.",
+                        "and tdoa_fusion. It must hold the PCIs the receiver hears. '' with "
+                        "one_process:=true: a blind search, cell timings but no position.",
         ),
         DeclareLaunchArgument(
             "params_file",
@@ -210,9 +211,14 @@ def _launch_setup(context):
     if from_topic and one_process:
         return _fail(logger, "source:=topic needs the four nodes (one_process:=false): the "
                              "deepsync_pipeline node reads its source itself")
+    blind = towers == ""  # no tower database: cell search and timing only, no position
+    if blind and not one_process:
+        return _fail(logger, "towers:='' (a blind search, no position) needs one_process:=true: the "
+                             "tdoa_fusion node needs a tower database")
     missing = [f"{name}:={path}" for name, path in
                (("source", source), ("towers", towers), ("params_file", params_file))
-               if not (name == "source" and from_topic) and not os.path.exists(path)]
+               if not (name == "source" and from_topic) and not (name == "towers" and blind)
+               and not os.path.exists(path)]
     if missing:
         return _fail(logger, "no such file or directory: " + ", ".join(missing))
 
