@@ -264,22 +264,25 @@ class CellSearch:
         """The same search over all 504 PCIs, to check a database PCI against everyone else."""
         return CellSearch(self.templates, self.config)
 
-    def timing_correlations(self, centred: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    def timing_correlations(self, centred: np.ndarray, rows: np.ndarray | None = None,
+                            spectrum: np.ndarray | None = None) -> tuple[np.ndarray, int]:
         """Correlations over candidate code positions and the period of the lag axis. Blind:
         the three PSS templates against the half-frame fold (lag = PSS start, mod a half-frame).
         Known PCIs: each PCI's full frame template (lag = subframe-0 code start, mod a frame),
         twice the code energy; only ``rows`` of them if given (the others left zero). Every
         template is also tried half a sample later: the envelope has energy near Nyquist, and a
         code between two samples would otherwise lose up to 3 dB of correlation. (Divided by
-        their noise spreads, they are the timing statistic, in sigmas.)"""
+        their noise spreads, they are the timing statistic, in sigmas.) ``spectrum``: the rfft of
+        ``centred``, if the caller has it."""
         if not self.full_code_timing:
             return self.pss_correlations(centred), len(centred) // 2
         period = len(centred)
         spectra = self._frame_spectra(period)
+        spectrum = scipy.fft.rfft(centred) if spectrum is None else spectrum
         if rows is None:
-            return correlate(scipy.fft.rfft(centred), spectra, period), period
+            return correlate(spectrum, spectra, period), period
         correlations = np.zeros((len(spectra), period), dtype=np.float32)
-        correlations[rows] = correlate(scipy.fft.rfft(centred), spectra[rows], period)
+        correlations[rows] = correlate(spectrum, spectra[rows], period)
         return correlations, period
 
     def _tracked_rows(self, expected: Sequence[ExpectedCell]) -> np.ndarray | None:
@@ -402,7 +405,8 @@ class CellSearch:
         """The first pass's statistics, noise spreads and CFAR threshold of a stack (the
         threshold of a full search, whichever ``rows`` are computed); the PSS statistic of
         known-PCI timing if ``pss``."""
-        correlations, period = self.timing_correlations(centred, rows)
+        spectrum = scipy.fft.rfft(centred)  # the correlations' and the pairs' noise's
+        correlations, period = self.timing_correlations(centred, rows, spectrum)
         z, spreads = _normalised(correlations, None, rows)
         if not self.full_code_timing:
             pss_z, pss_spreads = z, spreads
@@ -414,7 +418,7 @@ class CellSearch:
             correlations=correlations, z=z, spreads=spreads, pss_z=pss_z, pss_spreads=pss_spreads,
             threshold=cfar_threshold(self.config.false_alarm_rate, tests), given_up=np.zeros((2, period), dtype=bool),
             near_new=np.zeros(period, dtype=bool),
-            site_noise=None if self.sites is None else SiteNoise(self.sites, centred, correlations),
+            site_noise=None if self.sites is None else SiteNoise(self.sites, spectrum, correlations),
             rows=rows,
         )
 

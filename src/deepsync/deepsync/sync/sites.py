@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 import scipy.fft
@@ -219,14 +218,11 @@ class SiteNoise:
     measured when a pass first needs the pair and kept for the stack's later passes, as the
     single templates' spreads are."""
 
-    def __init__(self, search: SiteSearch, centred: np.ndarray, single: np.ndarray) -> None:
-        self._search, self._centred, self._single = search, centred, single
+    def __init__(self, search: SiteSearch, spectrum: np.ndarray, single: np.ndarray) -> None:
+        """``spectrum``: the rfft of the stack's first pass (its centred frame); ``single``: its
+        correlations with the single-cell search's frame templates."""
+        self._search, self._spectrum, self._single = search, spectrum, single
         self._covariances: dict[int, np.ndarray] = {}  # pair index -> (phases, 4, 4)
-
-    @cached_property
-    def _spectrum(self) -> np.ndarray:
-        """The first pass's spectrum: a stack that tracks no pair never needs it."""
-        return scipy.fft.rfft(self._centred)
 
     def covariances(self, pairs: np.ndarray, correlations: np.ndarray | None = None) -> np.ndarray:
         """(pairs, phases, 4, 4); those not measured yet are measured on ``correlations`` (of
