@@ -22,7 +22,7 @@ from deepsync.sync.sites import SiteFit
 from deepsync.sync.stacking import FrameStacker, StackConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
 from deepsync.towers import load_tower_database, parse_tower_database
-from deepsync.sync.windows import extract_windows
+from deepsync.sync.windows import extract_windows, extract_windows_at
 from deepsync.timing.estimators import estimate_ml_frame, frame_spectrum
 from deepsync.configio import ConfigError
 
@@ -280,6 +280,14 @@ def test_clock_offset_is_compensated_to_the_sub_sample(templates):
     for row in windows:
         np.testing.assert_allclose(row[:276], expected[:276], atol=1e-2 * np.abs(expected).max())
     assert stack.drift_ppm == pytest.approx(ppm, abs=1.0)  # measured from the stream itself
+    # several cells' windows cut at once are each cell's own, exactly (here and without a clock, whole samples)
+    (exact,) = FrameStacker(1.92e6, StackConfig(n_frames=n)).push_samples(stream[: n * FRAME], 0, 1.92e6)
+    for cut in (stack, exact):
+        starts = [5000, 19190, 77, 5000]  # one near the frame's end: rows are cut circularly
+        together = extract_windows_at(cut, starts, templates.length, margin=10)
+        assert together.shape == (4, n, templates.length + 20) and together.dtype == np.float32
+        for start, rows in zip(starts, together):
+            np.testing.assert_array_equal(rows, extract_windows(cut, start, templates.length, margin=10))
     # without compensation the last frame's code has moved 7 samples: measured and flagged
     (drifted,) = FrameStacker(1.92e6, StackConfig(n_frames=n)).push_samples(stream, 0, 1.92e6)
     assert not drifted.aligned

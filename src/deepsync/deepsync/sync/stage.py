@@ -44,7 +44,7 @@ from deepsync.lte.earfcn import downlink_frequency_hz
 from deepsync.sync.bandwidths import BandwidthLearner
 from deepsync.sync.search import CellDetection, CellSearch, ExpectedCell, SearchConfig
 from deepsync.sync.stacking import FrameStacker, Stack, StackConfig
-from deepsync.sync.windows import extract_windows
+from deepsync.sync.windows import extract_windows_at
 from deepsync.towers import TowerDatabase
 from deepsync.types import EnvelopeChunk, Health, HealthKind, StackWindows, SyncWindow
 
@@ -179,12 +179,12 @@ class SyncStage:
         expected = self._expected(stack)
         discover = not expected or self._lost or self._since_search + 1 >= self.config.search_every
         if not any(flag.kind is HealthKind.NO_SIGNAL for flag in stack.flags):
-            windows: dict[int, np.ndarray] = {}  # by code start: a co-sited pair's two sectors share theirs
-            for detection in self.search.search(stack.stacked(), expected, discover):
-                if detection.frame_offset not in windows:
-                    windows[detection.frame_offset] = extract_windows(
-                        stack, detection.frame_offset, self.templates.length, self.config.window_margin)
-                cells.append(DetectedCell(detection, self._window(stack, detection, windows[detection.frame_offset])))
+            detections = self.search.search(stack.stacked(), expected, discover)
+            # by code start, cut together: a co-sited pair's two sectors share theirs
+            starts = list(dict.fromkeys(d.frame_offset for d in detections))
+            cut = extract_windows_at(stack, starts, self.templates.length, self.config.window_margin) if starts else []
+            windows = dict(zip(starts, cut))
+            cells = [DetectedCell(d, self._window(stack, d, windows[d.frame_offset])) for d in detections]
         self._since_search = 0 if discover else self._since_search + 1
         self._lost = not {e.pci for e in expected} <= {c.pci for c in cells}
         streaks = {c.pci: self._streak(stack, c) for c in cells}
