@@ -14,7 +14,7 @@ from deepsync.timing.checkpoint import (  # noqa: E402
     save_checkpoint,
 )
 from deepsync.timing.inputs import Normalisation  # noqa: E402
-from deepsync.timing.model import TimingNet, TimingNetConfig  # noqa: E402
+from deepsync.timing.model import Fusion, Head, TimingNet, TimingNetConfig  # noqa: E402
 
 RANGE = TrainingRange(sample_rate=1.92e6, min_frames=5, max_frames=40, min_snr_db=-30.0, max_snr_db=10.0,
                       cosited_pairs=True)
@@ -30,8 +30,12 @@ def trained_looking(config: TimingNetConfig | None = None) -> TimingNet:
     return model.eval()
 
 
-def test_a_checkpoint_gives_back_the_same_network(tmp_path):
-    model = trained_looking(TimingNetConfig(channels=(8, 16, 16), heads=2))
+@pytest.mark.parametrize("config", [
+    TimingNetConfig(channels=(8, 16, 16), heads=2),
+    TimingNetConfig(fusion=Fusion.CORRELATION, head=Head.SOFT_ARGMAX),
+], ids=["paper", "correlation+soft_argmax"])
+def test_a_checkpoint_gives_back_the_same_network(tmp_path, config):
+    model = trained_looking(config)
     optimiser = torch.optim.Adam(model.parameters())
     path = tmp_path / "net.pt"
     save_checkpoint(path, model, RANGE, SCALE, step=123, optimiser=optimiser.state_dict(), meta={"seed": 7})
@@ -64,13 +68,15 @@ def test_a_file_that_would_run_code_is_refused_without_running_it(tmp_path, caps
     (lambda p: p["config"].update(channels=[8, 16, 64]), "weight"),
     (lambda p: p["config"].update(heads=3), "heads"),
     (lambda p: p["config"].update(colour="blue"), "unknown: colour"),
+    (lambda p: p["config"].update(fusion="sum"), "fusion"),
+    (lambda p: p["config"].update(head="dense", fusion="correlation"), "weights do not match"),
     (lambda p: p["training_range"].pop("max_frames"), "missing: max_frames"),
     (lambda p: p["state_dict"].pop("offset.bias"), "missing: offset.bias"),
     (lambda p: p["state_dict"]["offset.bias"].fill_(float("nan")), "NaN"),
     (lambda p: p.update(step="many"), "step"),
     (lambda p: p["normalisation"].update(window_scale=-1.0), "window_scale"),
     (lambda p: p.pop("normalisation"), "normalisation"),
-], ids=["format", "version", "shapes", "config_value", "config_field", "range_field", "weight_missing",
+], ids=["format", "version", "shapes", "config_value", "config_field", "fusion_name", "fusion_other", "range_field", "weight_missing",
         "weight_nan", "step_type", "normalisation_value", "normalisation_missing"])
 def test_a_mismatched_or_tampered_checkpoint_is_refused_by_name(tmp_path, tamper, message):
     path = tmp_path / "net.pt"

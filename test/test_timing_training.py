@@ -174,7 +174,11 @@ def test_a_run_config_that_does_not_fit_names_the_field(tmp_path):
         ({"training": {"steps": 0}}, "steps"),
         ({"schedule": {}}, "unknown section schedule"),
         ({"training": {"learning_rat": 1.0}}, "learning_rat"),
+        ({"model": {"fusion": "sum"}}, "fusion: 'sum' must be one of cross_attention, concatenation"),
     ]:
         path.write_text(yaml.safe_dump(content))
         with pytest.raises(ConfigError, match=message):
             load_run_config(path)
+    path.write_text(yaml.safe_dump({"model": {"fusion": "correlation", "head": "soft_argmax"}}))
+    model = load_run_config(path).model
+    assert (model.fusion.value, model.head.value) == ("correlation", "soft_argmax")

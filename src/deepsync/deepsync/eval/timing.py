@@ -52,7 +52,9 @@ BAG_ESTIMATORS = ("ml_frame", *ESTIMATORS)
 OUTLIER_SAMPLES = 1.0  # an error beyond this is a wrong lobe, not noise (156 m)
 
 
-def _stats(errors: np.ndarray, sigmas: np.ndarray | None = None) -> dict[str, float]:
+def error_stats(errors: np.ndarray, sigmas: np.ndarray | None = None) -> dict[str, float]:
+    """Median, p90 and RMS of timing errors (samples), the share beyond ``OUTLIER_SAMPLES``, and
+    with the reported sigmas the share within +-1 sigma."""
     if errors.size == 0:
         return {"n": 0}
     absolute = np.abs(errors)
@@ -94,7 +96,7 @@ def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEst
 
 def breakdown(data: dict[str, np.ndarray], results: dict[str, np.ndarray], mask: np.ndarray) -> dict:
     """Every estimator's statistics over the examples in ``mask``, and the bound's RMS."""
-    out = {name: _stats(results[f"{name}_error"][mask], results[f"{name}_sigma"][mask]) for name in ESTIMATORS}
+    out = {name: error_stats(results[f"{name}_error"][mask], results[f"{name}_sigma"][mask]) for name in ESTIMATORS}
     bound = results["crlb"][mask]
     bound = bound[np.isfinite(bound)]
     # the median: a few codes barely above the noise have a bound of many samples
@@ -240,7 +242,7 @@ def evaluate_timing_bag(source: BagSource, towers: TowerDatabase | None, out: st
                "cells_timed": len(records["ml"])}
     for name, rows in records.items():
         values = np.array(rows).reshape(-1, 3)
-        summary[name] = _stats(values[:, 0], values[:, 1])
+        summary[name] = error_stats(values[:, 0], values[:, 1])
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "timing_bag.json").write_text(json.dumps(summary, indent=1))

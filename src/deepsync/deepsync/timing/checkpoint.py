@@ -13,6 +13,7 @@ that does not match is refused with the reason, never half-loaded.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 import os
 import pickle
@@ -67,9 +68,11 @@ class TimingCheckpoint:
 
 
 def _plain(value: object) -> object:
-    """Dataclass fields as what weights_only loading rebuilds: tuples become lists."""
+    """Dataclass fields as what weights_only loading rebuilds: tuples become lists, choices their names."""
     if isinstance(value, tuple):
         return [_plain(v) for v in value]
+    if isinstance(value, enum.Enum):
+        return value.value
     return value
 
 

@@ -21,10 +21,25 @@ minus the margin (``window_length - template_length) / 2``), i.e. relative to th
 position the sync stage cut the windows at; the log-variance head gives the sigma the fusion
 stage weighs it by. Attention keeps the template's position information through a learned
 position embedding added to both token sequences.
+
+Two choices beside the paper's, for its ablation and for what comes after it:
+
+* ``fusion``: how the template's tokens meet the signal's. Cross-attention (the paper's), or the
+  three the paper compared it with: concatenation and addition of the template's token at zero
+  offset to each signal token, and correlation (the template's tokens slid along the signal's,
+  per channel: one token per lag, a learned matched filter).
+* ``head``: the paper's dense layers regress the offset from the flattened token map, so they
+  must learn anew at every position what a code start looks like. ``soft_argmax`` lets every
+  fused token vote instead: a score (softmax over the tokens) and where it puts the code's
+  start, its own position (a signal token's, or where a lag puts the template's first token)
+  plus a learned correction (a signal token inside the code can learn from what it attended to
+  how far back the start lies). The offset is the scored mean of the votes, and moves with the
+  code by construction; the dense layers still give the log-variance.
 """
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 
 import torch
@@ -32,6 +47,22 @@ from torch import nn
 
 
 LOG_VARIANCE_RANGE = (-12.0, 6.0)  # the sigma head's output is clamped to this: 0.0025 to 20 samples
+
+
+class Fusion(enum.Enum):
+    """How the template's tokens meet the signal's (the paper's ablation, section 6)."""
+
+    CROSS_ATTENTION = "cross_attention"  # signal tokens query the template's (the paper's choice)
+    CONCATENATION = "concatenation"  # each signal token beside the template's token at zero offset
+    ADDITION = "addition"  # the template's token at zero offset added to each signal token
+    CORRELATION = "correlation"  # per channel, the template slid along the signal: one token per lag
+
+
+class Head(enum.Enum):
+    """How the fused tokens become an offset."""
+
+    DENSE = "dense"  # the paper's: flatten, three dense layers
+    SOFT_ARGMAX = "soft_argmax"  # each token votes for the code's start; the softmax of their scores weighs the votes
 
 
 @dataclass(frozen=True)
@@ -46,8 +77,17 @@ class TimingNetConfig:
     heads: int = 4
     hidden: tuple[int, int] = (64, 32)  # the dense layers before the two outputs
     dropout: float = 0.1
+    fusion: Fusion = Fusion.CROSS_ATTENTION
+    head: Head = Head.DENSE
 
     def __post_init__(self) -> None:
+        for name, kind in (("fusion", Fusion), ("head", Head)):
+            value = getattr(self, name)
+            if not isinstance(value, kind):  # the name, as YAML and checkpoints hold it
+                try:
+                    object.__setattr__(self, name, kind(value))
+                except ValueError:
+                    raise ValueError(f"{name}: {value!r} must be one of {', '.join(k.value for k in kind)}") from None
         for name in ("window_length", "template_length", "pool", "heads"):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ValueError(f"{name}: {getattr(self, name)!r} must be a positive integer")
@@ -67,6 +107,17 @@ class TimingNetConfig:
     @property
     def template_tokens(self) -> int:
         return self.template_length // self.pool
+
+    @property
+    def fused_tokens(self) -> int:
+        """Tokens after fusion: one per signal token, or one per lag for correlation."""
+        if self.fusion is Fusion.CORRELATION:
+            return self.signal_tokens - self.template_tokens + 1
+        return self.signal_tokens
+
+    @property
+    def fused_width(self) -> int:
+        return 2 * self.channels[-1] if self.fusion is Fusion.CONCATENATION else self.channels[-1]
 
 
 def sinusoids(tokens: int, width: int, pool: int) -> torch.Tensor:
@@ -114,15 +165,24 @@ class TimingNet(nn.Module):
         # signal token and a template token can tell their relative offset
         self.signal_position = nn.Parameter(sinusoids(c.signal_tokens, width, c.pool))
         self.template_position = nn.Parameter(sinusoids(c.template_tokens, width, c.pool))
-        self.attention = nn.MultiheadAttention(width, c.heads, batch_first=True)
+        if c.fusion is Fusion.CROSS_ATTENTION:
+            self.attention = nn.MultiheadAttention(width, c.heads, batch_first=True)
         layers: list[nn.Module] = []
-        inputs = c.signal_tokens * width
+        inputs = c.fused_tokens * c.fused_width
         for hidden in c.hidden:
             layers += [nn.Linear(inputs, hidden), nn.ReLU(), nn.Dropout(c.dropout)]
             inputs = hidden
         self.regression = nn.Sequential(*layers)
-        self.offset = nn.Linear(inputs, 1)
+        if c.head is Head.DENSE:
+            self.offset = nn.Linear(inputs, 1)
+        else:  # per token: a score and the correction to where it puts the code's start
+            self.votes = nn.Linear(c.fused_width, 2)
         self.log_variance = nn.Linear(inputs, 1)
+        # where each fused token sits, in samples from the windows' first sample: the signal
+        # token's own position, or where its lag puts the template's first token
+        self.register_buffer("token_start", torch.arange(c.fused_tokens, dtype=torch.float32) * c.pool,
+                             persistent=False)
+        self.margin = (c.window_length - c.template_length) / 2
 
     def forward(self, windows: torch.Tensor, template: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``windows`` (B, F, W) normalised volts, any number of frames F >= 1; ``template``
@@ -134,9 +194,29 @@ class TimingNet(nn.Module):
         signal = tokens.reshape(batch, frames, *tokens.shape[1:]).mean(dim=1)  # (B, W/p, C)
         signal = signal + self.signal_position
         code = self.template_encoder(template.unsqueeze(1)) + self.template_position  # (B, T/p, C)
-        aligned, _ = self.attention(signal, code, code, need_weights=False)  # (B, W/p, C)
-        hidden = self.regression(aligned.flatten(1))  # (B, hidden[-1])
-        return self.offset(hidden).squeeze(-1), self.log_variance(hidden).squeeze(-1).clamp(*LOG_VARIANCE_RANGE)
+        fused = self.fuse(signal, code)  # (B, N, D): N fused tokens of width D
+        hidden = self.regression(fused.flatten(1))  # (B, hidden[-1])
+        log_variance = self.log_variance(hidden).squeeze(-1).clamp(*LOG_VARIANCE_RANGE)
+        if self.config.head is Head.DENSE:
+            return self.offset(hidden).squeeze(-1), log_variance
+        score, correction = self.votes(fused).unbind(-1)  # (B, N) each
+        start = (torch.softmax(score, dim=1) * (self.token_start + correction)).sum(dim=1)  # (B,)
+        return start - self.margin, log_variance
+
+    def fuse(self, signal: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+        """Signal tokens (B, S, C) and template tokens (B, K, C) -> fused tokens (B, N, D)."""
+        fusion = self.config.fusion
+        if fusion is Fusion.CROSS_ATTENTION:
+            return self.attention(signal, code, code, need_weights=False)[0]  # (B, S, C)
+        if fusion is Fusion.CORRELATION:
+            lags = signal.unfold(1, code.shape[1], 1)  # (B, S-K+1, C, K): the signal under each lag
+            return torch.einsum("blck,bkc->blc", lags, code) / code.shape[1]  # (B, S-K+1, C)
+        # the template's tokens where a code at zero offset would lie in the signal's
+        before = (self.config.window_length - self.config.template_length) // 2 // self.config.pool
+        placed = nn.functional.pad(code, (0, 0, before, signal.shape[1] - code.shape[1] - before))  # (B, S, C)
+        if fusion is Fusion.ADDITION:
+            return signal + placed  # (B, S, C)
+        return torch.cat([signal, placed], dim=-1)  # (B, S, 2C)
 
 
 def count_flops(model: TimingNet, frames: int = 10) -> int:

@@ -230,7 +230,7 @@ def train(run: RunConfig, config_path: str = "") -> Path:
         if rank == 0:
             print(f"resuming {last} at step {step}")
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
-    meta = {"config": str(config_path), "run": json.dumps(asdict(run)), "examples": len(train_set),
+    meta = {"config": str(config_path), "run": json.dumps(asdict(run), default=lambda choice: choice.value),  # enums by name "examples": len(train_set),
             "normalisation": json.dumps(asdict(normalisation))}
     best = min((h["val_rmse"] for h in history), default=math.inf)
     model.train()
