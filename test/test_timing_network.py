@@ -114,8 +114,9 @@ def test_a_bad_or_missing_checkpoint_fails_at_construction_and_keeps_the_running
 
 
 def test_the_shipped_checkpoint_times_simulated_cells_as_its_evaluation_says(frontend):
-    """Strong simulated cells (their own channels, other cells around): the network is within a
-    couple of samples and says so, network_ml within a fraction of one."""
+    """Strong simulated cells (their own channels, other cells around): the network and
+    network_ml within a fraction of a sample (the paper's layout, shipped before the ablation,
+    missed by 0.38 samples), and saying so."""
     from deepsync.training.dataset import DatasetConfig, make_shard
 
     assert DEFAULT_CHECKPOINT.is_file(), "the trained network must ship with deepsync"
@@ -131,7 +132,7 @@ def test_the_shipped_checkpoint_times_simulated_cells_as_its_evaluation_says(fro
         error = np.array([c.toa - 1000 for c in timed]) - shard["offset"]
         errors[estimator] = np.abs(error[strong])
         assert np.mean(np.abs(error) <= 3 * np.array([c.toa_std for c in timed])) >= 0.75
-    assert np.median(errors[Estimator.NETWORK]) < 2.0 and np.median(errors[Estimator.NETWORK_ML]) < 0.3
+    assert np.median(errors[Estimator.NETWORK]) < 0.3 and np.median(errors[Estimator.NETWORK_ML]) < 0.3
 
 
 def test_nothing_but_the_network_imports_torch():
