@@ -104,13 +104,15 @@ def test_a_bad_or_missing_checkpoint_fails_at_construction_and_keeps_the_running
     with pytest.raises(ValueError, match="none.pt"):
         running.with_config(TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(tmp_path / "none.pt")))
     assert running.config.estimator is Estimator.ML_FRAME
-    assert running.with_config(TimingConfig(weak_std_samples=2.0)) is running  # nothing to load
-    assert running.with_config(TimingConfig(estimator=Estimator.PARABOLIC)) is running  # templates kept
+    parabolic = running.with_config(TimingConfig(estimator=Estimator.PARABOLIC))
+    assert parabolic.templates is running.templates  # nothing to load or build
+    assert running.config.estimator is Estimator.ML_FRAME  # the running stage is never changed
     switched = running.with_config(TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
-    assert switched is not running and switched.network is not None
-    assert switched.with_config(TimingConfig(estimator=Estimator.NETWORK_ML, checkpoint=str(checkpoint))) is switched
+    assert switched.network is not None and switched.templates is running.templates and running.network is None
+    same = switched.with_config(TimingConfig(estimator=Estimator.NETWORK_ML, checkpoint=str(checkpoint)))
+    assert same.network is switched.network and switched.config.estimator is Estimator.NETWORK  # not reloaded
     back = switched.with_config(TimingConfig())
-    assert back is switched and back.network is None and back.config.estimator is Estimator.ML_FRAME
+    assert back.network is None and back.config.estimator is Estimator.ML_FRAME and switched.network is not None
 
 
 def test_the_shipped_checkpoint_times_simulated_cells_as_its_evaluation_says(frontend):

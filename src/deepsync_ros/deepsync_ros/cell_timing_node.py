@@ -10,7 +10,7 @@ comparison on live data).
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 from deepsync_msgs.msg import CellTimingArray, SyncWindowArray
 
@@ -42,11 +42,15 @@ class CellTimingNode(DeepSyncNode):
                                                      self._on_windows, RESULTS_QOS)
         self.add_diagnostic("cell timing", self.health.report)
 
-    def reconfigure(self, values: Mapping[str, ParamValue]) -> None:
+    def prepare(self, values: Mapping[str, ParamValue]) -> Callable[[], None]:
         try:
-            self.stage = self.stage.with_config(params.timing_config(values, self.NAME))
+            stage = self.stage.with_config(params.timing_config(values, self.NAME))
         except ValueError as error:  # a network that cannot be loaded: the running stage stays
             raise ParameterError(f"{self.NAME}.estimator: {error}") from None
+
+        def apply() -> None:
+            self.stage = stage
+        return apply
 
     def _on_windows(self, message: SyncWindowArray) -> None:
         arrived = time.monotonic()

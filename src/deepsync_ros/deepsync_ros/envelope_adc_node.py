@@ -9,7 +9,7 @@ lag, "cannot keep up with real time", end of source.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 from deepsync_msgs.msg import EnvelopeSamples
 from rclpy.qos import qos_profile_sensor_data
@@ -38,8 +38,9 @@ class EnvelopeAdcNode(DeepSyncNode):
         self.player = PacedPlayer(self, self.playback, self._publish, bool(values["publish_clock"]))
         self.get_logger().info(f"publishing {source.description}")
 
-    def reconfigure(self, values: Mapping[str, ParamValue]) -> None:
-        self.playback.reconfigure(params.playback_config(values, self.NAME))
+    def prepare(self, values: Mapping[str, ParamValue]) -> Callable[[], None]:
+        playback = params.playback_config(values, self.NAME)
+        return lambda: self.playback.reconfigure(playback)
 
     def _publish(self, chunk: EnvelopeChunk, now_s: float) -> None:
         try:

@@ -7,7 +7,9 @@ with descriptors (description, range, read-only); a value the node cannot run wi
 or a value out of range), and :func:`run` logs it as one line and exits 1: a launch file then
 shows the cause instead of a traceback, and nothing restarts a node that cannot start.
 Writable parameters are checked by the same builders when changed at runtime and refused with
-the reason. Input that does not convert is counted, logged (throttled) and dropped.
+the reason; what they need (a network to load) is built while they are checked, and applied only
+once rclpy has set them (its post-set callback), so a set that another callback refuses leaves
+the node as it was. Input that does not convert is counted, logged (throttled) and dropped.
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ class DeepSyncNode(Node):
     def __init__(self, **node_options: Any) -> None:
         """``node_options``: rclpy Node keywords (``parameter_overrides``, ``namespace``, ...)."""
         super().__init__(self.NAME, **node_options)
+        self._prepared: tuple[dict[str, ParamValue], dict[str, ParamValue], Callable[[], None]] | None = None
         try:
             declared = {spec.name: self.declare_parameter(spec.name, spec.default, descriptor(spec)).value
                         for spec in self.SPECS}
@@ -98,6 +101,7 @@ class DeepSyncNode(Node):
             raise
         if any(not spec.read_only for spec in self.SPECS):
             self.add_on_set_parameters_callback(self._on_set_parameters)
+            self.add_post_set_parameters_callback(self._after_set_parameters)
         # rclpy keeps a value given for a name the node never declares (a parameters file, -p) and
         # says nothing, so a misspelt parameter would run at its default unnoticed: one warning
         # names them (rclpy has no public accessor of the overrides: Node._parameter_overrides)
@@ -123,21 +127,34 @@ class DeepSyncNode(Node):
         """Build the stage, publishers and subscriptions; ParameterError for a value it cannot use."""
         raise NotImplementedError
 
-    def reconfigure(self, values: Mapping[str, ParamValue]) -> None:
-        """Apply new values of the writable parameters; ParameterError (nothing applied) to refuse."""
+    def prepare(self, values: Mapping[str, ParamValue]) -> Callable[[], None]:
+        """Check new values of the writable parameters and build what they need, changing
+        nothing; ParameterError to refuse. Returns what applies them once they are set."""
         raise NotImplementedError
 
+    def _ours(self, parameters: list[Parameter]) -> dict[str, ParamValue]:
+        return {p.name: p.value for p in parameters if any(spec.name == p.name for spec in self.SPECS)}
+
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        changed = {p.name: p.value for p in parameters if any(spec.name == p.name for spec in self.SPECS)}
+        # rclpy's contract: an on-set callback validates and leaves the node alone (another one
+        # may still refuse the set); the change waits for the post-set callback
+        changed = self._ours(parameters)
         if not changed:  # another part of the node's (use_sim_time, diagnostic_updater.period)
             return SetParametersResult(successful=True)
         try:
             values = checked(self.SPECS, {**self.values, **changed}, self.NAME)
-            self.reconfigure(values)
+            self._prepared = (changed, values, self.prepare(values))
         except ParameterError as error:
+            self._prepared = None
             return SetParametersResult(successful=False, reason=str(error))
-        self.values = values
         return SetParametersResult(successful=True)
+
+    def _after_set_parameters(self, parameters: list[Parameter]) -> None:
+        prepared, self._prepared = self._prepared, None
+        # only what was prepared for exactly this set: one refused after our check left a stale one
+        if prepared is not None and prepared[0] == self._ours(parameters):
+            _, self.values, apply = prepared
+            apply()
 
     def add_diagnostic(self, name: str, report: Callable[[], Report]) -> None:
         """A diagnostic_updater task publishing ``report()`` each update period."""

@@ -10,7 +10,7 @@ places its sites there is no fusion, and only ``cell_timing`` is published.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 from deepsync_msgs.msg import CellTimingArray
 
@@ -51,14 +51,17 @@ class PipelineNode(DeepSyncNode):
             self.get_logger().warning("no tower database that places its sites (origin, positions, timing "
                                       "offsets): publishing cell_timing only, no pose")
 
-    def reconfigure(self, values: Mapping[str, ParamValue]) -> None:
-        timing = params.timing_config(values, self.NAME)
+    def prepare(self, values: Mapping[str, ParamValue]) -> Callable[[], None]:
         playback = params.playback_config(values, self.NAME)
         try:
-            self.pipeline.timing = self.pipeline.timing.with_config(timing)
+            timing = self.pipeline.timing.with_config(params.timing_config(values, self.NAME))
         except ValueError as error:  # a network that cannot be loaded: the running stage stays
             raise ParameterError(f"{self.NAME}.estimator: {error}") from None
-        self.playback.reconfigure(playback)
+
+        def apply() -> None:
+            self.pipeline.timing = timing
+            self.playback.reconfigure(playback)
+        return apply
 
     def _process(self, chunk: EnvelopeChunk, now_s: float) -> None:
         results = self.pipeline.process(chunk)

@@ -30,6 +30,7 @@ says which and why. torch is imported only when a network estimator is chosen.
 
 from __future__ import annotations
 
+import copy
 import enum
 import math
 from collections.abc import Sequence
@@ -144,15 +145,17 @@ class TimingStage:
             self.network = NetworkEstimator(self.config.checkpoint)
 
     def with_config(self, config: TimingConfig) -> TimingStage:
-        """This stage with ``config`` (a parameter changed at run time): a new stage when a network
-        must be loaded (ValueError if it cannot be: this stage is then unchanged), else this one
-        with its templates kept."""
+        """A stage like this one with ``config`` (a parameter changed at run time), sharing its
+        templates and, where the checkpoint is the same, its network; ValueError if a network
+        must be loaded and cannot be. This stage is never changed, so a caller can build the new
+        one first and switch to it only once every other check has passed."""
         if config.estimator.uses_network and (self.network is None or config.checkpoint != self.config.checkpoint):
             return TimingStage(self.frontend, config, self.templates)
-        self.config = config
+        stage = copy.copy(self)
+        stage.config = config
         if not config.estimator.uses_network:
-            self.network = None
-        return self
+            stage.network = None
+        return stage
 
     def process(self, windows: StackWindows | Sequence[SyncWindow]) -> TimingResult:
         """Arrivals of one stack's cells (its windows alone, or with its mean frame, which
