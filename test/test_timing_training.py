@@ -116,6 +116,8 @@ def test_a_short_training_writes_a_checkpoint_the_stage_loads_and_resumes(tmp_pa
     path = train(load_run_config(config), config)
     checkpoint = load_checkpoint(path)
     assert checkpoint.training_range.max_frames == 4 and checkpoint.normalisation.window_scale > 0
+    assert set(checkpoint.meta) == {"config", "run", "examples", "normalisation"}  # how it was made
+    assert checkpoint.meta["examples"] > 0 and json.loads(checkpoint.meta["run"])["model"]["fusion"] == "cross_attention"
     history = json.loads((tmp_path / "run" / "history.json").read_text())
     assert [h["step"] for h in history] == [5, 10]
     assert (tmp_path / "run" / "training_curve.png").stat().st_size > 1000

@@ -235,8 +235,9 @@ def train(run: RunConfig, config_path: str = "") -> Path:
         if rank == 0:
             print(f"resuming {last} at step {step}")
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
-    meta = {"config": str(config_path), "run": json.dumps(asdict(run), default=lambda choice: choice.value),  # enums by name "examples": len(train_set),
-            "normalisation": json.dumps(asdict(normalisation))}
+    meta = {"config": str(config_path),
+            "run": json.dumps(asdict(run), default=lambda choice: choice.value),  # the model's choices by name
+            "examples": len(train_set), "normalisation": json.dumps(asdict(normalisation))}
     # the checkpoint to ship: the best RMSE where there is a code to find (the RMSE over every
     # example is the undetectable ones' guessing, and rises while the median still falls)
     best = min((h["val_rmse_with_code"] for h in history if "val_rmse_with_code" in h), default=math.inf)
