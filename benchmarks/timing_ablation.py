@@ -27,6 +27,8 @@ from tqdm import tqdm
 
 from deepsync.eval.timing import SNR_EDGES_DB, error_stats
 from deepsync.timing.estimators import estimate_ml, noise_psd
+from deepsync.timing.model import count_flops
+from deepsync.timing.network import NetworkEstimator
 from deepsync.training.dataset import LOS_PROFILES, PROFILES, load_split
 from deepsync.training.train import RunConfig, load_run_config, train
 
@@ -64,9 +66,6 @@ def score(errors: np.ndarray, sigmas: np.ndarray, data: dict[str, np.ndarray]) -
 
 
 def network_errors(path: Path, data: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, dict]:
-    from deepsync.timing.model import count_flops
-    from deepsync.timing.network import NetworkEstimator
-
     network = NetworkEstimator(path, threads=2)
     windows, templates = data["windows"][:, :FRAMES], data["template"]
     estimates = [e for start in range(0, len(windows), 256)
@@ -95,7 +94,7 @@ def plot(summary: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     figure, (left, right) = plt.subplots(1, 2, figsize=(13, 4.5))
-    for name, result in summary["variants"].items():
+    for name in summary["variants"]:
         history = json.loads((ROOT / "runs" / "ablation" / name / "history.json").read_text())
         left.plot([h["step"] for h in history], [h["val_median_abs_error"] for h in history], marker=".", label=name)
     left.set_title(f"validation median |error|, {FRAMES} frames")

@@ -321,8 +321,13 @@ def code_template(
     timing stage fed from one rebuilds the very template the sync stage saw."""
     if cosited_pci is None:
         return templates.template(pci, subframe, delay_samples)
-    pair = (min(pci, cosited_pci), max(pci, cosited_pci))
-    return pair_coefficients(pci, cosited_pci, site_coefficients) @ templates.pair_shapes(pair, subframe, delay_samples)
+    coefficients = pair_coefficients(pci, cosited_pci, site_coefficients)
+    return coefficients @ templates.pair_shapes(cosited_pair(pci, cosited_pci), subframe, delay_samples)
+
+
+def cosited_pair(pci: int, cosited_pci: int) -> tuple[int, int]:
+    """Two co-sited sectors as their templates key them: the lower PCI first (sector a)."""
+    return min(pci, cosited_pci), max(pci, cosited_pci)
 
 
 def pair_coefficients(pci: int, cosited_pci: int, site_coefficients: Sequence[float] | None) -> np.ndarray:
@@ -358,8 +363,8 @@ def known_frame(
     2Im: the same product of their channels, taken as flat across the carrier)."""
     if cosited_pci is None:
         return templates.frame_template(pci, bandwidth_mhz, [0.0])[0]
-    pair = (min(pci, cosited_pci), max(pci, cosited_pci))
-    return pair_coefficients(pci, cosited_pci, site_coefficients) @ pair_frame_parts(templates, pair, bandwidth_mhz)
+    coefficients = pair_coefficients(pci, cosited_pci, site_coefficients)
+    return coefficients @ pair_frame_parts(templates, cosited_pair(pci, cosited_pci), bandwidth_mhz)
 
 
 def pair_frame_parts(templates: SyncTemplates, pair: tuple[int, int], bandwidth_mhz: float) -> np.ndarray:

@@ -33,7 +33,7 @@ import scipy.fft
 import scipy.special
 import scipy.stats
 
-from deepsync.frontend.templates import SyncTemplates, code_template
+from deepsync.frontend.templates import SyncTemplates, code_template, cosited_pair
 from deepsync.numeric import mad_spread, parabolic_peak
 from deepsync.sync.correlation import correlate, frame_spectra, unit_frame_parts
 
@@ -119,7 +119,7 @@ class SiteSearch:
 
     def pair_index(self, a: int, b: int) -> int | None:
         """Index of the pair of sectors ``a`` and ``b``, if they are one."""
-        pair = tuple(sorted((a, b)))
+        pair = cosited_pair(a, b)
         return self.pairs.index(pair) if pair in self.pairs else None
 
     def pairs_with(self, pci: int) -> np.ndarray:

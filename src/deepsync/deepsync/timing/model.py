@@ -177,12 +177,12 @@ class TimingNet(nn.Module):
             self.offset = nn.Linear(inputs, 1)
         else:  # per token: a score and the correction to where it puts the code's start
             self.votes = nn.Linear(c.fused_width, 2)
+            # the offset each fused token stands for: where it sits (the signal token's own
+            # position, or where its lag puts the template's first token) less the margin
+            margin = (c.window_length - c.template_length) / 2
+            self.register_buffer("token_offset", torch.arange(c.fused_tokens, dtype=torch.float32) * c.pool - margin,
+                                 persistent=False)
         self.log_variance = nn.Linear(inputs, 1)
-        # where each fused token sits, in samples from the windows' first sample: the signal
-        # token's own position, or where its lag puts the template's first token
-        self.register_buffer("token_start", torch.arange(c.fused_tokens, dtype=torch.float32) * c.pool,
-                             persistent=False)
-        self.margin = (c.window_length - c.template_length) / 2
 
     def forward(self, windows: torch.Tensor, template: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``windows`` (B, F, W) normalised volts, any number of frames F >= 1; ``template``
@@ -200,8 +200,8 @@ class TimingNet(nn.Module):
         if self.config.head is Head.DENSE:
             return self.offset(hidden).squeeze(-1), log_variance
         score, correction = self.votes(fused).unbind(-1)  # (B, N) each
-        start = (torch.softmax(score, dim=1) * (self.token_start + correction)).sum(dim=1)  # (B,)
-        return start - self.margin, log_variance
+        offset = (torch.softmax(score, dim=1) * (self.token_offset + correction)).sum(dim=1)  # (B,)
+        return offset, log_variance
 
     def fuse(self, signal: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
         """Signal tokens (B, S, C) and template tokens (B, K, C) -> fused tokens (B, N, D)."""

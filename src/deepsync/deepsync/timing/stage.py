@@ -40,7 +40,14 @@ import numpy as np
 import scipy.fft
 
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.templates import SyncTemplates, code_template, known_frame, pair_coefficients, pair_frame_parts
+from deepsync.frontend.templates import (
+    SyncTemplates,
+    code_template,
+    cosited_pair,
+    known_frame,
+    pair_coefficients,
+    pair_frame_parts,
+)
 from deepsync.timing.crlb import Bound, delay_crlb, fit_amplitude, snr_db
 from deepsync.timing.estimators import (
     SNR_FLOOR_DB,
@@ -268,7 +275,7 @@ class TimingStage:
                 self._frames[key] = (template, scipy.fft.rfft(template))
             return self._frames[key]
         coefficients = pair_coefficients(window.pci, window.cosited_pci, window.site_coefficients)
-        pair = (min(window.pci, window.cosited_pci), max(window.pci, window.cosited_pci))
+        pair = cosited_pair(window.pci, window.cosited_pci)
         key = (*pair, window.bandwidth_mhz)
         if key not in self._frames:
             parts = pair_frame_parts(self.templates, pair, window.bandwidth_mhz)
