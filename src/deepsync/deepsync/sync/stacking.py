@@ -53,7 +53,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.fft
@@ -197,9 +197,11 @@ class FrameStacker:
         volts = chunk.samples.astype(np.float32) * np.float32(chunk.volts_per_code)
         low, high = -(2 ** (chunk.adc_bits - 1)), 2 ** (chunk.adc_bits - 1) - 1
         clipped = (chunk.samples == low) | (chunk.samples == high)
-        corrupt = (chunk.samples < low) | (chunk.samples > high)
+        corrupt = None
+        if not _fits_in(chunk.samples.dtype, low, high):
+            corrupt = (chunk.samples < low) | (chunk.samples > high)
         return self.push_samples(volts, chunk.first_sample_index, chunk.sample_rate, chunk.stamp_ns, clipped,
-                                 corrupt if corrupt.any() else None, chunk.adc_bits)
+                                 corrupt if corrupt is not None and corrupt.any() else None, chunk.adc_bits)
 
     def push_samples(
         self,
@@ -411,6 +413,16 @@ class FrameStacker:
                 for k, b in enumerate(self._blocks))
 
 
+@lru_cache(maxsize=16)
+def _fits_in(dtype: np.dtype, low: int, high: int) -> bool:
+    """Whether every value of an integer ``dtype`` lies in [low, high] (no code can be corrupt).
+    Cached: numpy's type queries cost several microseconds, and every chunk asks."""
+    if not np.issubdtype(dtype, np.integer):
+        return False
+    info = np.iinfo(dtype)
+    return low <= info.min and info.max <= high
+
+
 def _sum_block(frames: list[_Frame], frame: int) -> _Block:
     """A block of frames summed, each moved by the whole samples that line it up with the first."""
     total = np.zeros(frame)
@@ -420,14 +432,21 @@ def _sum_block(frames: list[_Frame], frame: int) -> _Block:
     return _Block(total, moves, float(np.mean([f.shift + move for f, move in zip(frames, moves)])))
 
 
+HELD_STRIDE = 8  # every how many samples the held value is looked for among
+
+
 def held_fraction(frame: np.ndarray) -> float:
-    """Share of a frame's samples equal to its (upper) median: 1 for silent or stuck input, a
-    little above 0 for anything with noise in it. Where most of a frame holds one value,
-    correlations are exactly zero at most lags and no noise level can be measured from them.
-    (A value on more than half the samples is the median: one selection finds it, at half the
-    cost of ``np.median``'s two and their mean.)"""
-    middle = len(frame) // 2
-    return float(np.mean(frame == np.partition(frame, middle)[middle]))
+    """Share of a frame's samples equal to the (upper) median of every ``HELD_STRIDE``-th one:
+    1 for silent or stuck input, a little above 0 for anything with noise in it. Where most
+    of a frame holds one value, correlations are exactly zero at most lags and no noise level
+    can be measured from them. A value on more than half the samples is their median, and that
+    of every 8th sample too unless where it is held lines up with the stride (a pattern of
+    period 8, which no stuck or silent input makes); the selection's data-dependent branches
+    cost about 10 ns a sample, so an eighth of them saves 0.2 ms per stacked frame, twice per
+    stack (the stacker's flag, the search's check)."""
+    sample = frame[::HELD_STRIDE]
+    middle = len(sample) // 2
+    return float(np.mean(frame == np.partition(sample, middle)[middle]))
 
 
 def measure_drift(first: np.ndarray, second: np.ndarray, apart_frames: int, offset: float = 0.0,
