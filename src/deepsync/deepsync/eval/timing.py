@@ -5,7 +5,8 @@ Every estimator sees the same windows (the first F frames of each test example, 
 ``frames``). Errors are estimate minus the true first-path offset, in samples. The bound is
 ``crlb.delay_crlb`` at the amplitude fitted at the true offset and the noise spectrum measured
 from the rows: what an unbiased estimator of the *peak* could reach; multipath bias is on top.
-Breakdowns: per-frame SNR bins, frames, bandwidth, LOS (TDL-D/E) vs NLOS (TDL-A/B/C), and the
+Breakdowns: per-frame SNR bins, frames, bandwidth, LOS (TDL-D/E) vs NLOS (TDL-A/B/C), the size
+of the coarse error (how far the sync stage's code lock was from the true start), and the
 sigma calibration (share of errors within +-1 reported sigma, 68 % if honest) of each
 estimator per SNR bin. Headline numbers (``headline``, 10 frames): the threshold SNR on LOS
 channels (where RMSE exceeds 2x the median bound; where outliers, errors beyond a sample,
@@ -49,6 +50,7 @@ ESTIMATORS = ("network", "network_ml", *CLASSICAL)
 BAG_ESTIMATORS = ("ml_frame", *ESTIMATORS)
 
 
+COARSE_ERROR_EDGES = np.array([0, 3, 6, 9, 20, 40])  # bins of the coarse error's size (samples)
 OUTLIER_SAMPLES = 1.0  # an error beyond this is a wrong lobe, not noise (156 m)
 
 
@@ -112,6 +114,15 @@ def by_snr(data: dict[str, np.ndarray], results: dict[str, np.ndarray], mask: np
     return rows
 
 
+def by_coarse_error(data: dict[str, np.ndarray], results: dict[str, np.ndarray]) -> dict[str, dict]:
+    """Breakdowns by how far (whole samples, either way) the coarse code start was from the true
+    one: does an estimator hold up to the edge of the margin its windows give it?"""
+    distance = np.abs(data["coarse_error"])
+    edges = [*COARSE_ERROR_EDGES[COARSE_ERROR_EDGES <= distance.max()], int(distance.max()) + 1]
+    return {f"{low}-{high - 1}": breakdown(data, results, (distance >= low) & (distance < high))
+            for low, high in zip(edges[:-1], edges[1:])}
+
+
 def threshold_snr_db(rows: list[dict], name: str) -> dict[str, float | None]:
     """Upper edge of the highest SNR bin (None: none) where the RMSE exceeds 2x the (median)
     bound, and where more than 10 % of the errors are outliers (beyond ``OUTLIER_SAMPLES``)."""
@@ -145,6 +156,7 @@ def evaluate_timing(data_dir: str | Path, out: str | Path, checkpoint: str | Pat
             "by_bandwidth": {f"{bw:g}": breakdown(data, results, data["bandwidth_mhz"] == bw)
                              for bw in np.unique(data["bandwidth_mhz"])},
             "by_profile": {name: breakdown(data, results, data["profile"] == k) for k, name in enumerate(PROFILES)},
+            "by_coarse_error": by_coarse_error(data, results),
         }
     summary["headline"] = headline(data, summary)
     out = Path(out)

@@ -1,0 +1,36 @@
+"""The timing side by side's statistics (``deepsync.eval.timing``), on errors made up for them."""
+
+import numpy as np
+
+from deepsync.eval.timing import ESTIMATORS, by_coarse_error, error_stats
+
+
+def _results(errors: np.ndarray) -> dict[str, np.ndarray]:
+    results = {f"{name}_{kind}": errors.copy() if kind == "error" else np.full(errors.size, 0.5)
+               for name in ESTIMATORS for kind in ("error", "sigma")}
+    results["crlb"] = np.full(errors.size, 0.1)
+    return results
+
+
+def test_error_stats_count_outliers_beyond_a_sample_and_errors_within_sigma():
+    stats = error_stats(np.array([0.1, -0.2, 0.3, 2.0, -4.0]), np.full(5, 0.25))
+    assert stats["n"] == 5 and stats["median"] == 0.3
+    assert stats["outliers"] == 2 / 5 and stats["within_1_sigma"] == 2 / 5
+    assert np.isclose(stats["rmse"], np.sqrt(np.mean(np.array([0.1, 0.2, 0.3, 2.0, 4.0]) ** 2)))
+
+
+def test_the_coarse_error_breakdown_puts_each_example_in_the_bin_of_its_distance_either_way():
+    coarse = np.array([0, 1, -2, 3, -5, 6, -8, 8])
+    errors = np.where(np.abs(coarse) >= 6, 3.0, 0.05)  # only the lock's far edge goes wrong
+    table = by_coarse_error({"coarse_error": coarse}, _results(errors))
+    assert list(table) == ["0-2", "3-5", "6-8"]
+    assert [table[b]["ml"]["n"] for b in table] == [3, 2, 3]
+    assert table["0-2"]["network"]["outliers"] == 0 and table["3-5"]["ml"]["median"] == 0.05
+    assert table["6-8"]["network_ml"]["outliers"] == 1 and table["6-8"]["crlb_median"] == 0.1
+
+
+def test_the_coarse_error_bins_reach_as_far_as_the_data_does():
+    coarse = np.array([0, 4, 9, 10])
+    table = by_coarse_error({"coarse_error": coarse}, _results(np.zeros(coarse.size)))
+    assert list(table) == ["0-2", "3-5", "6-8", "9-10"]
+    assert table["6-8"]["ml"] == {"n": 0} and table["9-10"]["ml"]["n"] == 2
