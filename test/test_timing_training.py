@@ -184,3 +184,26 @@ def test_a_run_config_that_does_not_fit_names_the_field(tmp_path):
     path.write_text(yaml.safe_dump({"model": {"fusion": "correlation", "head": "soft_argmax"}}))
     model = load_run_config(path).model
     assert (model.fusion.value, model.head.value) == ("correlation", "soft_argmax")
+
+
+def test_validation_picks_by_the_examples_with_a_code_and_by_all_where_none_has_one():
+    """The checkpoint is chosen by ``rmse_with_code``: NaN (no example above the threshold)
+    would never be the best, and no checkpoint would ever be written."""
+    import torch
+
+    from deepsync.timing.inputs import Normalisation
+    from deepsync.timing.model import TimingNet, TimingNetConfig
+    from deepsync.training.train import Examples, evaluate
+
+    torch.manual_seed(0)
+    model = TimingNet(TimingNetConfig())
+    rng = np.random.default_rng(0)
+    arrays = {"windows": rng.normal(size=(6, 4, 296)).astype(np.float32),
+              "template": rng.normal(size=(6, 276)).astype(np.float32),
+              "offset": np.array([0.0, 1.0, -2.0, 3.0, 0.5, -4.0])}
+    weak = Examples({**arrays, "snr_db": np.full(6, -40.0)})
+    scores = evaluate(model, weak, Normalisation(1.0), 4, torch.device("cpu"), min_stacked_snr_db=-5.0)
+    assert np.isfinite(scores["rmse_with_code"]) and scores["rmse_with_code"] == scores["rmse"]
+    mixed = Examples({**arrays, "snr_db": np.array([-40.0, -40.0, -40.0, 0.0, 0.0, 0.0])})
+    scores = evaluate(model, mixed, Normalisation(1.0), 4, torch.device("cpu"), min_stacked_snr_db=-5.0)
+    assert scores["rmse_with_code"] != scores["rmse"]

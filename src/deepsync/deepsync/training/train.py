@@ -187,8 +187,10 @@ def evaluate(model: TimingNet, examples: Examples, normalisation: Normalisation,
     model.train()
     error, sigma = torch.cat(errors).abs(), torch.cat(sigmas)
     coded = torch.from_numpy(examples.snr_db + 10 * np.log10(frames) >= min_stacked_snr_db)
-    return {"median_abs_error": float(error.median()), "rmse": float(error.pow(2).mean().sqrt()),
-            "rmse_with_code": float(error[coded].pow(2).mean().sqrt()),
+    rmse = float(error.pow(2).mean().sqrt())
+    return {"median_abs_error": float(error.median()), "rmse": rmse,
+            # no code to find in the whole split: every example then (else NaN, and no checkpoint)
+            "rmse_with_code": float(error[coded].pow(2).mean().sqrt()) if coded.any() else rmse,
             "within_1_sigma": float((error <= sigma).float().mean())}
 
 
