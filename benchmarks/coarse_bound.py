@@ -23,10 +23,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
-from deepsync.eval.timing import CLASSICAL, error_stats
-from deepsync.timing.estimators import noise_psd
+from deepsync.eval.timing import CLASSICAL, error_stats, run_estimators
 from deepsync.training.dataset import generate, load_split
 from deepsync.training.train import load_run_config
 
@@ -40,19 +38,6 @@ BINS = ((0, 5), (6, 10), (11, 20), (21, 40), (0, 40))  # |coarse error|, whole s
 STRONG_DB = -10.0  # per-frame SNR from which a group counts as above ML's threshold
 
 
-def classical_errors(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Each classical estimator's error against the true first path, per example, 10 frames."""
-    windows, templates = data["windows"][:, :FRAMES], data["template"]
-    margin = (windows.shape[2] - templates.shape[1]) // 2
-    errors = {name: np.full(len(windows), np.nan) for name in CLASSICAL}
-    for i in tqdm(range(len(windows)), desc=f"classical estimators, +-{margin} samples"):
-        w, t = windows[i].astype(np.float64), templates[i].astype(np.float64)
-        psd = noise_psd(w)
-        for name, estimate in CLASSICAL.items():
-            errors[name][i] = estimate(w, t, margin, psd).offset - data["offset"][i]
-    return errors
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=2)
@@ -62,7 +47,8 @@ def main() -> None:
     for split, (root, changes) in SPLITS.items():
         generate(root, {"test": run.training.test_shards}, dataclasses.replace(run.dataset, **changes), args.workers)
         data = load_split(root, "test")
-        errors = classical_errors(data)
+        results = run_estimators(data, FRAMES, None)  # the network does not take these windows
+        errors = {name: results[f"{name}_error"] for name in CLASSICAL}
         distance = np.abs(data["coarse_error"])
         groups = {"all": np.ones(len(distance), dtype=bool), f"snr >= {STRONG_DB:g} dB": data["snr_db"] >= STRONG_DB}
         summary["splits"][split] = {group: {

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from deepsync.eval.timing import ESTIMATORS, by_coarse_error, error_stats
+from deepsync.eval.timing import CLASSICAL, ESTIMATORS, by_coarse_error, error_stats, run_estimators
 
 
 def _results(errors: np.ndarray) -> dict[str, np.ndarray]:
@@ -34,3 +34,20 @@ def test_the_coarse_error_bins_reach_as_far_as_the_data_does():
     table = by_coarse_error({"coarse_error": coarse}, _results(np.zeros(coarse.size)))
     assert list(table) == ["0-2", "3-5", "6-8", "9-10"]
     assert table["6-8"]["ml"] == {"n": 0} and table["9-10"]["ml"]["n"] == 2
+
+
+def test_without_a_network_the_classical_estimators_run_and_the_networks_rows_stay_empty():
+    """Windows the network does not take (``benchmarks/coarse_bound.py``'s wider ones) are
+    still timed by every classical estimator, near the true offset for a clean code."""
+    rng = np.random.default_rng(4)
+    template = np.convolve(rng.normal(size=60), np.ones(4) / 4, mode="same")
+    margin, offsets = 12, np.array([-3.0, 0.0, 5.0])
+    windows = np.zeros((3, 4, template.size + 2 * margin))
+    for k, offset in enumerate(offsets):
+        windows[k, :, margin + int(offset) : margin + int(offset) + template.size] = template
+    windows += 0.01 * rng.normal(size=windows.shape)
+    data = {"windows": windows, "template": np.tile(template, (3, 1)), "offset": offsets}
+    results = run_estimators(data, 4, None, progress=False)
+    assert np.all(np.isnan(results["network_error"])) and np.all(np.isnan(results["network_ml_error"]))
+    for name in CLASSICAL:
+        assert np.all(np.abs(results[f"{name}_error"]) < 0.1), name

@@ -67,9 +67,10 @@ def error_stats(errors: np.ndarray, sigmas: np.ndarray | None = None) -> dict[st
     return out
 
 
-def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEstimator,
+def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEstimator | None,
                    progress: bool = True) -> dict[str, np.ndarray]:
-    """Per example: each estimator's error and sigma, and the bound (samples)."""
+    """Per example: each estimator's error and sigma, and the bound (samples). Without a
+    ``network`` (windows it does not take) its rows and network_ml's stay NaN."""
     windows = data["windows"][:, :frames]
     templates = data["template"]
     margin = (windows.shape[2] - templates.shape[1]) // 2
@@ -77,7 +78,7 @@ def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEst
     n = len(windows)
     results = {f"{name}_{kind}": np.full(n, np.nan) for name in ESTIMATORS for kind in ("error", "sigma")}
     results["crlb"] = np.full(n, np.nan)
-    for start in range(0, n, 256):
+    for start in range(0, n if network is not None else 0, 256):
         batch = network.estimate(list(windows[start : start + 256]), list(templates[start : start + 256]))
         for i, (offset, sigma) in enumerate(batch, start):
             results["network_error"][i], results["network_sigma"][i] = offset - data["offset"][i], sigma
@@ -87,9 +88,10 @@ def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEst
         for name, estimate in CLASSICAL.items():
             result = estimate(w, t, margin, psd)
             results[f"{name}_error"][i], results[f"{name}_sigma"][i] = result.offset - data["offset"][i], result.std
-        offset = results["network_error"][i] + data["offset"][i]
-        result = refine_with_ml(w, t, margin, psd, offset, results["network_sigma"][i])
-        results["network_ml_error"][i], results["network_ml_sigma"][i] = result.offset - data["offset"][i], result.std
+        if network is not None:
+            offset = results["network_error"][i] + data["offset"][i]
+            result = refine_with_ml(w, t, margin, psd, offset, results["network_sigma"][i])
+            results["network_ml_error"][i], results["network_ml_sigma"][i] = result.offset - data["offset"][i], result.std
         amplitude = fit_amplitude(w.mean(axis=0), t, margin, float(data["offset"][i]), psd)
         if amplitude > 0:
             results["crlb"][i] = delay_crlb(t, amplitude, psd, frames, rate, w.shape[1]).std_samples

@@ -24,6 +24,7 @@ batches and DistributedDataParallel averages the gradients; rank 0 evaluates and
 
 from __future__ import annotations
 
+import enum
 import json
 import math
 import os
@@ -170,6 +171,13 @@ def learning_rate(step: int, config: TrainConfig) -> float:
     return config.final_learning_rate + (config.learning_rate - config.final_learning_rate) * cosine
 
 
+def _choice_name(value: object) -> str:
+    """A model choice (``Fusion``, ``Head``) as the run's JSON record holds it: by name."""
+    if isinstance(value, enum.Enum):
+        return value.value
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
 @torch.no_grad()
 def evaluate(model: TimingNet, examples: Examples, normalisation: Normalisation, frames: int,
              device: torch.device, min_stacked_snr_db: float, batch: int = 512) -> dict[str, float]:
@@ -238,7 +246,7 @@ def train(run: RunConfig, config_path: str = "") -> Path:
             print(f"resuming {last} at step {step}")
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     meta = {"config": str(config_path),
-            "run": json.dumps(asdict(run), default=lambda choice: choice.value),  # the model's choices by name
+            "run": json.dumps(asdict(run), default=_choice_name),
             "examples": len(train_set), "normalisation": json.dumps(asdict(normalisation))}
     # the checkpoint to ship: the best RMSE where there is a code to find (the RMSE over every
     # example is the undetectable ones' guessing, and rises while the median still falls)
