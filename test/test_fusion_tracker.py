@@ -22,7 +22,7 @@ from scipy.stats import chi2
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival
 from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
-from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, FixKind, NoFix, NoFixReason
+from deepsync.types import SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason, PositionPrior
 
 C = SPEED_OF_LIGHT_M_S
 SITES = {  # 300-1100 m around where the walker starts
@@ -187,6 +187,106 @@ def test_one_or_two_sites_per_stack_start_converge_and_stay_consistent(clock_rat
     # converged: the horizontal uncertainty below one range sigma, every error within 4 DRMS
     assert np.mean(sigmas) < SIGMA_M
     assert all(e < 4 * s for e, s in zip(errors, sigmas))
+
+
+# --------------------------------------------------------------------------- an initial position
+
+
+def prior_near(truth: np.ndarray, rng: np.random.Generator, error_std_m: float, claimed_std_m: float) -> PositionPrior:
+    """An operator's initial position: ``truth`` off by N(0, error_std_m^2) per axis, claiming
+    ``claimed_std_m``, the up axis unmeasured."""
+    position = truth + np.array([*rng.normal(0.0, error_std_m, 2), 0.0])
+    return PositionPrior(tuple(position), np.diag([claimed_std_m**2, claimed_std_m**2, UNMEASURED_VARIANCE]))
+
+
+def held_route_nees(error_std_m: float, claimed_std_m: float, routes: int = 30) -> tuple[list[float], list[float]]:
+    """NEES and horizontal errors every 5 s within the prior's hold (5-25 s) along 40 s walks
+    where only sites A and B are ever heard (1-2 per stack), the tracker started from a prior;
+    the tracker must fix through the hold and give up after it."""
+    samples, errors = [], []
+    for seed in range(routes):
+        rng = np.random.default_rng(100 + seed)
+        route = Route(rng, 40.0, random_sites(1, 2, "AB"))
+        tracker = Tracker(CONFIG)
+        tracker.start_from(prior_near(route.truth[0], rng, error_std_m, claimed_std_m))
+        outcomes = route.track(tracker=tracker)
+        fixed = [(fix, truth) for fix, truth in zip(outcomes[50:300:50], route.truth[50:300:50]) if isinstance(fix, Fix)]
+        samples += [nees(fix, truth) for fix, truth in fixed]
+        errors += [horizontal_error(fix, truth) for fix, truth in fixed]
+        if error_std_m == claimed_std_m:
+            assert all(isinstance(fix, Fix) for fix in outcomes[10:290])  # within a second (the drift), through the hold
+            assert all(isinstance(fix, NoFix) for fix in outcomes[310:])  # then none: two sites cannot fix alone
+            assert "prior_hold_s 30 s" in " ".join(fix.message for fix in outcomes[299:310] if isinstance(fix, NoFix))
+    return samples, errors
+
+
+def test_an_initial_position_tracks_two_sites_consistently_for_its_hold_and_then_gives_up():
+    # two sites measure one range difference: a hyperbola. Without a prior nothing starts; with one
+    # the track follows the walker, its covariance long along the hyperbola and growing with the
+    # walk, until prior_hold_s. The samples of one route share its prior, so they are not
+    # independent: the bounds are [1, 3] (30 m priors: 1.9; 10 m: 1.8; 100 m: 4.6, where the
+    # hyperbola bends within the prior's spread and the linearisation grows overconfident)
+    rng = np.random.default_rng(99)
+    route = Route(rng, 10.0, random_sites(1, 2, "AB"))
+    assert all(fix.reason is NoFixReason.NOT_INITIALISED for fix in route.track())
+    samples, errors = held_route_nees(30.0, 30.0)
+    mean = float(np.mean(samples))
+    print(f"two sites from a 30 m prior: NEES {mean:.2f} over {len(samples)} samples, horizontal error median "
+          f"{np.median(errors):.0f} m")
+    assert 1.0 <= mean <= 3.0
+    # the check can fail: a prior claiming a third of its true error is outside (3.7); less is
+    # hidden by the walk, whose own uncertainty soon outgrows the prior's
+    overclaimed, _ = held_route_nees(30.0, 10.0)
+    assert float(np.mean(overclaimed)) > 3.0
+
+
+def test_an_initial_position_is_forgotten_once_the_sites_fix_the_position():
+    def hear(k: int, rng: np.random.Generator) -> list[str]:
+        return list(rng.choice(["A", "B"] if k < 30 else ["A", "B", "C", "D"], 2, replace=False))
+
+    rng = np.random.default_rng(20)
+    route = Route(rng, 30.0, hear)
+    tracker = Tracker(TrackerConfig(prior_hold_s=5.0))
+    tracker.start_from(prior_near(route.truth[0], rng, 20.0, 20.0))
+    outcomes = route.track(tracker=tracker)
+    assert all(isinstance(fix, Fix) for fix in outcomes) and tracker.last_restart is None
+    assert horizontal_error(outcomes[-1], route.truth[-1]) < 3 * outcomes[-1].horizontal_std_m < 3 * SIGMA_M
+
+
+def test_an_initial_position_restarts_a_running_track():
+    rng = np.random.default_rng(21)
+    route = Route(rng, 5.0, random_sites(3, 3))
+    tracker = Tracker()
+    for arrivals, end in zip(route.stacks[:-1], route.ends[:-1]):
+        tracker.update(arrivals, round(end * 1e9), float(end))
+    assert tracker.initialised
+    tracker.start_from(prior_near(route.truth[-1], rng, 20.0, 20.0))
+    assert not tracker.initialised and tracker.last_restart == "an initial position was given"
+    fix = tracker.update(route.stacks[-1], 1, float(route.ends[-1]))
+    assert isinstance(fix, Fix) and horizontal_error(fix, route.truth[-1]) < 3 * fix.horizontal_std_m
+
+
+def test_one_site_and_an_initial_position_start_a_track_from_the_first_stack():
+    rng = np.random.default_rng(22)
+    route = Route(rng, 2.0, lambda k, rng: ["A"])
+    tracker = Tracker()
+    tracker.start_from(prior_near(route.truth[0], rng, 20.0, 20.0))
+    outcomes = route.track(tracker=tracker, clock_rate=(PPM + 0.3) * 1e-6)
+    assert all(isinstance(fix, Fix) and fix.sites == ("A",) for fix in outcomes)
+    # one range measures the clock; the position is the prior's, widened by the walk
+    assert all(20.0 < fix.horizontal_std_m < 40.0 for fix in outcomes)
+
+
+@pytest.mark.parametrize("covariance, field", [
+    (np.diag([1.0, math.nan, 1.0]), "covariance"), (np.diag([1.0, 0.0, 1.0]), "positive definite"),
+    (np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), "symmetric"), (np.eye(2), "3x3")])
+def test_a_bad_initial_position_is_refused_by_field(covariance, field):
+    with pytest.raises(ValueError, match=field):
+        PositionPrior((0.0, 0.0, 0.0), covariance)
+    with pytest.raises(ValueError, match="position_enu"):
+        PositionPrior((0.0, math.inf, 0.0), np.eye(3))
+    with pytest.raises(ValueError, match="PositionPrior"):
+        Tracker().start_from((0.0, 0.0, 0.0))
 
 
 # --------------------------------------------------------------------------- outliers, gaps, restarts

@@ -288,14 +288,17 @@ def _pipeline_config(args: argparse.Namespace) -> PipelineConfig:
 
 
 def _cmd_evaluate_route(args: argparse.Namespace) -> int:
-    from deepsync.eval.route import evaluate_route
+    from deepsync.eval.route import InitialPose, evaluate_route
 
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
     print(f"route evaluation of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
     config = _pipeline_config(args)
+    initial_pose = None if args.initial_pose_std is None else InitialPose(args.initial_pose_std)
+    if initial_pose is not None:
+        print(f"  the tracker starts from the true start position off by N(0, {args.initial_pose_std:g} m) per axis")
     summary, paths = evaluate_route(source, towers, Path(args.out), config,
-                                    progress=not args.quiet)
+                                    progress=not args.quiet, initial_pose=initial_pose)
     _print_route(summary)
     print("  written: " + ", ".join(str(p) for p in paths))
     return 130 if summary["interrupted"] else 0
@@ -498,6 +501,10 @@ def build_parser() -> argparse.ArgumentParser:
     _replay_arguments(route, "bag with /deepsync/envelope and /deepsync/truth/pose",
                       "tower database YAML with origin, positions and timing")
     route.add_argument("--out", default=str(REPO / "out" / "route"), help="where route.json and the PNGs go")
+    route.add_argument("--initial-pose-std", type=_positive_float, metavar="M",
+                       help="start the tracker from an initial position: the true start, off by a draw of "
+                       "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
+                       "sites are heard to start)")
     route.set_defaults(run=_cmd_evaluate_route)
 
     replay = commands.add_parser("replay", help="run the chain's stages over a bag and write what the nodes publish "

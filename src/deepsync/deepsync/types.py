@@ -356,3 +356,35 @@ class NoFix:
     reason: NoFixReason
     message: str
     rejected: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class PositionPrior:
+    """Where the receiver is believed to be, told from outside the chain (an operator's initial
+    pose, the last known position of a tracker that was switched off): ``map`` ENU metres and
+    their covariance (m^2; an up axis nobody knows carries :data:`UNMEASURED_VARIANCE`).
+
+    Where the heard sites alone cannot fix a position (two sites give a hyperbola, not a
+    point), a tracker started from a prior can: it keeps the prior's uncertainty along what the
+    sites do not measure, and grows it as the receiver moves. Raises ValueError naming the
+    field that is not a finite position or a symmetric positive-definite covariance. It holds
+    from when it is given: the tracker starts from it at the next stack.
+    """
+
+    position_enu: tuple[float, float, float]
+    covariance: np.ndarray  # (3, 3) m^2, ENU
+
+    def __post_init__(self) -> None:
+        position = tuple(float(v) for v in self.position_enu)
+        if len(position) != 3 or not all(math.isfinite(v) for v in position):
+            raise ValueError(f"position_enu: {self.position_enu!r} is not 3 finite ENU metres")
+        covariance = np.array(self.covariance, dtype=np.float64)
+        if covariance.shape != (3, 3) or not np.all(np.isfinite(covariance)):
+            raise ValueError(f"covariance: must be a finite 3x3 matrix (m^2), got shape {covariance.shape}")
+        if not np.allclose(covariance, covariance.T, rtol=1e-9, atol=1e-9 * float(np.abs(covariance).max())):
+            raise ValueError("covariance: is not symmetric")
+        if not np.all(np.linalg.eigvalsh(covariance) > 0):
+            raise ValueError("covariance: is not positive definite (every axis needs a variance > 0 m^2)")
+        covariance.setflags(write=False)
+        object.__setattr__(self, "position_enu", position)
+        object.__setattr__(self, "covariance", covariance)

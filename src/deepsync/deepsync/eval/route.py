@@ -34,7 +34,7 @@ from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
 from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
 from deepsync.sources import BagSource
 from deepsync.towers import TowerDatabase
-from deepsync.types import SPEED_OF_LIGHT_M_S, Fix, NoFix, StackArrivals
+from deepsync.types import SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, NoFix, PositionPrior, StackArrivals
 
 CHI2_2DOF_95 = chi_square_limit(0.05, 2)  # 95 % of a 2-D Gaussian's NEES lies below this (5.99)
 
@@ -138,11 +138,37 @@ def replay(source: BagSource, towers: TowerDatabase, config: PipelineConfig | No
     return Replay(source, arrivals, truth, source.truth_arrivals(), interrupted)
 
 
-def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None) -> RouteRun:
-    """Fusion over a replay's arrivals with ``towers``, every stack paired with the truth."""
+@dataclass(frozen=True)
+class InitialPose:
+    """An operator's initial position, simulated: given before the first stack stamped at or
+    after ``after_ns`` (None: the first stack), the truth there off by a draw of N(0, std_m^2)
+    per horizontal axis (``seed``), and claiming ``std_m``."""
+
+    std_m: float
+    after_ns: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.std_m, (int, float)) and math.isfinite(self.std_m) and 0 < self.std_m <= 1e4):
+            raise ValueError(f"std_m: {self.std_m!r} must be a positive number of metres (<= 1e4)")
+
+    def prior(self, truth_enu: np.ndarray) -> PositionPrior:
+        offset = np.random.default_rng(self.seed).normal(0.0, self.std_m, 2)
+        return PositionPrior((truth_enu[0] + offset[0], truth_enu[1] + offset[1], truth_enu[2]),
+                             np.diag([self.std_m**2, self.std_m**2, UNMEASURED_VARIANCE]))
+
+
+def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None,
+               initial_pose: InitialPose | None = None) -> RouteRun:
+    """Fusion over a replay's arrivals with ``towers``, every stack paired with the truth; the
+    tracker started from ``initial_pose`` where one is given."""
     stage = FusionStage(towers, config)
     fused = []
+    pending = initial_pose
     for arrivals in recorded.arrivals:
+        if pending is not None and (pending.after_ns is None or arrivals.stamp_ns >= pending.after_ns):
+            stage.start_from(pending.prior(recorded.truth.at(arrivals.stamp_ns)))
+            pending = None
         fusion = stage.process(arrivals)
         fused.append((arrivals, fusion, stage.reference_ns))
     return score_stacks(str(recorded.source.path), fused, recorded.truth, recorded.true_arrivals, recorded.interrupted)
@@ -157,10 +183,10 @@ def score_stacks(bag: str, fused: Sequence[tuple[StackArrivals, FusionResult, in
 
 
 def replay_route(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
-                 progress: bool = True) -> RouteRun:
+                 progress: bool = True, initial_pose: InitialPose | None = None) -> RouteRun:
     """Replay and fuse in one go."""
     config = config or PipelineConfig()
-    return fuse_route(replay(source, towers, config, progress), towers, config.fusion)
+    return fuse_route(replay(source, towers, config, progress), towers, config.fusion, initial_pose)
 
 
 def _epoch(arrivals: StackArrivals, fusion: FusionResult, reference_ns: int, truth: TruthTrack,
@@ -348,9 +374,9 @@ def _epoch_record(epoch: RouteEpoch) -> dict:
 
 
 def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, config: PipelineConfig | None = None,
-                   progress: bool = True) -> tuple[dict, list[Path]]:
+                   progress: bool = True, initial_pose: InitialPose | None = None) -> tuple[dict, list[Path]]:
     """Replay, score and report a route: the summary and the files written."""
-    run = replay_route(source, towers, config, progress)
+    run = replay_route(source, towers, config, progress, initial_pose)
     if not run.epochs:
         raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
     model = add_rssi_fixes(run, RssiConfig(receiver_height_m=(config or PipelineConfig()).fusion.snapshot.receiver_height_m))

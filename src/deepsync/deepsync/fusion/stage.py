@@ -26,7 +26,7 @@ from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
 from deepsync.geo import LocalFrame
 from deepsync.towers import TowerDatabase
-from deepsync.types import Fix, Health, HealthKind, NoFix, NoFixReason, StackArrivals
+from deepsync.types import Fix, Health, HealthKind, NoFix, NoFixReason, PositionPrior, StackArrivals
 
 
 @dataclass(frozen=True)
@@ -102,6 +102,13 @@ class FusionStage:
     @property
     def frame(self) -> LocalFrame:
         return self.anchors.frame
+
+    def start_from(self, prior: PositionPrior) -> None:
+        """The tracker starts again from ``prior`` at the next stack (an operator's initial
+        pose): with it, one heard site is enough to start. ValueError when not tracking."""
+        if self.tracker is None:
+            raise ValueError("an initial position needs the tracker, and tracking is off (FusionConfig.track)")
+        self.tracker.start_from(prior)
 
     def process(self, arrivals: StackArrivals) -> FusionResult:
         """Fix (or no fix, with the reason) for one stack's arrivals."""

@@ -108,7 +108,15 @@ from scipy.optimize import least_squares
 
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
 from deepsync.fusion.snapshot import SnapshotConfig, chi_square_limit, solve_snapshot
-from deepsync.types import SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
+from deepsync.types import (
+    SPEED_OF_LIGHT_M_S,
+    UNMEASURED_VARIANCE,
+    Fix,
+    FixKind,
+    NoFix,
+    NoFixReason,
+    PositionPrior,
+)
 
 MAX_CLOCK_RATE = 1e-3  # a clock 1000 ppm off is not a receiver clock but a wrong number
 # a site unheard this many bias correlation times is forgotten: its bias state then keeps
@@ -137,6 +145,7 @@ class TrackerConfig:
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
     stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (PipelineConfig sets it)
+    prior_hold_s: float = 30.0  # how long a start from an initial position runs while D + 1 sites are not heard
 
     def __post_init__(self) -> None:
         if not isinstance(self.snapshot, SnapshotConfig):
@@ -160,6 +169,7 @@ class TrackerConfig:
             "bias_correlation_s": 0 < self.bias_correlation_s <= 1e5,
             "site_clock_wander_mps_per_sqrt_s": 0 <= self.site_clock_wander_mps_per_sqrt_s <= 1e3,
             "stack_overlap": 1 <= self.stack_overlap <= 1000,
+            "prior_hold_s": 0 < self.prior_hold_s <= 3600,
         }
         for name, ok in checks.items():
             value = getattr(self, name)
@@ -211,7 +221,19 @@ class Tracker:
         needs fresh arrivals."""
         self._window: deque[SiteArrival] = deque()
         self._newest = -math.inf
+        self._prior: PositionPrior | None = None
         self._forget()
+
+    def start_from(self, prior: PositionPrior) -> None:
+        """Give up the state and start again from ``prior`` at the next update (an operator's
+        initial pose): the recent arrivals are kept, and the start needs one site instead of
+        ``D + 1``, the prior standing in for the position. One start uses it."""
+        if not isinstance(prior, PositionPrior):
+            raise ValueError(f"prior: {prior!r} is not a PositionPrior")
+        if self.initialised:
+            self.last_restart = "an initial position was given"
+        self._forget()
+        self._prior = prior
 
     def _forget(self) -> None:
         """Forget the state but keep the window of recent arrivals, for a start at once."""
@@ -220,6 +242,7 @@ class Tracker:
         self._P = np.zeros((0, 0))
         self._t = math.nan
         self._last_accepted = math.nan
+        self._held_since: float | None = None  # started from an initial position, not yet fixed by the sites
         self._rejection_run: list[str] = []
         self._sites: dict[str, _Site] = {}  # in the order of their states
         self._width = 3 if c.site_clocks else 1  # states per site: bias (, clock offset, clock drift)
@@ -270,6 +293,12 @@ class Tracker:
                                  f"(max_coast_s {self.config.max_coast_s:g} s)", stamp_ns, time_s, clock_rate, ())
         if not self.initialised:
             return self._start(stamp_ns, time_s, clock_rate, arrivals)
+        if self._held_since is not None and len(self._sites) > self.config.dims:
+            self._held_since = None  # the sites fix the position now: the prior is forgotten
+        if self._held_since is not None and now - self._held_since > self.config.prior_hold_s:
+            return self._restart(f"the initial position held the track for {now - self._held_since:.1f} s "
+                                 f"(prior_hold_s {self.config.prior_hold_s:g} s) with only "
+                                 f"{', '.join(self._sites)} heard", stamp_ns, time_s, clock_rate, ())
         self._drop_unheard()
         used: list[str] = []
         rejected: list[str] = []
@@ -450,17 +479,21 @@ class Tracker:
     def _start(self, stamp_ns: int, time_s: float, clock_rate: float | None,
                arrivals: list[SiteArrival]) -> Fix | NoFix:
         """Start from the stack alone if it can, else from the window; NoFix saying what is missing."""
-        dims = self.config.dims
-        candidates = [arrivals] if len({a.site for a in arrivals}) >= dims + 1 else []
+        dims, prior = self.config.dims, self._prior
+        # a prior is about the receiver now: every recent arrival tells the clock something
+        candidates = [arrivals] if prior is None and len({a.site for a in arrivals}) >= dims + 1 else []
         candidates.append(sorted(self._window, key=lambda a: a.time_s))
         outcome: _Start | str = ""
         for candidate in candidates:
-            outcome = _batch_start(candidate, self.config, clock_rate)
+            outcome = _batch_start(candidate, self.config, clock_rate, prior)
             if isinstance(outcome, _Start):
                 break
         if isinstance(outcome, str):
-            return NoFix(stamp_ns, NoFixReason.NOT_INITIALISED, f"waiting for a start: {outcome}")
+            hint = "" if prior is not None else "; an initial position (Tracker.start_from) would start from one site"
+            return NoFix(stamp_ns, NoFixReason.NOT_INITIALISED, f"waiting for a start: {outcome}{hint}")
         self._begin(outcome, candidate)
+        if prior is not None:
+            self._prior, self._held_since = None, self._t
         return self._fix_at(time_s, stamp_ns, outcome.sites, outcome.rejected)
 
     def _begin(self, start: _Start, arrivals: Sequence[SiteArrival]) -> None:
@@ -485,18 +518,23 @@ class Tracker:
             self._add_site(latest[name])
 
 
-def _batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None) -> _Start | str:
+def _batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
+                 prior: PositionPrior | None = None) -> _Start | str:
     """Position, clock bias and drift from arrivals spread over a few seconds (the receiver taken
-    as static), or a sentence saying why not. ``arrivals`` must be in time order."""
+    as static), or a sentence saying why not. ``arrivals`` must be in time order. With a
+    ``prior`` (the position's, at the arrivals' mean time) one site is enough: it measures the
+    clock, and along its range the position, by as much as the prior leaves open."""
     dims = config.dims
     names = sorted({a.site for a in arrivals})
     rate_known = clock_rate is not None
-    if len(names) < dims + 1:
+    needed = 1 if prior is not None else dims + 1
+    if len(names) < needed:
+        what = "clock bias; the initial position given" if prior is not None else "position and clock bias"
         return (f"{len(names)} site(s) heard in the last {config.init_window_s:g} s ({', '.join(names) or 'none'}); "
-                f"{dims + 1} needed in {dims}-D (position and clock bias)")
-    if len(arrivals) < dims + 3 - rate_known:
+                f"{needed} needed in {dims}-D ({what})")
+    if len(arrivals) < (2 if prior is not None else dims + 3) - rate_known:
         return f"{len(arrivals)} arrivals from {len(names)} sites: one more needed to solve the unknown clock drift"
-    problem = _BatchProblem(arrivals, config, clock_rate)
+    problem = _BatchProblem(arrivals, config, clock_rate, prior)
     start = problem.start()
     if isinstance(start, str):
         return start
@@ -505,8 +543,8 @@ def _batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_r
     # a false lock or a reflection among them: out (once), and the rest solved without it
     keep = np.abs(problem.residuals(theta, keep)[: keep.sum()]) ** 2 <= chi_square_limit(config.gate_probability, 1)
     kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
-    if len(kept) < dims + 1:  # before solving again: fewer would leave the solve underdetermined
-        return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {dims + 1} needed"
+    if len(kept) < needed:  # before solving again: fewer would leave the solve underdetermined
+        return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {needed} needed"
     if not keep.all():
         theta = problem.fit(theta, keep, robust=False)
     residuals = problem.residuals(theta, keep)
@@ -522,7 +560,7 @@ def _batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_r
         covariance = np.full((len(theta), len(theta)), math.inf)
     horizontal = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0))
     typical = float(np.median(problem.sigma[keep]))
-    if not horizontal <= config.snapshot.max_gdop * typical:
+    if prior is None and not horizontal <= config.snapshot.max_gdop * typical:  # a prior bounds it
         return (f"the geometry of {', '.join(kept)} does not fix the position ({horizontal:.0f} m 1-sigma from "
                 f"{typical:.0f} m ranges)")
     mean = theta.copy()
@@ -533,10 +571,16 @@ def _batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_r
 
 class _BatchProblem:
     """Arrivals over a window as one least-squares problem in [position (D), b, d] at the mean
-    arrival time, ``b`` counted from the earliest arrival's range (``reference_m``)."""
+    arrival time, ``b`` counted from the earliest arrival's range (``reference_m``); a position
+    prior, whitened by its covariance's Cholesky factor, adds ``D`` rows."""
 
-    def __init__(self, arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None) -> None:
+    def __init__(self, arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
+                 prior: PositionPrior | None = None) -> None:
         self.config = config
+        dims = config.dims
+        self.prior_mean = None if prior is None else np.array(prior.position_enu[:dims])
+        # rows W (x - mean) with W = L^-1, C = L L^T: unit-variance residuals of the prior
+        self.prior_root = None if prior is None else np.linalg.inv(np.linalg.cholesky(prior.covariance[:dims, :dims]))
         self.arrivals = list(arrivals)
         self.t = np.array([a.time_s for a in arrivals])
         self.t_ref = float(self.t.mean())
@@ -564,6 +608,7 @@ class _BatchProblem:
         """A first guess: the drift from how repeated sites' ranges move, then one range per
         site at ``t_ref`` (the median: a single false lock does not move it) solved as a snapshot."""
         dt = self.t - self.t_ref
+        dims = self.config.dims
         numerator = denominator = 0.0
         for name in set(self.names):
             mine = self.names == name
@@ -575,6 +620,9 @@ class _BatchProblem:
         weight = float(np.median(self.sigma)) ** 2 / self.drift_std**2
         drift = (numerator + weight * self.drift_prior) / (denominator + weight)
         collapsed = self.rho - drift * dt
+        if self.prior_mean is not None:  # the prior is the guess: the sites may be too few for one
+            bias = float(np.median(collapsed - np.linalg.norm(self.sites - self.position(self.prior_mean), axis=1)))
+            return np.array([*self.prior_mean, bias, drift])
         stack = []
         for name in sorted(set(self.names)):
             mine = np.flatnonzero(self.names == name)
@@ -587,7 +635,7 @@ class _BatchProblem:
         position = np.asarray(snapshot.position_enu)
         distances = np.linalg.norm(self.sites - position, axis=1)
         bias = float(np.median(collapsed - distances))
-        return np.array([*position[: self.config.dims], bias, drift])
+        return np.array([*position[:dims], bias, drift])
 
     def residuals(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
         """Arrivals (measured minus modelled, over sigma), then the drift prior (and height prior)."""
@@ -597,6 +645,8 @@ class _BatchProblem:
         priors = [(theta[dims + 1] - self.drift_prior) / self.drift_std]
         if dims == 3:
             priors.append((theta[2] - self.config.snapshot.receiver_height_m) / self.config.snapshot.height_prior_std_m)
+        if self.prior_root is not None:
+            priors.extend(self.prior_root @ (theta[:dims] - self.prior_mean))
         return np.concatenate([(self.rho[keep] - model) / self.sigma[keep], priors])
 
     def jacobian(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -608,6 +658,10 @@ class _BatchProblem:
         priors[0, dims + 1] = -1 / self.drift_std
         if dims == 3:
             priors[1, 2] = -1 / self.config.snapshot.height_prior_std_m
+        if self.prior_root is not None:
+            position = np.zeros((dims, dims + 2))
+            position[:, :dims] = -self.prior_root
+            priors = np.vstack([priors, position])
         return -np.vstack([rows / self.sigma[keep, None], priors])
 
     def fit(self, theta: np.ndarray, keep: np.ndarray, robust: bool) -> np.ndarray:
