@@ -16,7 +16,11 @@ Each bag is replayed once (cell search and timing, the expensive part; its wall 
   hears, and the multipath bias of its own fixed position; ``... + site clock states``: the
   same database, the tracker going on estimating each site's clock from its sigmas;
 * ``site clock states``: the database as written, the tracker estimating each site's clock;
-* ``true clocks``: the simulation's true offsets and drifts (no calibration can beat it).
+* ``true clocks``: the simulation's true offsets and drifts (no calibration can beat it);
+* ``initial_pose`` (beside the variants): the tracker started at the scored half's start from an
+  operator's initial position, the truth off by N(0, 30 m) per axis and claiming 30 m, over ten
+  draws, with the database's clocks and the true ones; and the error of that position alone,
+  held still, for what the sites add to it.
 
 The bags are too long for git: ``scripts/route_bags.sh`` makes them (bags/generated/).
 Writes docs/results/route_table.json and, for the ``calibrated`` variant, the route figures
@@ -36,8 +40,10 @@ import pickle
 import time
 from pathlib import Path
 
+import numpy as np
+
 from deepsync.eval.calibrate import calibratable, calibrate_route, oracle_database
-from deepsync.eval.route import RouteRun, add_rssi_fixes, fuse_route, replay, summarize_route
+from deepsync.eval.route import InitialPose, Replay, RouteRun, add_rssi_fixes, fuse_route, replay, summarize_route
 from deepsync.eval import route_figures
 from deepsync.fusion.anchors import Anchors
 from deepsync.fusion.calibration import calibrate_sites, calibrated_database
@@ -48,16 +54,42 @@ from deepsync.pipeline import PipelineConfig
 from deepsync.sources import BagSource
 from deepsync.sync.stacking import StackConfig
 from deepsync.sync.stage import SyncConfig
-from deepsync.towers import load_tower_database
+from deepsync.towers import TowerDatabase, load_tower_database
+from deepsync.types import Fix
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "docs" / "results"
+INITIAL_POSE_STD_M = 30.0
+INITIAL_POSE_DRAWS = 10
 
 
 def second_half(run: RouteRun) -> RouteRun:
     """The epochs after the route's middle: where every variant is scored."""
     middle = (run.epochs[0].stamp_ns + run.epochs[-1].stamp_ns) // 2
     return dataclasses.replace(run, epochs=[e for e in run.epochs if e.stamp_ns > middle])
+
+
+def initial_pose_runs(recorded: Replay, databases: dict[str, TowerDatabase], middle_ns: int) -> dict:
+    """The tracker started from an operator's initial position where the scored half begins,
+    over ``INITIAL_POSE_DRAWS`` draws of its error: medians over the draws of each draw's
+    numbers, and the position alone held still over the stacks the tracker fixed."""
+    result: dict = {"std_m": INITIAL_POSE_STD_M, "draws": INITIAL_POSE_DRAWS}
+    held = []
+    for label, towers in databases.items():
+        rows = []
+        for seed in range(INITIAL_POSE_DRAWS):
+            pose = InitialPose(INITIAL_POSE_STD_M, after_ns=middle_ns, seed=seed)
+            run = second_half(fuse_route(recorded, towers, initial_pose=pose))
+            rows.append(summarize_route(run)["methods"]["tracked"])
+            if label == "database":
+                start = run.epochs[0]
+                prior = np.array(pose.prior(start.truth_enu).position_enu[:2])
+                held += [float(np.linalg.norm(prior - e.truth_enu[:2])) for e in run.epochs if isinstance(e.tracked, Fix)]
+        result[label] = {key: float(np.median([row[key] if row[key] is not None else np.nan for row in rows]))
+                         for key in ("fix_rate", "median_m", "p90_m", "nees_mean")}
+        result[label]["nees_mean_per_draw"] = [row["nees_mean"] for row in rows]
+    result["held_still"] = {"median_m": float(np.median(held)), "p90_m": float(np.percentile(held, 90))}
+    return result
 
 
 def evaluate(name: str, frames: int = 10) -> dict:
@@ -97,7 +129,8 @@ def evaluate(name: str, frames: int = 10) -> dict:
         runs["reference station + site clock states"] = fuse_route(
             recorded, station.database, FusionConfig(tracker=TrackerConfig(site_clocks=True)))
     runs["site clock states"] = fuse_route(recorded, towers, FusionConfig(tracker=TrackerConfig(site_clocks=True)))
-    runs["true clocks"] = fuse_route(recorded, oracle_database(towers, source))
+    oracle = oracle_database(towers, source)
+    runs["true clocks"] = fuse_route(recorded, oracle)
     table = {}
     for variant, run in runs.items():
         model = add_rssi_fixes(run, RssiConfig())
@@ -117,7 +150,8 @@ def evaluate(name: str, frames: int = 10) -> dict:
                 "bag": str(reference.relative_to(REPO)),
                 "sites": [dataclasses.asdict(s) for s in station.result.sites], "skipped": station.skipped,
                 "residual_rms_after_m": station.result.residual_rms_after_m},
-            "variants": table}
+            "variants": table,
+            "initial_pose": initial_pose_runs(recorded, {"database": towers, "true clocks": oracle}, middle)}
 
 
 def print_table(name: str, result: dict) -> None:
@@ -137,6 +171,13 @@ def print_table(name: str, result: dict) -> None:
             p90 = "-" if row["p90_m"] is None else f"{row['p90_m']:.1f}"
             nees = "-" if row["nees_mean"] is None else f"{row['nees_mean']:.1f}"
             print(f"   {variant:38s} {method:9s} {row['fix_rate']:8.0%} {median:>9s} {p90:>8s} {nees:>6s}")
+    pose = result["initial_pose"]
+    for label in ("database", "true clocks"):
+        row = pose[label]
+        print(f"   {'initial pose ' + str(int(pose['std_m'])) + ' m, ' + label:38s} {'tracked':9s} {row['fix_rate']:8.0%} "
+              f"{row['median_m']:9.1f} {row['p90_m']:8.1f} {row['nees_mean']:6.1f}   (medians of {pose['draws']} draws)")
+    print(f"   {'initial pose held still':38s} {'':9s} {'':8s} {pose['held_still']['median_m']:9.1f} "
+          f"{pose['held_still']['p90_m']:8.1f}")
     bound = database["position_bound"]
     if bound["median_m"] is not None:
         print(f"   position bound (stacks with >= 3 sites: {bound['stacks']}): median {bound['median_m']:.1f} m, "

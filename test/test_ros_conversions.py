@@ -173,6 +173,38 @@ def test_pose_round_trip(name: str, store: MessageTypes, carry) -> None:
 
 
 @pytest.mark.parametrize("name, store, carry", flavours())
+def test_an_initial_pose_becomes_a_prior_with_its_position_covariance(name: str, store: MessageTypes, carry) -> None:
+    want = fix()
+    message = rebuilt(convert.fix_to_pose_msg(want, store=store), convert.POSE_WITH_COVARIANCE_STAMPED, carry)
+    prior = conversions.prior_from_pose_msg(message)
+    assert prior.position_enu == want.position_enu
+    np.testing.assert_array_equal(prior.covariance, want.covariance)
+
+
+def initial_pose(covariance: np.ndarray) -> object:
+    """An initial pose as RViz's "2D Pose Estimate" sends it: x, y (and yaw) variances, z none."""
+    message = convert.fix_to_pose_msg(Fix(STAMP_NS, (10.0, 20.0, 0.0), np.eye(3), ()), store=rosbags())
+    full = np.zeros((6, 6))
+    full[:3, :3] = covariance
+    full[5, 5] = 0.068
+    message.pose.covariance = full.ravel()
+    return message
+
+
+def test_an_initial_pose_without_a_z_variance_leaves_up_unmeasured() -> None:
+    prior = conversions.prior_from_pose_msg(initial_pose(np.diag([0.25, 0.25, 0.0])))
+    np.testing.assert_array_equal(prior.covariance, np.diag([0.25, 0.25, UNMEASURED_VARIANCE]))
+
+
+@pytest.mark.parametrize("covariance, match", [
+    (np.diag([0.0, 0.25, 0.0]), "x and y need a variance"), (np.diag([0.25, math.nan, 0.0]), "not finite"),
+    (np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), "positive definite")])
+def test_an_initial_pose_without_a_usable_covariance_is_refused(covariance: np.ndarray, match: str) -> None:
+    with pytest.raises(ValueError, match=f"initial pose: .*{match}"):
+        conversions.prior_from_pose_msg(initial_pose(covariance))
+
+
+@pytest.mark.parametrize("name, store, carry", flavours())
 def test_navsat_round_trip(name: str, store: MessageTypes, carry) -> None:
     want = fix()
     message = rebuilt(convert.fix_to_navsat_msg(want, FRAME, store=store), convert.NAV_SAT_FIX, carry)

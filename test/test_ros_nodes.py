@@ -274,6 +274,50 @@ def test_bad_input_is_counted_and_the_nodes_go_on(ros, offline: list[StackResult
         bench.close()
 
 
+def test_an_initial_pose_starts_the_track_where_two_sites_alone_cannot(ros, offline: list[StackResult]) -> None:
+    import numpy as np
+    from deepsync_msgs.msg import CellTimingArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from deepsync.bag.topics import INITIAL_POSE_TOPIC
+    from deepsync.types import StackArrivals
+    from deepsync_ros.conversions import cell_timing_array_to_msg, fix_to_pose_msg
+    from deepsync_ros.node_base import RESULTS_QOS
+    from deepsync_ros.tdoa_fusion_node import TdoaFusionNode
+
+    fusion = TdoaFusionNode(namespace=NAMESPACE, parameter_overrides=parameters(towers=CAMPUS_TOWERS))
+    bench = Bench(fusion)
+    try:
+        poses = bench.collect(PoseWithCovarianceStamped, "pose", RESULTS_QOS)
+        send_pose = bench.publisher(PoseWithCovarianceStamped, INITIAL_POSE_TOPIC, RESULTS_QOS)
+        send_arrivals = bench.publisher(CellTimingArray, "cell_timing", RESULTS_QOS)
+        bench.spin(5)
+        heard = [r for r in offline if isinstance(r.fusion.published, Fix)]
+        here = heard[0].fusion.published
+        site_c = {56, 57}  # campus site C's sectors: without them, A and B give a hyperbola
+        two_sites = [StackArrivals(r.arrivals.stamp_ns, r.arrivals.first_sample_index, r.arrivals.sample_rate,
+                                   tuple(c for c in r.arrivals.cells if c.pci not in site_c), r.arrivals.clock_drift_ppm)
+                     for r in heard[:5]]
+        wrong_frame = fix_to_pose_msg(Fix(1, here.position_enu, np.diag([100.0, 100.0, 0.0]), ()), frame_id="odom")
+        send_pose(wrong_frame)  # refused: the node looks up no transforms
+        bench.spin(5)
+        send_arrivals(cell_timing_array_to_msg(two_sites[0]))
+        bench.spin(10)
+        assert not poses and not fusion.stage.tracker.initialised
+        prior = Fix(1, here.position_enu, np.diag([100.0, 100.0, 1e6]), ())
+        send_pose(fix_to_pose_msg(prior, frame_id="map"))
+        bench.spin(5)
+        for stack in two_sites[1:]:
+            send_arrivals(cell_timing_array_to_msg(stack))
+        assert bench.spin_until(lambda: len(poses) >= 1)
+        assert fusion.stage.tracker.initialised
+        from deepsync_ros.conversions import position_from_pose_msg
+        east, north, _ = position_from_pose_msg(poses[-1])
+        assert math.hypot(east - here.position_enu[0], north - here.position_enu[1]) < 30.0
+    finally:
+        bench.close()
+
+
 def test_runtime_changes_are_checked_and_read_only_ones_refused(ros) -> None:
     from rclpy.parameter import Parameter
 

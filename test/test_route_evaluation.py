@@ -12,13 +12,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from deepsync.bag import ENVELOPE_TOPIC, BagReader, BagWriter, envelope_from_msg
 from deepsync.cli import main
 from deepsync.eval.calibrate import calibrate_route, oracle_database
-from deepsync.eval.route import evaluate_route, read_truth_track
+from deepsync.eval.route import InitialPose, evaluate_route, read_truth_track
+from deepsync.fusion.stage import FusionConfig, FusionStage
 from deepsync.sources import BagSource
 from deepsync.towers import load_tower_database
+from deepsync.types import PositionPrior
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "campus"
@@ -72,6 +75,31 @@ def test_calibration_on_the_campus_bag_writes_a_database_that_fixes_better(tmp_p
     before, _ = evaluate_route(source, oracle_database(towers, source), tmp_path / "oracle", progress=False)
     after, _ = evaluate_route(source, calibrated, tmp_path / "after", progress=False)
     assert after["methods"]["snapshot"]["median_m"] <= 1.1 * before["methods"]["snapshot"]["median_m"]
+
+
+def test_an_initial_pose_fixes_a_route_where_two_sites_alone_cannot(tmp_path, capsys) -> None:
+    # the campus database without site C: A and B measure one range difference, a hyperbola
+    database = yaml.safe_load(TOWERS.read_text())
+    database["sites"] = [site for site in database["sites"] if site["name"] != "C"]
+    towers = tmp_path / "two_sites.yaml"
+    towers.write_text(yaml.safe_dump(database))
+    out = tmp_path / "out"
+    assert main(["evaluate-route", "--bag", str(BAG), "--towers", str(towers), "--out", str(out), "--quiet",
+                 "--initial-pose-std", "10"]) == 0
+    assert "starts from the true start position" in capsys.readouterr().out
+    summary = json.loads((out / "route.json").read_text())["summary"]
+    assert summary["sites_heard"] == ["A", "B"]
+    assert summary["methods"]["snapshot"]["fix_rate"] == 0.0
+    tracked = summary["methods"]["tracked"]
+    assert tracked["fix_rate"] > 0.9 and tracked["median_m"] < 30.0  # about the prior's 10 m: the receiver stands
+
+
+def test_an_initial_position_needs_the_tracker() -> None:
+    stage = FusionStage(load_tower_database(TOWERS), FusionConfig(track=False))
+    with pytest.raises(ValueError, match="tracking is off"):
+        stage.start_from(PositionPrior((0.0, 0.0, 0.0), np.eye(3)))
+    with pytest.raises(ValueError, match="std_m"):
+        InitialPose(0.0)
 
 
 def envelope_only_bag(path: Path) -> Path:

@@ -26,6 +26,7 @@ from deepsync.bag.convert import (  # readers work on rclpy's messages as on ros
     cell_timing_array_from_msg,
     envelope_from_msg,
     position_from_pose_msg,
+    prior_from_pose_msg,
     stamp_to_ns,
     sync_window_array_from_msg,
 )
@@ -96,6 +97,7 @@ __all__ = [
     "fix_to_pose_msg",
     "message_class",
     "position_from_pose_msg",
+    "prior_from_pose_msg",
     "stamp_to_ns",
     "sync_window_array_from_msg",
     "sync_window_array_to_msg",

@@ -14,6 +14,7 @@ the node as it was. Input that does not convert is counted, logged (throttled) a
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -34,12 +35,13 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import NavSatFix
 
 from deepsync.bag.convert import ns_to_stamp
-from deepsync.bag.topics import NAV_SAT_FIX_TOPIC, POSE_TOPIC, relative_name
+from deepsync.bag.topics import INITIAL_POSE_TOPIC, NAV_SAT_FIX_TOPIC, POSE_TOPIC, relative_name
+from deepsync.fusion.stage import FusionStage
 from deepsync.geo import LocalFrame
 from deepsync.numeric import one_blas_thread
 from deepsync.types import EnvelopeChunk, Fix, Severity
 
-from .conversions import RCLPY_TYPES, fix_to_navsat_msg, fix_to_pose_msg
+from .conversions import RCLPY_TYPES, fix_to_navsat_msg, fix_to_pose_msg, prior_from_pose_msg
 from .health import Playback, Report, StageHealth, chunk_end_ns
 from .params import ParameterError, ParamSpec, ParamValue, checked
 
@@ -189,6 +191,38 @@ class FixPublisher:
         navsat = fix_to_navsat_msg(fix, frame, self.antenna_frame)
         self.pose.publish(pose)
         self.navsat.publish(navsat)
+
+
+class InitialPoseListener:
+    """``/initialpose`` (PoseWithCovarianceStamped in ``map_frame``: RViz's "2D Pose Estimate",
+    Nav2's initial pose) restarts the fusion stage's tracker from that position: where too few
+    sites are heard to start alone (two sites give a hyperbola), one is then enough. A pose in
+    another frame, without a usable covariance, or for a node without a tracker is refused
+    with the reason in the log (the node looks up no transforms)."""
+
+    def __init__(self, node: DeepSyncNode, map_frame: str, fusion: FusionStage | None) -> None:
+        self.node = node
+        self.map_frame = map_frame
+        self.fusion = fusion
+        self.subscription = node.create_subscription(PoseWithCovarianceStamped, INITIAL_POSE_TOPIC,
+                                                     self._on_pose, RESULTS_QOS)
+
+    def _on_pose(self, message: PoseWithCovarianceStamped) -> None:
+        logger = self.node.get_logger()
+        try:
+            if message.header.frame_id.lstrip("/") != self.map_frame:
+                raise ValueError(f"it is in frame {message.header.frame_id!r}, fixes are in {self.map_frame!r} "
+                                 "(map_frame)")
+            prior = prior_from_pose_msg(message)
+            if self.fusion is None:
+                raise ValueError("this node runs no fusion (a tower database that places its sites is needed)")
+            self.fusion.start_from(prior)
+        except ValueError as error:
+            logger.warning(f"initial pose refused: {error}")
+            return
+        east, north, _ = prior.position_enu
+        spread = math.sqrt(prior.covariance[0, 0] + prior.covariance[1, 1])
+        logger.info(f"tracking starts again from the initial pose ({east:.1f}, {north:.1f}) m, {spread:.1f} m DRMS")
 
 
 class PacedPlayer:

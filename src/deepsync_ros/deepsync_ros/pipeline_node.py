@@ -4,7 +4,8 @@ samples through DDS.
 Plays a source as ``envelope_adc`` does (same parameters, pacing and /clock) straight into
 :class:`deepsync.pipeline.Pipeline`, and publishes what the separate nodes would: ``cell_timing``
 for every stack, ``pose`` and ``fix`` for every stack with a fix. Without a tower database that
-places its sites there is no fusion, and only ``cell_timing`` is published.
+places its sites there is no fusion, and only ``cell_timing`` is published. A pose on
+``/initialpose`` restarts the tracker from there, as in ``tdoa_fusion``.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from deepsync.types import EnvelopeChunk, Fix
 from . import params
 from .conversions import cell_timing_array_to_msg
 from .health import Playback, StageHealth
-from .node_base import RESULTS_QOS, DeepSyncNode, FixPublisher, PacedPlayer, run
+from .node_base import RESULTS_QOS, DeepSyncNode, FixPublisher, InitialPoseListener, PacedPlayer, run
 from .params import ParameterError, ParamValue
 
 
@@ -42,6 +43,7 @@ class PipelineNode(DeepSyncNode):
         self.playback = Playback(source, params.playback_config(values, self.NAME))
         self.timing_publisher = self.create_publisher(CellTimingArray, relative_name(CELL_TIMING_TOPIC), RESULTS_QOS)
         self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
+        self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.pipeline.fusion)
         self.updater.setHardwareID(str(values["source"]))  # the recording stands in for the ADC
         self.add_diagnostic("source", self.playback.report)
         self.add_diagnostic("localization", self.health.report)

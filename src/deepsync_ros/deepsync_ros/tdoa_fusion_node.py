@@ -5,7 +5,8 @@ Subscribes ``cell_timing`` (CellTimingArray) and runs the core's
 when it has one, else the stack's own snapshot) goes out on ``pose``
 (PoseWithCovarianceStamped in ``map_frame``, reliable) and ``fix`` (NavSatFix in
 ``antenna_frame``), stamped with the stack's ADC time. A stack without a fix publishes nothing;
-the diagnostics say why (too few sites, unknown PCIs, geometry, ...).
+the diagnostics say why (too few sites, unknown PCIs, geometry, ...). A pose on ``/initialpose``
+(RViz's "2D Pose Estimate") restarts the tracker from there: one heard site is then enough.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from deepsync.types import Fix
 from . import params
 from .conversions import cell_timing_array_from_msg
 from .health import StageHealth
-from .node_base import RESULTS_QOS, DeepSyncNode, FixPublisher, run
+from .node_base import RESULTS_QOS, DeepSyncNode, FixPublisher, InitialPoseListener, run
 from .params import ParamValue
 
 
@@ -35,6 +36,7 @@ class TdoaFusionNode(DeepSyncNode):
         self.stage = FusionStage(towers, params.fusion_config(values, self.NAME))
         self.health = StageHealth()
         self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
+        self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.stage)
         self.subscription = self.create_subscription(CellTimingArray, relative_name(CELL_TIMING_TOPIC),
                                                      self._on_arrivals, RESULTS_QOS)
         self.add_diagnostic("position fix", self.health.report)

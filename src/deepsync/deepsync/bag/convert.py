@@ -27,6 +27,7 @@ from ..types import (
     CellTiming,
     EnvelopeChunk,
     Fix,
+    PositionPrior,
     StackArrivals,
     StackWindows,
     SyncWindow,
@@ -263,6 +264,27 @@ def position_from_pose_msg(msg: Any) -> tuple[float, float, float]:
     pose = msg.pose.pose if hasattr(msg.pose, "covariance") else msg.pose
     p = pose.position
     return float(p.x), float(p.y), float(p.z)
+
+
+def prior_from_pose_msg(msg: Any) -> PositionPrior:
+    """``geometry_msgs/msg/PoseWithCovarianceStamped`` (an operator's initial pose: RViz's "2D
+    Pose Estimate" on ``/initialpose``) -> the tracker's :class:`PositionPrior` in the message's
+    frame. The position block of the 6x6 covariance is kept; an axis given no variance (RViz
+    sends none for z) is unmeasured. ValueError for a covariance no tracker can start from
+    (not finite, not symmetric, x or y without a variance)."""
+    covariance = np.array(np.asarray(msg.pose.covariance, dtype=np.float64)[:36].reshape(6, 6)[:3, :3])
+    if not np.all(np.isfinite(covariance)):
+        raise ValueError("initial pose: its covariance is not finite")
+    if not (covariance[0, 0] > 0 and covariance[1, 1] > 0):
+        raise ValueError(f"initial pose: x and y need a variance > 0 m^2, got {covariance[0, 0]!r} and "
+                         f"{covariance[1, 1]!r} (the pose's covariance says how far off the position may be)")
+    if not covariance[2, 2] > 0:
+        covariance[2, :] = covariance[:, 2] = 0.0
+        covariance[2, 2] = UNMEASURED_VARIANCE
+    try:
+        return PositionPrior(position_from_pose_msg(msg), covariance)
+    except ValueError as error:
+        raise ValueError(f"initial pose: {error}") from None
 
 
 def fix_to_pose_msg(fix: Fix, *, frame_id: str = MAP_FRAME_ID, store: Types = None) -> Any:

@@ -489,7 +489,7 @@ class Tracker:
             if isinstance(outcome, _Start):
                 break
         if isinstance(outcome, str):
-            hint = "" if prior is not None else "; an initial position (Tracker.start_from) would start from one site"
+            hint = "" if prior is not None else "; an initial position (start_from; /initialpose in ROS) would start from one site"
             return NoFix(stamp_ns, NoFixReason.NOT_INITIALISED, f"waiting for a start: {outcome}{hint}")
         self._begin(outcome, candidate)
         if prior is not None:
