@@ -280,9 +280,12 @@ def test_one_site_and_an_initial_position_start_a_track_from_the_first_stack():
 @pytest.mark.parametrize("covariance, field", [
     (np.diag([1.0, math.nan, 1.0]), "covariance"), (np.diag([1.0, 0.0, 1.0]), "positive definite"),
     (np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), "symmetric"), (np.eye(2), "3x3")])
-def test_a_bad_initial_position_is_refused_by_field(covariance, field):
+def test_a_bad_initial_covariance_is_refused_by_field(covariance, field):
     with pytest.raises(ValueError, match=field):
         PositionPrior((0.0, 0.0, 0.0), covariance)
+
+
+def test_a_bad_initial_position_is_refused():
     with pytest.raises(ValueError, match="position_enu"):
         PositionPrior((0.0, math.inf, 0.0), np.eye(3))
     with pytest.raises(ValueError, match="PositionPrior"):

@@ -281,7 +281,7 @@ def test_an_initial_pose_starts_the_track_where_two_sites_alone_cannot(ros, offl
 
     from deepsync.bag.topics import INITIAL_POSE_TOPIC
     from deepsync.types import StackArrivals
-    from deepsync_ros.conversions import cell_timing_array_to_msg, fix_to_pose_msg
+    from deepsync_ros.conversions import cell_timing_array_to_msg, fix_to_pose_msg, position_from_pose_msg
     from deepsync_ros.node_base import RESULTS_QOS
     from deepsync_ros.tdoa_fusion_node import TdoaFusionNode
 
@@ -311,7 +311,6 @@ def test_an_initial_pose_starts_the_track_where_two_sites_alone_cannot(ros, offl
             send_arrivals(cell_timing_array_to_msg(stack))
         assert bench.spin_until(lambda: len(poses) >= 1)
         assert fusion.stage.tracker.initialised
-        from deepsync_ros.conversions import position_from_pose_msg
         east, north, _ = position_from_pose_msg(poses[-1])
         assert math.hypot(east - here.position_enu[0], north - here.position_enu[1]) < 30.0
     finally:
