@@ -199,16 +199,17 @@ def prior_near(truth: np.ndarray, rng: np.random.Generator, error_std_m: float, 
     return PositionPrior(tuple(position), np.diag([claimed_std_m**2, claimed_std_m**2, UNMEASURED_VARIANCE]))
 
 
-def held_route_nees(error_std_m: float, claimed_std_m: float, routes: int = 30) -> tuple[list[float], list[float]]:
+def held_route_nees(error_std_m: float, claimed_std_m: float, routes: int = 30,
+                    min_std_m: float = 0.0) -> tuple[list[float], list[float]]:
     """NEES and horizontal errors every 5 s within the prior's hold (5-25 s) along 40 s walks
-    where only sites A and B are ever heard (1-2 per stack), the tracker started from a prior;
-    the tracker must fix through the hold and give up after it."""
+    where only sites A and B are ever heard (1-2 per stack), the tracker started from a prior
+    (widened to ``min_std_m``); the tracker must fix through the hold and give up after it."""
     samples, errors = [], []
     for seed in range(routes):
         rng = np.random.default_rng(100 + seed)
         route = Route(rng, 40.0, random_sites(1, 2, "AB"))
         tracker = Tracker(CONFIG)
-        tracker.start_from(prior_near(route.truth[0], rng, error_std_m, claimed_std_m))
+        tracker.start_from(prior_near(route.truth[0], rng, error_std_m, claimed_std_m).widened(min_std_m))
         outcomes = route.track(tracker=tracker)
         fixed = [(fix, truth) for fix, truth in zip(outcomes[50:300:50], route.truth[50:300:50]) if isinstance(fix, Fix)]
         samples += [nees(fix, truth) for fix, truth in fixed]
@@ -238,6 +239,36 @@ def test_an_initial_position_tracks_two_sites_consistently_for_its_hold_and_then
     # hidden by the walk, whose own uncertainty soon outgrows the prior's
     overclaimed, _ = held_route_nees(30.0, 10.0)
     assert float(np.mean(overclaimed)) > 3.0
+
+
+def test_a_click_that_claims_too_much_is_widened_to_a_consistent_prior():
+    # RViz's "2D Pose Estimate" claims 0.5 m; a click 30 m off taken at its word holds the track
+    # overconfident (NEES 5.2, and a tenth of the stacks without a fix); floored at 30 m it is consistent
+    as_claimed, _ = held_route_nees(30.0, 0.5, routes=20)
+    widened, _ = held_route_nees(30.0, 0.5, routes=20, min_std_m=30.0)
+    print(f"a 30 m click claiming 0.5 m: NEES {np.mean(as_claimed):.1f} as claimed over {len(as_claimed)} samples, "
+          f"{np.mean(widened):.1f} over {len(widened)} widened to 30 m")
+    assert float(np.mean(as_claimed)) > 3.0
+    assert 1.0 <= float(np.mean(widened)) <= 3.0
+
+
+def test_widening_a_prior_raises_only_its_tight_directions_along_its_own_axes():
+    # an ellipse 0.5 m x 50 m turned 30 degrees, up unmeasured
+    turn = np.array([[math.cos(0.52), -math.sin(0.52)], [math.sin(0.52), math.cos(0.52)]])
+    covariance = np.diag([1.0, 1.0, UNMEASURED_VARIANCE])
+    covariance[:2, :2] = turn @ np.diag([0.25, 2500.0]) @ turn.T
+    prior = PositionPrior((10.0, -20.0, 1.5), covariance)
+    assert prior.tightest_std_m == pytest.approx(0.5)
+    widened = prior.widened(10.0)
+    assert widened.position_enu == prior.position_enu
+    variances, axes = np.linalg.eigh(widened.covariance[:2, :2])
+    assert variances == pytest.approx([100.0, 2500.0])
+    assert abs(axes[:, 0] @ turn[:, 0]) == pytest.approx(1.0)  # the tight axis stays where it was
+    assert widened.covariance[2, 2] == pytest.approx(UNMEASURED_VARIANCE)
+    assert prior.widened(0.4) is prior and prior.widened(0.0) is prior
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="min_std_m"):
+            prior.widened(bad)
 
 
 def test_an_initial_position_is_forgotten_once_the_sites_fix_the_position():

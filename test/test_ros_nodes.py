@@ -304,8 +304,8 @@ def test_an_initial_pose_starts_the_track_where_two_sites_alone_cannot(ros, offl
         send_arrivals(cell_timing_array_to_msg(two_sites[0]))
         bench.spin(10)
         assert not poses and not fusion.stage.tracker.initialised
-        prior = Fix(1, here.position_enu, np.diag([100.0, 100.0, 1e6]), ())
-        send_pose(fix_to_pose_msg(prior, frame_id="map"))
+        clicked = Fix(1, here.position_enu, np.diag([0.25, 0.25, 1e6]), ())  # what RViz's tool claims
+        send_pose(fix_to_pose_msg(clicked, frame_id="map"))
         bench.spin(5)
         for stack in two_sites[1:]:
             send_arrivals(cell_timing_array_to_msg(stack))
@@ -313,6 +313,9 @@ def test_an_initial_pose_starts_the_track_where_two_sites_alone_cannot(ros, offl
         assert fusion.stage.tracker.initialised
         east, north, _ = position_from_pose_msg(poses[-1])
         assert math.hypot(east - here.position_enu[0], north - here.position_enu[1]) < 30.0
+        # taken as 10 m (initial_pose_min_std_m), not 0.5: along the hyperbola the pose keeps it
+        horizontal = np.asarray(poses[-1].pose.covariance, dtype=float).reshape(6, 6)[:2, :2]
+        assert math.sqrt(np.linalg.eigvalsh(horizontal)[-1]) > 5.0
     finally:
         bench.close()
 

@@ -388,3 +388,22 @@ class PositionPrior:
         covariance.setflags(write=False)
         object.__setattr__(self, "position_enu", position)
         object.__setattr__(self, "covariance", covariance)
+
+    @property
+    def tightest_std_m(self) -> float:
+        """The 1-sigma (m) along the prior's best-known direction."""
+        return float(math.sqrt(np.linalg.eigvalsh(self.covariance)[0]))
+
+    def widened(self, min_std_m: float) -> PositionPrior:
+        """This prior with no direction known better than ``min_std_m`` (m): the covariance's
+        eigenvalues raised to at least ``min_std_m^2`` along its own axes, wider ones kept. An
+        operator's click claims what the tool's default says (RViz: 0.5 m), not what the click
+        knows; a tracker held by an overconfident prior runs inconsistent and may refuse the
+        sites that contradict it. ValueError for a floor that is not a finite number >= 0."""
+        if not (math.isfinite(min_std_m) and min_std_m >= 0):
+            raise ValueError(f"min_std_m: {min_std_m!r} must be a finite number of metres >= 0")
+        variances, axes = np.linalg.eigh(self.covariance)
+        if variances[0] >= min_std_m**2:
+            return self
+        widened = (axes * np.maximum(variances, min_std_m**2)) @ axes.T
+        return PositionPrior(self.position_enu, 0.5 * (widened + widened.T))

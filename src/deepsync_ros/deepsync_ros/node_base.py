@@ -196,14 +196,16 @@ class FixPublisher:
 class InitialPoseListener:
     """``/initialpose`` (PoseWithCovarianceStamped in ``map_frame``: RViz's "2D Pose Estimate",
     Nav2's initial pose) restarts the fusion stage's tracker from that position: where too few
-    sites are heard to start alone (two sites give a hyperbola), one is then enough. A pose in
+    sites are heard to start alone (two sites give a hyperbola), one is then enough. No
+    direction is taken as better known than ``min_std_m`` (RViz's tool claims 0.5 m). A pose in
     another frame, without a usable covariance, or for a node without a tracker is refused
     with the reason in the log (the node looks up no transforms)."""
 
-    def __init__(self, node: DeepSyncNode, map_frame: str, fusion: FusionStage | None) -> None:
+    def __init__(self, node: DeepSyncNode, map_frame: str, fusion: FusionStage | None, min_std_m: float) -> None:
         self.node = node
         self.map_frame = map_frame
         self.fusion = fusion
+        self.min_std_m = min_std_m
         self.subscription = node.create_subscription(PoseWithCovarianceStamped, INITIAL_POSE_TOPIC,
                                                      self._on_pose, RESULTS_QOS)
 
@@ -213,16 +215,20 @@ class InitialPoseListener:
             if message.header.frame_id.lstrip("/") != self.map_frame:
                 raise ValueError(f"it is in frame {message.header.frame_id!r}, fixes are in {self.map_frame!r} "
                                  "(map_frame)")
-            prior = prior_from_pose_msg(message)
+            claimed = prior_from_pose_msg(message)
             if self.fusion is None:
                 raise ValueError("this node runs no fusion (a tower database that places its sites is needed)")
+            prior = claimed.widened(self.min_std_m)
             self.fusion.start_from(prior)
         except ValueError as error:
             logger.warning(f"initial pose refused: {error}")
             return
         east, north, _ = prior.position_enu
         spread = math.sqrt(prior.covariance[0, 0] + prior.covariance[1, 1])
-        logger.info(f"tracking starts again from the initial pose ({east:.1f}, {north:.1f}) m, {spread:.1f} m DRMS")
+        widened = (f"; it claimed {claimed.tightest_std_m:.2g} m, taken as at least {self.min_std_m:g} m "
+                   "(initial_pose_min_std_m)" if prior is not claimed else "")
+        logger.info(f"tracking starts again from the initial pose ({east:.1f}, {north:.1f}) m, {spread:.1f} m DRMS"
+                    f"{widened}")
 
 
 class PacedPlayer:

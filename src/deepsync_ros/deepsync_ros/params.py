@@ -176,6 +176,9 @@ STACK_OVERLAP = ParamSpec("stack_overlap", 1.0, "Stacks each ADC frame is in: ce
                           "(sliding stacks share frames, so their timing noise repeats); the tracker counts each "
                           "arrival's timing variance that many times. (deepsync_pipeline derives it.)",
                           range=(1.0, 1000.0))
+INITIAL_POSE_MIN_STD = ParamSpec("initial_pose_min_std_m", 10.0, "Least 1-sigma an initial pose on /initialpose "
+                                 "is taken with [m]: RViz's \"2D Pose Estimate\" claims 0.5 m, more than a click on "
+                                 "a city map knows. 0: as the pose's covariance says.", range=(0.0, 1e5))
 OUTPUT_FRAMES = (
     ParamSpec("map_frame", MAP_FRAME_ID, "frame_id of the pose (REP-105 map: ENU at the database's origin)."),
     ParamSpec("antenna_frame", ANTENNA_FRAME_ID, "frame_id of the NavSatFix (the receiver antenna)."),
@@ -187,8 +190,9 @@ ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME)
 CELL_SYNC = (TOWERS, FRONTEND, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the published "
                                                 "windows (the stream's frame)."))
 CELL_TIMING = (FRONTEND, *TIMING)
-TDOA_FUSION = (FUSION_TOWERS, *FUSION, STACK_OVERLAP, *OUTPUT_FRAMES)
-DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, *SYNC, *TIMING, *FUSION, *OUTPUT_FRAMES)
+TDOA_FUSION = (FUSION_TOWERS, *FUSION, STACK_OVERLAP, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES)
+DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, *SYNC, *TIMING, *FUSION, INITIAL_POSE_MIN_STD,
+                     *OUTPUT_FRAMES)
 
 NODES: dict[str, tuple[ParamSpec, ...]] = {
     "envelope_adc": ENVELOPE_ADC,

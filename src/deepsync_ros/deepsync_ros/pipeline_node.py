@@ -43,7 +43,8 @@ class PipelineNode(DeepSyncNode):
         self.playback = Playback(source, params.playback_config(values, self.NAME))
         self.timing_publisher = self.create_publisher(CellTimingArray, relative_name(CELL_TIMING_TOPIC), RESULTS_QOS)
         self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
-        self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.pipeline.fusion)
+        self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.pipeline.fusion,
+                                                float(values["initial_pose_min_std_m"]))
         self.updater.setHardwareID(str(values["source"]))  # the recording stands in for the ADC
         self.add_diagnostic("source", self.playback.report)
         self.add_diagnostic("localization", self.health.report)

@@ -36,7 +36,8 @@ class TdoaFusionNode(DeepSyncNode):
         self.stage = FusionStage(towers, params.fusion_config(values, self.NAME))
         self.health = StageHealth()
         self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
-        self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.stage)
+        self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.stage,
+                                                float(values["initial_pose_min_std_m"]))
         self.subscription = self.create_subscription(CellTimingArray, relative_name(CELL_TIMING_TOPIC),
                                                      self._on_arrivals, RESULTS_QOS)
         self.add_diagnostic("position fix", self.health.report)
