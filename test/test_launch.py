@@ -357,3 +357,20 @@ def test_default_launch_publishes_a_pose_within_60_s() -> None:
     done = subprocess.run(["launch_test", str(POSE_LAUNCH_TEST)], capture_output=True, text=True,
                           timeout=240, check=False)
     assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-6000:]
+
+
+def _ros2_launch_skip_reason() -> str | None:
+    if shutil.which("ros2") is None:
+        return "ros2 is not on PATH (source /opt/ros/jazzy/setup.bash)"
+    return _launch_test_skip_reason()
+
+
+@pytest.mark.skipif(_ros2_launch_skip_reason() is not None, reason=_ros2_launch_skip_reason() or "")
+def test_a_refused_launch_starts_nothing_says_why_and_exits_1() -> None:
+    # a Shutdown action would end the launch with 0: scripts and CI must see the failure
+    done = subprocess.run(["ros2", "launch", "deepsync_ros", "deepsync.launch.py", "towers:=/nonexistent/towers.yaml"],
+                          capture_output=True, text=True, timeout=60, check=False)
+    said = done.stdout + done.stderr
+    assert done.returncode == 1, said
+    assert "no such file or directory: towers:=/nonexistent/towers.yaml" in said
+    assert "Traceback" not in said and "process started" not in said

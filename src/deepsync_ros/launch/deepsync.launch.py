@@ -10,7 +10,7 @@ With no arguments the envelope_adc node plays the bag installed with the package
 
 Before any node starts, the nodes' own interpreter (the shebang of the installed envelope_adc
 script) runs ``-m deepsync_ros.dependencies``; when a dependency is missing the launch logs what
-and how to get it, and shuts down. This file runs on the interpreter of ``ros2 launch`` (the
+and how to get it, starts nothing and exits 1. This file runs on the interpreter of ``ros2 launch`` (the
 system Python): it imports only the standard library and launch itself, never numpy or deepsync.
 """
 
@@ -20,7 +20,7 @@ import shlex
 import subprocess
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.logging import get_logger
 from launch.substitutions import PathJoinSubstitution
 from launch_ros.actions import Node
@@ -187,9 +187,10 @@ def _is_bag(path):
     return path.endswith(".mcap") or os.path.isfile(os.path.join(path, "metadata.yaml"))
 
 
-def _fail(logger, message):
-    logger.error(message)
-    return [Shutdown(reason="deepsync launch: " + message.splitlines()[0])]
+def _refusal(message):
+    """What to raise to start nothing: launch logs it as one error line (no traceback) and
+    exits 1, where a Shutdown action would end the launch normally, with 0."""
+    return RuntimeError("deepsync launch: " + message)
 
 
 def _launch_setup(context):
@@ -201,7 +202,7 @@ def _launch_setup(context):
         loop = _as_bool("loop", arg["loop"])
         realtime = _as_bool("realtime", arg["realtime"])
     except ValueError as error:
-        return _fail(logger, str(error))
+        raise _refusal(str(error)) from None
     source = arg["source"].strip()
     towers = arg["towers"].strip()
     params_file = arg["params_file"].strip()
@@ -209,30 +210,30 @@ def _launch_setup(context):
     from_topic = source == TOPIC_SOURCE
 
     if from_topic and one_process:
-        return _fail(logger, "source:=topic needs the four nodes (one_process:=false): the "
-                             "deepsync_pipeline node reads its source itself")
+        raise _refusal("source:=topic needs the four nodes (one_process:=false): the "
+                       "deepsync_pipeline node reads its source itself")
     blind = towers == ""  # no tower database: cell search and timing only, no position
     if blind and not one_process:
-        return _fail(logger, "towers:='' (a blind search, no position) needs one_process:=true: the "
-                             "tdoa_fusion node needs a tower database")
+        raise _refusal("towers:='' (a blind search, no position) needs one_process:=true: the "
+                       "tdoa_fusion node needs a tower database")
     missing = [f"{name}:={path}" for name, path in
                (("source", source), ("towers", towers), ("params_file", params_file))
                if not (name == "source" and from_topic) and not (name == "towers" and blind)
                and not os.path.exists(path)]
     if missing:
-        return _fail(logger, "no such file or directory: " + ", ".join(missing))
+        raise _refusal("no such file or directory: " + ", ".join(missing))
 
     script, why = _node_script()
     if script is None:
-        return _fail(logger, why)
+        raise _refusal(why)
     try:
         command = _interpreter_command(script)
     except (OSError, ValueError) as error:
-        return _fail(logger, str(error))
+        raise _refusal(str(error)) from None
     ok, said = _check_dependencies(command, env=dict(os.environ))
     if not ok:
-        return _fail(logger, f"the nodes cannot run with {' '.join(command)} (the interpreter of "
-                             f"{script}); nothing was started.\n{said}")
+        raise _refusal(f"the nodes cannot run with {' '.join(command)} (the interpreter of "
+                       f"{script}); nothing was started.\n{said}")
     logger.info(said or "deepsync_ros dependencies import")
 
     executables = (ONE_PROCESS,) if one_process else tuple(
