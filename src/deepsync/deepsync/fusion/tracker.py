@@ -96,11 +96,17 @@ used, at their priors, independent of the position the batch solved with their b
 range difference, a hyperbola, and nothing above starts from them. A :class:`PositionPrior`
 adds ``D`` whitened rows to the batch, which then needs one site (the clock), keeps the prior's
 uncertainty along what the sites do not measure, and the filter grows it as the receiver walks.
-The track is held by the prior for ``prior_hold_s`` while fewer than ``D + 1`` sites have
-states, then given up (a NoFix says so): along a hyperbola the estimate drifts by the distance
-walked, and once that is a fair part of the ranges the linearisation turns overconfident
-(simulated two-site walks 300-1100 m from the sites: NEES 1.9 over the first 30 s from 30 m
-priors, 3.8-4.1 by 60 s). A prior the recent arrivals contradict fails the start's residual test.
+The track is held by the prior for ``prior_hold_s`` from when it was given (the first update
+after :meth:`Tracker.start_from`) while fewer than ``D + 1`` sites have states, then given up (a
+NoFix says so): along a hyperbola the estimate drifts by the distance walked, and once that is a
+fair part of the ranges the linearisation turns overconfident (simulated two-site walks
+300-1100 m from the sites: NEES 1.9 over the first 30 s from 30 m priors, 3.8-4.1 by 60 s). A
+prior the recent arrivals contradict fails the start's residual test. A prior still waiting for
+a site says where the receiver was: the start widens it by the motion model over its age (the
+start's speed prior and the acceleration walk), and one that waited ``prior_hold_s`` is dropped
+unused. Taken at its word, a 30 m prior that waited 20 s for two sites held the walk at NEES
+5.3, one that waited 40 s at 12; widened and held for what is left of its 30 s, NEES 1.6-2.3
+after waits of 0-29 s.
 
 **Out-of-order input.** Arrivals older than the filter's time (a late stack) are skipped and
 counted (``stale_arrivals``); the returned state is then the filter's moved back to ``time_s``.
@@ -155,7 +161,7 @@ class TrackerConfig:
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
     stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (PipelineConfig sets it)
-    prior_hold_s: float = 30.0  # how long a start from an initial position runs while D + 1 sites are not heard
+    prior_hold_s: float = 30.0  # how long an initial position is used, from when it is given, while D + 1 sites are not heard
 
     def __post_init__(self) -> None:
         if not isinstance(self.snapshot, SnapshotConfig):
@@ -232,6 +238,7 @@ class Tracker:
         self._window: deque[SiteArrival] = deque()
         self._newest = -math.inf
         self._prior: PositionPrior | None = None
+        self._prior_since: float | None = None  # the time of the first update after the prior was given
         self._forget()
 
     def start_from(self, prior: PositionPrior) -> None:
@@ -243,7 +250,7 @@ class Tracker:
         if self.initialised:
             self.last_restart = "an initial position was given"
         self._forget()
-        self._prior = prior
+        self._prior, self._prior_since = prior, None
 
     def _forget(self) -> None:
         """Forget the state but keep the window of recent arrivals, for a start at once."""
@@ -252,7 +259,7 @@ class Tracker:
         self._P = np.zeros((0, 0))
         self._t = math.nan
         self._last_accepted = math.nan
-        self._held_since: float | None = None  # started from an initial position, not yet fixed by the sites
+        self._held_since: float | None = None  # when the initial position the track rests on was given
         self._rejection_run: list[str] = []
         self._sites: dict[str, _Site] = {}  # in the order of their states
         self._width = 3 if c.site_clocks else 1  # states per site: bias (, clock offset, clock drift)
@@ -306,8 +313,8 @@ class Tracker:
         if self._held_since is not None and len(self._sites) > self.config.dims:
             self._held_since = None  # the sites fix the position now: the prior is forgotten
         if self._held_since is not None and now - self._held_since > self.config.prior_hold_s:
-            return self._restart(f"the initial position held the track for {now - self._held_since:.1f} s "
-                                 f"(prior_hold_s {self.config.prior_hold_s:g} s) with only "
+            return self._restart(f"the initial position, given {now - self._held_since:.1f} s ago, still held the "
+                                 f"track (prior_hold_s {self.config.prior_hold_s:g} s) with only "
                                  f"{', '.join(self._sites)} heard", stamp_ns, time_s, clock_rate, ())
         self._drop_unheard()
         used: list[str] = []
@@ -489,7 +496,8 @@ class Tracker:
     def _start(self, stamp_ns: int, time_s: float, clock_rate: float | None,
                arrivals: list[SiteArrival]) -> Fix | NoFix:
         """Start from the stack alone if it can, else from the window; NoFix saying what is missing."""
-        dims, prior = self.config.dims, self._prior
+        dims = self.config.dims
+        prior, dropped = self._pending_prior(time_s)
         # a prior is about the receiver now: every recent arrival tells the clock something
         candidates = [arrivals] if prior is None and len({a.site for a in arrivals}) >= dims + 1 else []
         candidates.append(sorted(self._window, key=lambda a: a.time_s))
@@ -500,11 +508,30 @@ class Tracker:
                 break
         if isinstance(outcome, str):
             hint = "" if prior is not None else "; an initial position (start_from; /initialpose in ROS) would start from one site"
-            return NoFix(stamp_ns, NoFixReason.NOT_INITIALISED, f"waiting for a start: {outcome}{hint}")
+            return NoFix(stamp_ns, NoFixReason.NOT_INITIALISED, f"waiting for a start: {outcome}{hint}{dropped}")
         self._begin(outcome, candidate)
-        if prior is not None:
-            self._prior, self._held_since = None, self._t
+        if prior is not None:  # the prior's hold counts from when it was given, its wait included
+            self._prior, self._held_since = None, self._prior_since
         return self._fix_at(time_s, stamp_ns, outcome.sites, outcome.rejected)
+
+    def _pending_prior(self, time_s: float) -> tuple[PositionPrior | None, str]:
+        """The initial position waiting for a start, widened by what the receiver may have
+        walked since it was given; None and why once it waited ``prior_hold_s`` unused."""
+        if self._prior is None:
+            return None, ""
+        if self._prior_since is None:
+            self._prior_since = time_s
+        age = time_s - self._prior_since
+        c = self.config
+        if age > c.prior_hold_s:
+            self._prior = None
+            return None, (f"; the initial position waited {age:.1f} s for a site (prior_hold_s "
+                          f"{c.prior_hold_s:g} s) and was dropped: the receiver may have walked away from it")
+        if age <= 0:
+            return self._prior, ""
+        # per horizontal axis: an unknown velocity (the start's speed prior) and the acceleration walk
+        walked = (c.initial_speed_std_mps * age) ** 2 + c.acceleration_std_mps2**2 * age**3 / 3
+        return PositionPrior(self._prior.position_enu, self._prior.covariance + np.diag([walked, walked, 0.0])), ""
 
     def _begin(self, start: _Start, arrivals: Sequence[SiteArrival]) -> None:
         """The filter from a batch solution: velocity 0 with the speed prior, predicted to the
