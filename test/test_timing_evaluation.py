@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from deepsync.eval.timing import CLASSICAL, ESTIMATORS, by_coarse_error, error_stats, run_estimators
+from deepsync.eval.timing import CLASSICAL, ESTIMATORS, by_coarse_error, by_snr, error_stats, headline, run_estimators
 
 
 def _results(errors: np.ndarray) -> dict[str, np.ndarray]:
@@ -17,6 +17,34 @@ def test_error_stats_count_outliers_beyond_a_sample_and_errors_within_sigma():
     assert stats["n"] == 5 and stats["median"] == 0.3
     assert stats["outliers"] == 2 / 5 and stats["within_1_sigma"] == 2 / 5
     assert np.isclose(stats["rmse"], np.sqrt(np.mean(np.array([0.1, 0.2, 0.3, 2.0, 4.0]) ** 2)))
+
+
+def test_the_share_within_sigma_comes_with_an_interval_that_narrows_with_the_examples():
+    few = error_stats(np.array([0.1, -0.2, 0.3, 2.0, -4.0]), np.full(5, 0.25))
+    low, high = few["within_1_sigma_ci"]
+    assert low < 0.4 < high and high - low > 0.5  # 2 of 5 says little
+    errors = np.random.default_rng(5).normal(size=4000)
+    many = error_stats(errors, np.ones(errors.size))
+    low, high = many["within_1_sigma_ci"]
+    assert low < 0.6827 < high and high - low < 0.03
+
+
+def test_the_calibration_verdict_tells_a_sigma_too_small_or_too_large_from_an_honest_one():
+    # 8 SNR bins of 400 Gaussian errors: the network's sigma honest, network_ml's half the
+    # truth, ml's twice: in band, too small and too large in every bin
+    rng = np.random.default_rng(6)
+    snr = np.repeat(np.arange(-27.5, 10.0, 5.0), 400)
+    errors = rng.normal(size=snr.size)
+    results = _results(errors)
+    results["network_ml_sigma"] = np.full(snr.size, 0.5)
+    results["ml_sigma"] = np.full(snr.size, 2.0)
+    results["network_sigma"] = np.ones(snr.size)
+    data = {"snr_db": snr, "coarse_error": np.zeros(snr.size)}
+    everything = np.ones(snr.size, dtype=bool)
+    rows = by_snr(data, results, everything)
+    verdicts = headline(data, {"frames": {"10": {"by_snr": rows, "los_by_snr": rows}}})["within_1_sigma_snr_bins"]
+    assert verdicts["network"] == {"bins": 8, "in_band": 8, "sigma_too_small": 0, "sigma_too_large": 0}
+    assert verdicts["network_ml"]["sigma_too_small"] == 8 and verdicts["ml"]["sigma_too_large"] == 8
 
 
 def test_the_coarse_error_breakdown_puts_each_example_in_the_bin_of_its_distance_either_way():

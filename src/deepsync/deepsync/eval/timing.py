@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.stats import binomtest
 from tqdm import tqdm
 
 from deepsync.eval.cell_search import timing_error
@@ -52,18 +53,24 @@ BAG_ESTIMATORS = ("ml_frame", *ESTIMATORS)
 
 COARSE_ERROR_EDGES = np.array([0, 3, 6, 9, 20, 40])  # bins of the coarse error's size (samples)
 OUTLIER_SAMPLES = 1.0  # an error beyond this is a wrong lobe, not noise (156 m)
+CALIBRATION_BAND = (0.60, 0.76)  # the share within +-1 sigma that counts as calibrated (a Gaussian's: 0.683)
+CONFIDENCE = 0.95  # of the interval given with each share within +-1 sigma
 
 
 def error_stats(errors: np.ndarray, sigmas: np.ndarray | None = None) -> dict[str, float]:
     """Median, p90 and RMS of timing errors (samples), the share beyond ``OUTLIER_SAMPLES``, and
-    with the reported sigmas the share within +-1 sigma."""
+    with the reported sigmas the share within +-1 sigma and its ``CONFIDENCE`` interval (Wilson):
+    in a bin of a few dozen examples even an honest sigma's share wanders by +-10 %."""
     if errors.size == 0:
         return {"n": 0}
     absolute = np.abs(errors)
     out = {"n": int(errors.size), "median": float(np.median(absolute)), "p90": float(np.percentile(absolute, 90)),
            "rmse": float(np.sqrt(np.mean(errors**2))), "outliers": float(np.mean(absolute > OUTLIER_SAMPLES))}
     if sigmas is not None:
-        out["within_1_sigma"] = float(np.mean(absolute <= sigmas))
+        within = int(np.sum(absolute <= sigmas))
+        interval = binomtest(within, errors.size).proportion_ci(CONFIDENCE, method="wilson")
+        out["within_1_sigma"] = within / errors.size
+        out["within_1_sigma_ci"] = [float(interval.low), float(interval.high)]
     return out
 
 
@@ -185,11 +192,22 @@ def headline(data: dict[str, np.ndarray], summary: dict) -> dict:
         shares = [row[name]["within_1_sigma"] for row in rows if row[name].get("n", 0) >= 20]
         return [min(shares), max(shares)] if shares else None
 
+    def calibration_verdicts(name: str) -> dict[str, int]:
+        """SNR bins whose share within +-1 sigma is in the band, and those whose interval lies
+        wholly below it (sigma too small) or above it (too large): what the test split can tell."""
+        low, high = CALIBRATION_BAND
+        measured = [row[name] for row in rows if row[name].get("n", 0) >= 20]
+        return {"bins": len(measured),
+                "in_band": sum(low <= m["within_1_sigma"] <= high for m in measured),
+                "sigma_too_small": sum(m["within_1_sigma_ci"][1] < low for m in measured),
+                "sigma_too_large": sum(m["within_1_sigma_ci"][0] > high for m in measured)}
+
     return {
         "threshold_snr_db_los": {name: threshold_snr_db(ten["los_by_snr"], name) for name in ESTIMATORS},
         "multipath_rmse_-10_to_0_db": {name: pooled_rmse(mid, name) for name in ESTIMATORS},
         "high_snr_los_rmse_from_0_db": {name: pooled_rmse(high_los, name) for name in ESTIMATORS},
         "within_1_sigma_range_over_snr_bins": {name: calibration(name) for name in ESTIMATORS},
+        "within_1_sigma_snr_bins": {name: calibration_verdicts(name) for name in ESTIMATORS},
     }
 
 
