@@ -244,10 +244,12 @@ def test_an_initial_position_tracks_two_sites_consistently_for_its_hold_and_then
 def waited_route(seed: int, wait_s: float, duration_s: float) -> tuple[Route, list[Fix | NoFix]]:
     """A walk on which nothing is heard for ``wait_s`` after a 30 m initial position is given at
     its start, then only sites A and B (1-2 per stack)."""
+    def hear(k: int, rng: np.random.Generator) -> list[str]:
+        return [] if k < first else list(rng.choice(["A", "B"], rng.integers(1, 3), replace=False))
+
     rng = np.random.default_rng(500 + seed)
     first = int(round(wait_s / STACK_S))
-    route = Route(rng, duration_s, lambda k, rng: [] if k < first else list(rng.choice(["A", "B"], rng.integers(1, 3),
-                                                                                        replace=False)))
+    route = Route(rng, duration_s, hear)
     tracker = Tracker(CONFIG)
     tracker.start_from(prior_near(route.truth[0], rng, 30.0, 30.0))
     return route, route.track(tracker=tracker)

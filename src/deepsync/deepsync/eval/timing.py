@@ -57,7 +57,7 @@ CALIBRATION_BAND = (0.60, 0.76)  # the share within +-1 sigma that counts as cal
 CONFIDENCE = 0.95  # of the interval given with each share within +-1 sigma
 
 
-def error_stats(errors: np.ndarray, sigmas: np.ndarray | None = None) -> dict[str, float]:
+def error_stats(errors: np.ndarray, sigmas: np.ndarray | None = None) -> dict[str, float | list[float]]:
     """Median, p90 and RMS of timing errors (samples), the share beyond ``OUTLIER_SAMPLES``, and
     with the reported sigmas the share within +-1 sigma and its ``CONFIDENCE`` interval (Wilson):
     in a bin of a few dozen examples even an honest sigma's share wanders by +-10 %."""
