@@ -32,7 +32,13 @@ from deepsync.frontend.config import FrontendConfig
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources.bagfile import BagSource
 from deepsync.timing.crlb import delay_crlb, fit_amplitude
-from deepsync.timing.estimators import estimate_fft_upsampled, estimate_ml, estimate_parabolic, noise_psd
+from deepsync.timing.estimators import (
+    SIGMA_CALIBRATION_BAND,
+    estimate_fft_upsampled,
+    estimate_ml,
+    estimate_parabolic,
+    noise_psd,
+)
 from deepsync.timing.stage import Estimator, TimingConfig, TimingStage, refine_with_ml
 from deepsync.towers import TowerDatabase
 from deepsync.training.dataset import LOS_PROFILES, PROFILES, load_split
@@ -53,7 +59,6 @@ BAG_ESTIMATORS = ("ml_frame", *ESTIMATORS)
 
 COARSE_ERROR_EDGES = np.array([0, 3, 6, 9, 20, 40])  # bins of the coarse error's size (samples)
 OUTLIER_SAMPLES = 1.0  # an error beyond this is a wrong lobe, not noise (156 m)
-CALIBRATION_BAND = (0.60, 0.76)  # the share within +-1 sigma that counts as calibrated (a Gaussian's: 0.683)
 CONFIDENCE = 0.95  # of the interval given with each share within +-1 sigma
 
 
@@ -195,7 +200,7 @@ def headline(data: dict[str, np.ndarray], summary: dict) -> dict:
     def calibration_verdicts(name: str) -> dict[str, int]:
         """SNR bins whose share within +-1 sigma is in the band, and those whose interval lies
         wholly below it (sigma too small) or above it (too large): what the test split can tell."""
-        low, high = CALIBRATION_BAND
+        low, high = SIGMA_CALIBRATION_BAND
         measured = [row[name] for row in rows if row[name].get("n", 0) >= 20]
         return {"bins": len(measured),
                 "in_band": sum(low <= m["within_1_sigma"] <= high for m in measured),
@@ -234,7 +239,7 @@ def plot(summary: dict, path: Path) -> None:
     centres = [np.mean(row["snr_db"]) for row in rows]
     for name in ESTIMATORS:
         axes[2].plot(centres, [row[name].get("within_1_sigma", np.nan) for row in rows], marker="o", label=name)
-    axes[2].axhspan(0.60, 0.76, color="green", alpha=0.15, label="calibrated")
+    axes[2].axhspan(*SIGMA_CALIBRATION_BAND, color="green", alpha=0.15, label="calibrated")
     axes[2].set_title("errors within +-1 reported sigma")
     axes[2].set_xlabel("per-frame SNR (dB)")
     axes[2].set_ylim(0, 1)

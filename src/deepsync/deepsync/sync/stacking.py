@@ -197,11 +197,12 @@ class FrameStacker:
         volts = chunk.samples.astype(np.float32) * np.float32(chunk.volts_per_code)
         low, high = -(2 ** (chunk.adc_bits - 1)), 2 ** (chunk.adc_bits - 1) - 1
         clipped = (chunk.samples == low) | (chunk.samples == high)
-        corrupt = None
+        corrupt = None  # codes beyond the ADC's range: only a wider dtype can hold them
         if not _fits_in(chunk.samples.dtype, low, high):
-            corrupt = (chunk.samples < low) | (chunk.samples > high)
+            beyond = (chunk.samples < low) | (chunk.samples > high)
+            corrupt = beyond if beyond.any() else None
         return self.push_samples(volts, chunk.first_sample_index, chunk.sample_rate, chunk.stamp_ns, clipped,
-                                 corrupt if corrupt is not None and corrupt.any() else None, chunk.adc_bits)
+                                 corrupt, chunk.adc_bits)
 
     def push_samples(
         self,

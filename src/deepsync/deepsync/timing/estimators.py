@@ -85,6 +85,8 @@ MODEL_FLOOR_SAMPLES = 0.003
 MAX_JACKKNIFE_GROUPS = 20
 PSD_TARGET_DOF = 64  # degrees of freedom per smoothed PSD bin (smoothing over neighbours)
 SNR_FLOOR_DB = -60.0
+# share of errors within +-1 reported sigma that counts as an honest sigma (a Gaussian's: 0.683)
+SIGMA_CALIBRATION_BAND = (0.60, 0.76)
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ from tqdm import tqdm
 from deepsync.configio import ConfigError, build_dataclass, load_yaml, require_mapping
 from deepsync.frontend.config import FrontendConfig
 from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_checkpoint
+from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND
 from deepsync.training.dataset import DatasetConfig, generate, load_split
 from deepsync.timing.inputs import Normalisation, network_inputs, noise_normalised
 from deepsync.timing.model import TimingNet, TimingNetConfig
@@ -307,7 +308,8 @@ def plot_history(history: list[dict], path: Path) -> None:
     left.legend(fontsize=8)
     left.grid(True, which="both", alpha=0.3)
     right.plot(steps, [h["val_within_1_sigma"] for h in history])
-    right.axhspan(0.60, 0.76, color="green", alpha=0.15, label="calibrated (60-76 %)")
+    low, high = SIGMA_CALIBRATION_BAND
+    right.axhspan(low, high, color="green", alpha=0.15, label=f"calibrated ({100 * low:.0f}-{100 * high:.0f} %)")
     right.set_xlabel("step")
     right.set_ylabel("validation errors within 1 sigma")
     right.legend()
