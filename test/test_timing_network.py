@@ -143,6 +143,29 @@ def test_nothing_but_the_network_imports_torch():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_without_torch_a_network_estimator_is_refused_with_the_cpu_wheel_to_install():
+    """A robot without torch asks for estimator network: one ValueError with the pip command of
+    the CPU wheel (torch from PyPI would pull GBs of CUDA), the classical estimators unaffected.
+    An import hook makes torch absent, as on a machine without it."""
+    code = ("import sys\n"
+            "class NoTorch:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name.partition('.')[0] == 'torch':\n"
+            "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
+            "sys.meta_path.insert(0, NoTorch())\n"
+            "from deepsync.frontend.config import FrontendConfig\n"
+            "from deepsync.timing.stage import TORCH_INSTALL, Estimator, TimingConfig, TimingStage\n"
+            "TimingStage(FrontendConfig(), TimingConfig(estimator=Estimator.ML))\n"
+            "try:\n"
+            "    TimingStage(FrontendConfig(), TimingConfig(estimator=Estimator.NETWORK))\n"
+            "except ValueError as error:\n"
+            "    print(error)\n")
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
+    assert out.startswith("the network estimator needs torch: pip install -c constraints.txt torch --index-url "
+                          "https://download.pytorch.org/whl/cpu"), out
+    assert "classical estimator" in out
+
+
 def test_the_onnx_export_computes_what_torch_computes(checkpoint, tmp_path):
     pytest.importorskip("onnxruntime", reason="onnxruntime is not installed (the onnx extra)")
     import onnx

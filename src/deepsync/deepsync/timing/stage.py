@@ -77,6 +77,10 @@ def refine_with_ml(windows: np.ndarray, template: np.ndarray, margin: int, psd: 
     return TimingEstimate(refined.offset, math.hypot(refined.std, MULTIPATH_FLOOR_SAMPLES), refined.snr_db,
                           Estimator.NETWORK_ML.value)
 
+# torch's CPU wheel, as pinned by constraints.txt (run from the repository root): a torch from
+# PyPI brings several GB of CUDA that a tracker or a robot's CPU never uses
+TORCH_INSTALL = "pip install -c constraints.txt torch --index-url https://download.pytorch.org/whl/cpu"
+
 
 class Estimator(enum.Enum):
     """The sub-sample estimators: the classical ones (``timing.estimators``) and the network's;
@@ -147,8 +151,9 @@ class TimingStage:
             try:
                 from deepsync.timing.network import NetworkEstimator  # torch is imported here only
             except ModuleNotFoundError as error:
-                raise ValueError(f"the network estimator needs {error.name}: pip install -e "
-                                 "'src/deepsync[network]' (or choose a classical estimator)") from None
+                remedy = TORCH_INSTALL if error.name == "torch" else "pip install -e 'src/deepsync[network]'"
+                raise ValueError(f"the network estimator needs {error.name}: {remedy} (or choose a classical "
+                                 "estimator)") from None
             self.network = NetworkEstimator(self.config.checkpoint)
 
     def with_config(self, config: TimingConfig) -> TimingStage:
