@@ -207,6 +207,19 @@ def test_the_yaml_declares_exactly_the_specd_parameters_at_their_defaults() -> N
                 assert value == "", f"{node}.{spec.name}: paths are the launch file's to set"
 
 
+def test_the_readmes_node_table_lists_every_parameter_and_estimator() -> None:
+    """Users read the README's table, not params.py: a parameter or estimator added to a node
+    must appear in its row (the one-process node's row refers to the others')."""
+    rows = {line.split("`")[1]: line for line in (REPO / "README.md").read_text().splitlines()
+            if line.startswith("| `") and line.split("`")[1] in params.NODES}
+    assert set(rows) == set(params.NODES)
+    for node, specs in params.NODES.items():
+        if node != "deepsync_pipeline":
+            missing = [spec.name for spec in specs if f"`{spec.name}`" not in rows[node]]
+            assert not missing, f"README's {node} row lacks {missing}"
+    assert all(f"`{estimator.value}`" in rows["cell_timing"] for estimator in Estimator)
+
+
 def test_the_yaml_with_the_campus_paths_builds_every_node() -> None:
     document = nodes_yaml()
     paths = {"source": str(CAMPUS_BAG), "towers": str(CAMPUS_TOWERS), "frontend": str(CAMPUS_BAG)}
