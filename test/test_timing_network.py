@@ -154,7 +154,7 @@ def test_without_torch_a_network_estimator_is_refused_with_the_cpu_wheel_to_inst
             "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
             "sys.meta_path.insert(0, NoTorch())\n"
             "from deepsync.frontend.config import FrontendConfig\n"
-            "from deepsync.timing.stage import TORCH_INSTALL, Estimator, TimingConfig, TimingStage\n"
+            "from deepsync.timing.stage import Estimator, TimingConfig, TimingStage\n"
             "TimingStage(FrontendConfig(), TimingConfig(estimator=Estimator.ML))\n"
             "try:\n"
             "    TimingStage(FrontendConfig(), TimingConfig(estimator=Estimator.NETWORK))\n"

@@ -27,7 +27,7 @@ from deepsync.numeric import one_blas_thread
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, SampleFormat, Source, open_source
 from deepsync.sync.stage import SyncConfig
-from deepsync.timing.stage import TORCH_INSTALL
+from deepsync.timing import network_install_hint
 from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS
 
@@ -354,8 +354,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     try:
         from deepsync.training.train import load_run_config, train
     except ModuleNotFoundError as error:
-        remedy = TORCH_INSTALL if error.name == "torch" else "pip install -e 'src/deepsync[network]'"
-        raise ValueError(f"training needs {error.name}: {remedy} (scripts/setup.sh installs everything)") from None
+        raise ValueError(f"training needs {error.name}: {network_install_hint(error.name)} (scripts/setup.sh "
+                         "installs everything)") from None
 
     run = load_run_config(args.config)
     print(f"training the timing network from {args.config}: {run.training.steps} steps of "

@@ -48,6 +48,7 @@ from deepsync.frontend.templates import (
     pair_coefficients,
     pair_frame_parts,
 )
+from deepsync.timing import network_install_hint
 from deepsync.timing.crlb import Bound, delay_crlb, fit_amplitude, snr_db
 from deepsync.timing.estimators import (
     SNR_FLOOR_DB,
@@ -76,10 +77,6 @@ def refine_with_ml(windows: np.ndarray, template: np.ndarray, margin: int, psd: 
     refined = estimate_ml(windows, template, margin, psd, within=(offset - half, offset + half))
     return TimingEstimate(refined.offset, math.hypot(refined.std, MULTIPATH_FLOOR_SAMPLES), refined.snr_db,
                           Estimator.NETWORK_ML.value)
-
-# torch's CPU wheel, as pinned by constraints.txt (run from the repository root): a torch from
-# PyPI brings several GB of CUDA that a tracker or a robot's CPU never uses
-TORCH_INSTALL = "pip install -c constraints.txt torch --index-url https://download.pytorch.org/whl/cpu"
 
 
 class Estimator(enum.Enum):
@@ -151,9 +148,8 @@ class TimingStage:
             try:
                 from deepsync.timing.network import NetworkEstimator  # torch is imported here only
             except ModuleNotFoundError as error:
-                remedy = TORCH_INSTALL if error.name == "torch" else "pip install -e 'src/deepsync[network]'"
-                raise ValueError(f"the network estimator needs {error.name}: {remedy} (or choose a classical "
-                                 "estimator)") from None
+                raise ValueError(f"the network estimator needs {error.name}: {network_install_hint(error.name)} "
+                                 "(or choose a classical estimator)") from None
             self.network = NetworkEstimator(self.config.checkpoint)
 
     def with_config(self, config: TimingConfig) -> TimingStage:
