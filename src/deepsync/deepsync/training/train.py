@@ -41,9 +41,10 @@ from deepsync.configio import ConfigError, build_dataclass, load_yaml, require_m
 from deepsync.frontend.config import FrontendConfig
 from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_checkpoint
 from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND
-from deepsync.training.dataset import DatasetConfig, generate, load_split
 from deepsync.timing.inputs import Normalisation, network_inputs, noise_normalised
 from deepsync.timing.model import TimingNet, TimingNetConfig
+from deepsync.training.dataset import DatasetConfig, generate, load_split
+
 
 @dataclass(frozen=True)
 class TrainConfig:
