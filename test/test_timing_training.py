@@ -12,9 +12,11 @@ from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.timing.estimators import estimate_ml, noise_psd
 from deepsync.training.dataset import (
+    CONFIG_KEY,
     LOS_PROFILES,
     PROFILES,
     SHARD_KEYS,
+    Channel,
     DatasetConfig,
     generate,
     load_split,
@@ -77,7 +79,39 @@ def test_missing_or_foreign_shards_are_refused_by_name(tmp_path):
         load_split(tmp_path, "train")
 
 
+def test_a_clean_channel_is_one_path_that_ml_times_at_its_sigma():
+    """``channel: clean`` (the estimators' reference case): every cell one path, no spread, and
+    ML's error on a strong code as small as its sigma says; a fading or multipath tap left in
+    would show as a bias of tenths of a sample."""
+    config = DatasetConfig(max_frames=10, re_power_dbm=(-80.0, -70.0), examples_per_shard=6, channel="clean")
+    assert config.channel is Channel.CLEAN
+    shard = make_shard(config, "test", 0)
+    assert {PROFILES[k] for k in shard["profile"]} == {"clean"} and not np.any(shard["delay_spread_ns"])
+    for windows, template, offset, snr in zip(shard["windows"], shard["template"], shard["offset"], shard["snr_db"]):
+        if snr > -10:
+            w = windows.astype(np.float64)
+            estimate = estimate_ml(w, template.astype(np.float64), config.window_margin, noise_psd(w))
+            assert abs(estimate.offset - offset) < max(4 * estimate.std, 0.03), (snr, estimate, offset)
+
+
+def test_shards_made_before_a_config_field_existed_still_resume(tmp_path):
+    """A shard's recorded config without a field added since (here ``channel``) was made with
+    that field's default: resuming accepts it, and refuses it for another value."""
+    generate(tmp_path, {"val": 1}, TINY)
+    path = shard_path(tmp_path, "val", 0)
+    with np.load(path) as shard:
+        arrays = dict(shard)
+    recorded = json.loads(str(arrays[CONFIG_KEY]))
+    del recorded["channel"]
+    arrays[CONFIG_KEY] = np.array(json.dumps(recorded))
+    np.savez(path, **arrays)
+    assert generate(tmp_path, {"val": 1}, TINY) == 0
+    with pytest.raises(ValueError, match="channel 'tdl' -> 'clean'"):
+        generate(tmp_path, {"val": 1}, DatasetConfig(max_frames=4, examples_per_shard=3, channel=Channel.CLEAN))
+
+
 @pytest.mark.parametrize("change, field", [
+    (dict(channel="rayleigh"), "channel"),
     (dict(max_coarse_error=10), "max_coarse_error"),
     (dict(max_frames=1), "max_frames"),
     (dict(re_power_dbm=(-70.0, -90.0)), "re_power_dbm"),

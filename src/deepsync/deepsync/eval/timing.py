@@ -169,7 +169,8 @@ def evaluate_timing(data_dir: str | Path, out: str | Path, checkpoint: str | Pat
             "nlos_by_snr": by_snr(data, results, ~los),
             "by_bandwidth": {f"{bw:g}": breakdown(data, results, data["bandwidth_mhz"] == bw)
                              for bw in np.unique(data["bandwidth_mhz"])},
-            "by_profile": {name: breakdown(data, results, data["profile"] == k) for k, name in enumerate(PROFILES)},
+            "by_profile": {name: breakdown(data, results, data["profile"] == k) for k, name in enumerate(PROFILES)
+                           if np.any(data["profile"] == k)},
             "by_coarse_error": by_coarse_error(data, results),
         }
     summary["headline"] = headline(data, summary)
@@ -224,13 +225,18 @@ def plot(summary: dict, path: Path) -> None:
 
     ten = summary["frames"].get("10") or next(iter(summary["frames"].values()))
     figure, axes = plt.subplots(1, 3, figsize=(15, 4.5))
-    for ax, key, title in ((axes[0], "los_by_snr", "LOS (TDL-D/E)"), (axes[1], "nlos_by_snr", "NLOS (TDL-A/B/C)")):
+    profiles = list(ten["by_profile"])
+    for ax, key, title, los in ((axes[0], "los_by_snr", "LOS", True), (axes[1], "nlos_by_snr", "NLOS", False)):
+        names = [name for name in profiles if (name in LOS_PROFILES) == los]
+        ax.set_title(f"{title}: {', '.join(names) or 'none in this split'}\n10 frames, RMSE vs true first path")
+        if not names:
+            ax.axis("off")
+            continue
         rows = ten[key]
         centres = [np.mean(row["snr_db"]) for row in rows]
         for name in ESTIMATORS:
             ax.semilogy(centres, [row[name].get("rmse", np.nan) for row in rows], marker="o", label=name)
         ax.semilogy(centres, [row["crlb_median"] for row in rows], "k--", label="CRLB (median)")
-        ax.set_title(f"{title}, 10 frames: RMSE vs true first path")
         ax.set_xlabel("per-frame SNR (dB)")
         ax.set_ylabel("RMSE (samples)")
         ax.grid(True, which="both", alpha=0.3)

@@ -20,6 +20,10 @@ from the first 10 ms, so a window alone is exact only as part of the stream it w
 (``EnvelopeSimulator.analog`` gives any window exactly, test_frontend, but at the cost of its
 whole block). A scene is ``max_frames + 1`` frames long: the first settles the coupling.
 
+``channel: clean`` replaces every TDL channel by the direct path alone (no multipath, no
+fading): not for training, but the reference case in which an estimator can meet its Cramer-Rao
+bound, for evaluation (``benchmarks/clean_channel.py``).
+
 Label: ``offset`` = true code start (frame timing + sync code position + the geometric, i.e.
 first-path, delay, on the receiver clock, in stream samples) minus the window's coarse index,
 what the estimators return. Per-frame SNR (``sync_snr.json``'s definition): the energy of the
@@ -34,6 +38,7 @@ another config is refused rather than mixed in.
 
 from __future__ import annotations
 
+import enum
 import json
 import math
 import multiprocessing
@@ -58,12 +63,21 @@ from deepsync.twin.propagation import delay_spread_lognormal
 from deepsync.twin.tdl import TDL_PROFILES
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S
 
-PROFILES = ("TDL-A", "TDL-B", "TDL-C", "TDL-D", "TDL-E")  # index = the shards' ``profile`` code
-LOS_PROFILES = frozenset({"TDL-D", "TDL-E"})
+TDL_NAMES = ("TDL-A", "TDL-B", "TDL-C", "TDL-D", "TDL-E")
+CLEAN_PROFILE = "clean"  # the direct path alone (``Channel.CLEAN``)
+PROFILES = (*TDL_NAMES, CLEAN_PROFILE)  # index = the shards' ``profile`` code
+LOS_PROFILES = frozenset({"TDL-D", "TDL-E", CLEAN_PROFILE})
 BANDWIDTHS_MHZ = (1.4, 3.0, 5.0, 10.0, 15.0, 20.0)
 SPLITS = {"train": 0, "val": 1, "test": 2}
 CONFIG_KEY = "dataset_config"  # each shard's DatasetConfig, as JSON: data of another config is not mixed in
 EIRP_PER_RE_W = 10 ** ((61 - 30) / 10) / 600  # a 61 dBm macro sector, per resource element
+
+
+class Channel(enum.Enum):
+    """How every cell of a scene reaches the receiver."""
+
+    TDL = "tdl"  # a TR 38.901 TDL-A..E realisation, delay spread from UMa/UMi of its LOS state (training)
+    CLEAN = "clean"  # the direct path alone, no multipath or fading: where an estimator meets its bound
 
 
 @dataclass(frozen=True)
@@ -80,8 +94,15 @@ class DatasetConfig:
     max_clock_ppm: float = 0.5
     max_site_drift_ppb: float = 50.0
     examples_per_shard: int = 256
+    channel: Channel = Channel.TDL
 
     def __post_init__(self) -> None:
+        if not isinstance(self.channel, Channel):  # the name, as YAML and the shards hold it
+            try:
+                object.__setattr__(self, "channel", Channel(self.channel))
+            except ValueError:
+                raise ValueError(f"channel: {self.channel!r} must be one of "
+                                 f"{', '.join(c.value for c in Channel)}") from None
         if not 2 <= self.max_frames <= 100:
             raise ValueError(f"max_frames: {self.max_frames!r} must be 2..100")
         if not 1 <= self.max_coarse_error < self.window_margin:
@@ -131,9 +152,15 @@ def _tdl_paths(rng: np.random.Generator, profile_name: str, delay_spread_s: floa
     return Paths(bulk_delay_s + np.asarray(delays), gains, doppler)
 
 
+def _direct_path(rng: np.random.Generator, delay_s: float, received_w: float, max_doppler_hz: float) -> Paths:
+    """The line of sight alone: one path of constant power and a random phase."""
+    gain = math.sqrt(received_w / EIRP_PER_RE_W) * np.exp(2j * np.pi * rng.random())
+    return Paths(np.array([delay_s]), np.array([gain]), np.array([max_doppler_hz * math.cos(2 * np.pi * rng.random())]))
+
+
 def _draw_profile(rng: np.random.Generator, carrier_hz: float) -> tuple[str, float]:
     """A TDL profile and a delay spread from the UMa or UMi distribution of its LOS state."""
-    name = PROFILES[int(rng.integers(len(PROFILES)))]
+    name = TDL_NAMES[int(rng.integers(len(TDL_NAMES)))]
     mu, sigma = delay_spread_lognormal(("UMa", "UMi")[int(rng.integers(2))], name in LOS_PROFILES, carrier_hz)
     return name, float(min(10 ** rng.normal(mu, sigma), 1.5e-6))
 
@@ -154,14 +181,17 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
         # the others near the target's level: far weaker ones change nothing, far stronger ones
         # would bury it (the sync stage would not have found it)
         power_dbm = float(rng.uniform(*config.re_power_dbm)) if k == 0 else meta[0][3] + float(rng.uniform(-20.0, 10.0))
-        profile, spread = _draw_profile(rng, config.carrier_hz)
+        profile, spread = (_draw_profile(rng, config.carrier_hz) if config.channel is Channel.TDL
+                           else (CLEAN_PROFILE, 0.0))
         drift = float(rng.uniform(-1, 1)) * config.max_site_drift_ppb * 1e-9
         timing = float(rng.uniform(0, FRAME_SECONDS))
         bulk = float(rng.uniform(0.2e-6, 3.3e-6))  # 60 m .. 1 km
         emitters.append(Emitter(CellConfig(int(pci), cell_bandwidth, load), carrier, EIRP_PER_RE_W, timing,
                                 float(rng.normal(0, 50.0)), f"site{k}", drift))
         received = 10 ** ((power_dbm - 30) / 10)
-        paths.append(_tdl_paths(rng, profile, spread, bulk, received, doppler_max * float(rng.random())))
+        doppler = doppler_max * float(rng.random())
+        paths.append(_tdl_paths(rng, profile, spread, bulk, received, doppler) if config.channel is Channel.TDL
+                     else _direct_path(rng, bulk, received, doppler))
         meta.append((cell_bandwidth, PROFILES.index(profile), spread, power_dbm, received))
     clock_ppm = float(rng.uniform(-1, 1)) * config.max_clock_ppm
     frontend = replace(frontend, clock_offset_ppm=clock_ppm, clock_drift_ppm_per_s=0.0)
@@ -237,7 +267,8 @@ def make_shard(config: DatasetConfig, split: str, index: int, frontend: Frontend
 
 
 def _config_json(config: DatasetConfig) -> str:
-    return json.dumps(asdict(config), sort_keys=True)
+    return json.dumps({key: value.value if isinstance(value, enum.Enum) else value
+                       for key, value in asdict(config).items()}, sort_keys=True)
 
 
 def _write_shard(job: tuple[DatasetConfig, Path, str, int]) -> int:
@@ -260,6 +291,8 @@ def _check_made_with(path: Path, config: DatasetConfig) -> None:
     """ValueError unless the shard at ``path`` was made with ``config`` (resuming must not mix data)."""
     with np.load(path, allow_pickle=False) as shard:
         made = json.loads(str(shard[CONFIG_KEY])) if CONFIG_KEY in shard.files else None
+    if made is not None:  # a field added since the shard was made: it had the default's effect then
+        made = {**json.loads(_config_json(DatasetConfig())), **made}
     wanted = json.loads(_config_json(config))
     if made != wanted:
         changed = "no record of it" if made is None else ", ".join(
