@@ -128,17 +128,17 @@ def test_a_dataset_config_that_cannot_be_names_the_field(change, field):
 torch = pytest.importorskip("torch", reason="torch is not installed (scripts/setup.sh installs the CPU wheel)")
 
 
-def run_yaml(tmp_path, steps: int, **training) -> str:
+def run_yaml(tmp_path, steps: int, model: dict | None = None, **training) -> str:
     import yaml
 
     path = tmp_path / "run.yaml"
     path.write_text(yaml.safe_dump({
         "dataset": {"max_frames": 4, "examples_per_shard": 8},
-        "model": {"channels": [4, 8, 8], "heads": 2, "hidden": [16, 8]},
+        "model": {"channels": [4, 8, 8], "heads": 2, "hidden": [16, 8], **(model or {})},
         "training": {"data_dir": str(tmp_path / "data"), "train_shards": 2, "val_shards": 1, "test_shards": 1,
                      "run_dir": str(tmp_path / "run"), "model_path": str(tmp_path / "net.pt"), "steps": steps,
                      "batch_size": 8, "eval_every": 5, "max_frames": 4, "min_frames": 2, "warmup_steps": 2,
-                     "workers": 1, **training},
+                     "workers": 1, "calibration_steps": 0, **training},
     }))
     return str(path)
 
@@ -173,22 +173,23 @@ def test_a_short_training_writes_a_checkpoint_the_stage_loads_and_resumes(tmp_pa
         train(load_run_config(other), other)
 
 
-def test_a_resumed_run_takes_the_same_path_as_an_uninterrupted_one(tmp_path, monkeypatch):
+@pytest.mark.parametrize("stop", [5, 15], ids=["training", "calibrating the sigma"])
+def test_a_resumed_run_takes_the_same_path_as_an_uninterrupted_one(tmp_path, monkeypatch, stop):
     from deepsync.timing.checkpoint import load_checkpoint
     from deepsync.training import train as training
     from deepsync.training.train import load_run_config, train
 
-    straight = run_yaml(tmp_path, steps=10, run_dir=str(tmp_path / "straight"))
+    straight = run_yaml(tmp_path, steps=10, calibration_steps=10, run_dir=str(tmp_path / "straight"))
     train(load_run_config(straight), straight)
-    interrupted = run_yaml(tmp_path, steps=10, run_dir=str(tmp_path / "resumed"))
+    interrupted = run_yaml(tmp_path, steps=10, calibration_steps=10, run_dir=str(tmp_path / "resumed"))
     plot = training.plot_history
 
-    def ctrl_c_after_step_5(history, path):
+    def ctrl_c_after_the_stop(history, path):
         plot(history, path)
-        if history[-1]["step"] == 5:
+        if history[-1]["step"] == stop:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(training, "plot_history", ctrl_c_after_step_5)
+    monkeypatch.setattr(training, "plot_history", ctrl_c_after_the_stop)
     with pytest.raises(KeyboardInterrupt):
         train(load_run_config(interrupted), interrupted)
     monkeypatch.setattr(training, "plot_history", plot)
@@ -197,6 +198,54 @@ def test_a_resumed_run_takes_the_same_path_as_an_uninterrupted_one(tmp_path, mon
     b = load_checkpoint(tmp_path / "resumed" / "last.pt").model.state_dict()
     for name in a:
         torch.testing.assert_close(a[name], b[name])
+
+
+def test_the_quantile_loss_is_least_where_sigma_holds_68_percent_of_the_errors():
+    """On errors with wrong-lobe tails (a narrow core and a few far ones), the sigma the
+    Gaussian NLL picks (their RMS) holds nearly all of them; the pinball loss picks one
+    that holds a Gaussian's 68.3 %."""
+    from deepsync.training.train import SIGMA_QUANTILE, quantile_loss
+
+    rng = np.random.default_rng(3)
+    errors = np.where(rng.random(20000) < 0.8, rng.normal(0, 0.2, 20000), rng.uniform(-8, 8, 20000))
+    sigmas = np.geomspace(0.01, 10, 600)
+    losses = [float(quantile_loss(torch.full((errors.size,), 2 * np.log(s)), torch.from_numpy(errors)))
+              for s in sigmas]
+    best = sigmas[int(np.argmin(losses))]
+    assert abs(np.mean(np.abs(errors) <= best) - SIGMA_QUANTILE) < 0.01
+    assert np.mean(np.abs(errors) <= np.sqrt(np.mean(errors**2))) > 0.85
+
+
+def test_calibrating_the_sigma_moves_no_offset_and_a_longer_run_is_refused(tmp_path):
+    from deepsync.timing.checkpoint import load_checkpoint
+    from deepsync.timing.inputs import network_inputs
+    from deepsync.training.train import load_run_config, train
+
+    shipped = {"fusion": "correlation", "head": "soft_argmax"}  # its sigma head: the dense layers, with dropout
+    plain = run_yaml(tmp_path, steps=10, model=shipped, run_dir=str(tmp_path / "plain"),
+                     model_path=str(tmp_path / "plain.pt"))
+    train(load_run_config(plain), plain)
+    config = run_yaml(tmp_path, steps=10, model=shipped, calibration_steps=10)
+    train(load_run_config(config), config)
+    history = json.loads((tmp_path / "run" / "history.json").read_text())
+    assert [h["step"] for h in history] == [5, 10, 15, 20] and "quantile_loss" in history[-1]
+    before, after = load_checkpoint(tmp_path / "plain.pt"), load_checkpoint(tmp_path / "net.pt")
+    assert after.step == 20 and "calibrating_since_step" not in after.meta
+    assert load_checkpoint(tmp_path / "run" / "last.pt").meta["calibrating_since_step"] == 10
+    data = load_split(tmp_path / "data", "val")
+    windows, template = network_inputs(torch.from_numpy(data["windows"]), torch.from_numpy(data["template"]),
+                                       after.normalisation)
+    with torch.no_grad():
+        (offset_before, log_variance_before), (offset_after, log_variance_after) = (
+            before.model(windows, template), after.model(windows, template))
+    torch.testing.assert_close(offset_after, offset_before, rtol=0, atol=0)
+    assert not torch.equal(log_variance_after, log_variance_before)
+
+    train(load_run_config(config), config)  # finished: a rerun does nothing
+    assert load_checkpoint(tmp_path / "run" / "last.pt").step == 20
+    longer = run_yaml(tmp_path, steps=15, model=shipped, calibration_steps=10)
+    with pytest.raises(ValueError, match="calibrating its sigma since step 10"):
+        train(load_run_config(longer), longer)
 
 
 def test_a_run_config_that_does_not_fit_names_the_field(tmp_path):
@@ -209,6 +258,7 @@ def test_a_run_config_that_does_not_fit_names_the_field(tmp_path):
         ({"training": {"max_frames": 30}}, "max_frames"),
         ({"model": {"window_length": 300}}, "window_length"),
         ({"training": {"steps": 0}}, "steps"),
+        ({"training": {"calibration_steps": -1}}, "calibration_steps"),
         ({"schedule": {}}, "unknown section schedule"),
         ({"training": {"learning_rat": 1.0}}, "learning_rat"),
         ({"model": {"fusion": "sum"}}, "fusion: 'sum' must be one of cross_attention, concatenation"),

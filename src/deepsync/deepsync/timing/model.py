@@ -203,6 +203,13 @@ class TimingNet(nn.Module):
         offset = (torch.softmax(score, dim=1) * (self.token_offset + correction)).sum(dim=1)  # (B,)
         return offset, log_variance
 
+    def sigma_head(self) -> nn.Module:
+        """What only the log-variance depends on: with the soft-argmax head the dense layers too
+        (the offset comes from the votes), with the dense head its last layer alone."""
+        if self.config.head is Head.DENSE:
+            return self.log_variance
+        return nn.ModuleList([self.regression, self.log_variance])
+
     def fuse(self, signal: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
         """Signal tokens (B, S, C) and template tokens (B, K, C) -> fused tokens (B, N, D)."""
         fusion = self.config.fusion

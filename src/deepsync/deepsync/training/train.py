@@ -11,15 +11,24 @@ error detached there so the sigma head learns how wrong the offset is without pu
 towards easy examples. Adam with a linear warm-up and a cosine decay (the paper's 1e-4 constant
 rate needs far more steps than a CPU hour gives).
 
+Then ``calibration_steps`` more steps calibrate the sigma: the best checkpoint's sigma head
+alone (the dense layers after the fusion; encoders, batch norms and the offset frozen, so every
+offset stays as it was) learns the 68.3 % quantile of the error's size given the input, by the
+pinball loss on log |error|. The Gaussian NLL fits the error's variance, and where errors are a
+narrow core and a tail of wrong lobes, a sigma from the variance holds 75-85 % of them, not the
+68 % a 1-sigma should (``docs/timing_network.md``).
+
 Interrupt at any time: ``<run_dir>/last.pt`` (saved every ``eval_every`` steps, with the
 optimiser) is where a rerun resumes, and every batch is drawn from ``(seed, step, rank)``, so a
 resumed run takes the same path as an uninterrupted one. The checkpoint with the lowest
 validation RMSE over the examples with a code to find (at least ``huber_min_stacked_snr_db``
-after stacking 10 frames) is written to ``model_path`` (no optimiser: the file to ship), the curve to
-``<run_dir>/training_curve.png`` and ``history.json``.
+after stacking 10 frames) is written to ``model_path`` (no optimiser: the file to ship), and
+again with its sigma calibrated; the curve to ``<run_dir>/training_curve.png`` and
+``history.json``.
 
 Devices: a GPU when there is one, else the CPU. Under ``torchrun`` every rank trains on its own
-batches and DistributedDataParallel averages the gradients; rank 0 evaluates and writes.
+batches and DistributedDataParallel averages the gradients; rank 0 evaluates and writes, and
+calibrates the sigma alone (a small head: minutes on a CPU).
 """
 
 from __future__ import annotations
@@ -67,6 +76,9 @@ class TrainConfig:
     # of Huber gradient per example, drowning the rest): they train the sigma head only
     huber_min_stacked_snr_db: float = -15.0
     eval_every: int = 250
+    # after ``steps``: the sigma head alone, fitted to the 68.3 % quantile of |error| (above)
+    calibration_steps: int = 3000
+    calibration_learning_rate: float = 3e-4
     seed: int = 7
     threads: int = 0  # CPU threads for torch; 0: torch's default
     workers: int = 2  # processes making missing shards
@@ -78,6 +90,10 @@ class TrainConfig:
         if not 2 <= self.min_frames <= self.max_frames:
             raise ValueError(f"min_frames {self.min_frames} and max_frames {self.max_frames}: 2 <= min <= max "
                              "(the windows are normalised by their frame-to-frame noise)")
+        if self.calibration_steps < 0:
+            raise ValueError(f"calibration_steps: {self.calibration_steps!r} must be 0 or more")
+        if not self.calibration_learning_rate > 0:
+            raise ValueError(f"calibration_learning_rate: {self.calibration_learning_rate!r} must be positive")
         if not 0 < self.final_learning_rate <= self.learning_rate:
             raise ValueError(f"learning rates: 0 < final_learning_rate {self.final_learning_rate!r} <= "
                              f"learning_rate {self.learning_rate!r}")
@@ -165,6 +181,18 @@ def loss_terms(offset: torch.Tensor, log_variance: torch.Tensor, target: torch.T
     return huber, nll
 
 
+# the share of a Gaussian's errors within +-1 sigma: what the calibrated sigma holds
+SIGMA_QUANTILE = math.erf(1 / math.sqrt(2))
+
+
+def quantile_loss(log_variance: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
+    """Pinball loss of log sigma against log |error|, least where sigma is the ``SIGMA_QUANTILE``
+    of |error| given the input (log: one scale from 0.01 to 10 samples; 1e-3 samples keeps an
+    exact hit finite)."""
+    residual = torch.log(error.abs() + 1e-3) - 0.5 * log_variance
+    return torch.maximum(SIGMA_QUANTILE * residual, (SIGMA_QUANTILE - 1) * residual).mean()
+
+
 def learning_rate(step: int, config: TrainConfig) -> float:
     if step < config.warmup_steps:
         return config.learning_rate * (step + 1) / config.warmup_steps
@@ -235,6 +263,7 @@ def train(run: RunConfig, config_path: str = "") -> Path:
     last = run_dir / "last.pt"
     history: list[dict] = []
     step = 0
+    calibrating_since = None  # the step the sigma's calibration started at, where last.pt is mid-way
     if last.exists():
         resumed = load_checkpoint(last)
         if resumed.model.config != run.model:
@@ -243,6 +272,10 @@ def train(run: RunConfig, config_path: str = "") -> Path:
         model.load_state_dict(resumed.model.state_dict())
         optimiser.load_state_dict(resumed.optimiser)
         step = resumed.step
+        calibrating_since = resumed.meta.get("calibrating_since_step")
+        if calibrating_since is not None and cfg.steps > calibrating_since:
+            raise ValueError(f"{last} is calibrating its sigma since step {calibrating_since}: more training steps "
+                             f"({cfg.steps}) would train a calibrated network; remove {run_dir} to train anew")
         history = json.loads((run_dir / "history.json").read_text()) if (run_dir / "history.json").exists() else []
         if rank == 0:
             print(f"resuming {last} at step {step}")
@@ -288,7 +321,58 @@ def train(run: RunConfig, config_path: str = "") -> Path:
                 plot_history(history, run_dir / "training_curve.png")
     if distributed:
         torch.distributed.destroy_process_group()
+    since = step if calibrating_since is None else calibrating_since
+    if rank == 0 and step < since + cfg.calibration_steps:
+        if calibrating_since is None:  # its start: the best checkpoint, a fresh optimiser
+            model.load_state_dict(load_checkpoint(cfg.model_path).model.state_dict())
+            optimiser = torch.optim.Adam(model.parameters(), lr=cfg.calibration_learning_rate)
+        calibrate_sigma(model, optimiser, step, since, train_set, val_set, normalisation, trained_on, meta, history,
+                        device, cfg)
     return Path(cfg.model_path)
+
+
+def calibrate_sigma(model: TimingNet, optimiser: torch.optim.Optimizer, step: int, since: int, train_set: Examples,
+                    val_set: Examples, normalisation: Normalisation, trained_on: TrainingRange, meta: dict,
+                    history: list[dict], device: torch.device, cfg: TrainConfig) -> None:
+    """``model``'s sigma head alone, to the 68.3 % quantile of |error| (module docstring), from
+    step ``since`` to ``since + calibration_steps``; at ``step`` (past ``since``: resumed)."""
+    end = since + cfg.calibration_steps
+    head = model.sigma_head()
+    model.requires_grad_(False)
+    head.requires_grad_(True)
+    run_dir = Path(cfg.run_dir)
+    resumable = {**meta, "calibrating_since_step": since}  # last.pt's: where a rerun picks up
+    with tqdm(total=end, initial=step, desc="calibrating sigma", unit="step") as bar:
+        while step < end:
+            rng = np.random.default_rng([cfg.seed, step, 0])
+            torch.manual_seed(int(rng.integers(2**62)))
+            frames = int(rng.integers(cfg.min_frames, cfg.max_frames + 1))
+            windows, template, target, _ = train_set.batch(rng, cfg.batch_size, frames)
+            windows, template = network_inputs(windows, template, normalisation)
+            model.eval()  # batch norms frozen, so the offsets stay what they were
+            head.train()
+            offset, log_variance = model(windows.to(device), template.to(device))
+            loss = quantile_loss(log_variance, offset.detach() - target.to(device))
+            progress = (step - since) / cfg.calibration_steps
+            for group in optimiser.param_groups:
+                group["lr"] = cfg.calibration_learning_rate * 0.5 * (1 + math.cos(math.pi * progress))
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            step += 1
+            bar.update(1)
+            if step % cfg.eval_every == 0 or step == end:
+                scores = evaluate(model, val_set, normalisation, min(10, cfg.max_frames), device,
+                                  cfg.huber_min_stacked_snr_db)
+                history.append({"step": step, "quantile_loss": loss.item(),
+                                **{f"val_{k}": v for k, v in scores.items()}})
+                bar.set_postfix(val_within_1_sigma=f"{scores['within_1_sigma']:.3f}")
+                if step == end:
+                    save_checkpoint(cfg.model_path, model, trained_on, normalisation, step=step, meta=meta)
+                save_checkpoint(run_dir / "last.pt", model, trained_on, normalisation, step=step,
+                                optimiser=optimiser.state_dict(), meta=resumable)
+                (run_dir / "history.json").write_text(json.dumps(history, indent=1))
+                plot_history(history, run_dir / "training_curve.png")
 
 
 def plot_history(history: list[dict], path: Path) -> None:
@@ -299,7 +383,8 @@ def plot_history(history: list[dict], path: Path) -> None:
 
     steps = [h["step"] for h in history]
     figure, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
-    left.semilogy(steps, [h["huber"] for h in history], label="train Huber (last batch)")
+    trained = [h for h in history if "huber" in h]  # the calibration's entries have a quantile loss instead
+    left.semilogy([h["step"] for h in trained], [h["huber"] for h in trained], label="train Huber (last batch)")
     left.semilogy(steps, [h["val_rmse"] for h in history], label="validation RMSE (samples, 10 frames)")
     coded = [h for h in history if "val_rmse_with_code" in h]
     left.semilogy([h["step"] for h in coded], [h["val_rmse_with_code"] for h in coded],
@@ -311,6 +396,10 @@ def plot_history(history: list[dict], path: Path) -> None:
     right.plot(steps, [h["val_within_1_sigma"] for h in history])
     low, high = SIGMA_CALIBRATION_BAND
     right.axhspan(low, high, color="green", alpha=0.15, label=f"calibrated ({100 * low:.0f}-{100 * high:.0f} %)")
+    if any("quantile_loss" in h for h in history):
+        since = max((h["step"] for h in trained), default=steps[0])
+        for axis in (left, right):
+            axis.axvline(since, color="grey", linestyle=":", label="the sigma head calibrated from here")
     right.set_xlabel("step")
     right.set_ylabel("validation errors within 1 sigma")
     right.legend()
