@@ -7,6 +7,7 @@ user fixes the file without reading code.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 import re
 import types
@@ -137,3 +138,12 @@ def build_dataclass(cls: type[T], data: object, where: str) -> T:
         raise
     except (ValueError, TypeError) as error:
         raise ConfigError(f"{where}: {error}") from None
+
+
+def choice_name(value: object) -> str:
+    """A config's choice (an enum: the dataset's ``Channel``, the model's ``Fusion``, ``Head``) as
+    YAML and JSON records hold it, by its value; TypeError for anything else (``json.dumps``'s
+    ``default``)."""
+    if isinstance(value, enum.Enum):
+        return value.value
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")

@@ -10,8 +10,9 @@ With no arguments the envelope_adc node plays the bag installed with the package
 
 Before any node starts, the nodes' own interpreter (the shebang of the installed envelope_adc
 script) runs ``-m deepsync_ros.dependencies``; when a dependency is missing the launch logs what
-and how to get it, starts nothing and exits 1. This file runs on the interpreter of ``ros2 launch`` (the
-system Python): it imports only the standard library and launch itself, never numpy or deepsync.
+and how to get it, starts nothing and exits 1. This file runs on the interpreter of ``ros2
+launch`` (the system Python): it imports only the standard library and launch itself, never
+numpy or deepsync.
 """
 
 import os

@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from deepsync.configio import choice_name
 from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
@@ -267,8 +268,7 @@ def make_shard(config: DatasetConfig, split: str, index: int, frontend: Frontend
 
 
 def _config_json(config: DatasetConfig) -> str:
-    return json.dumps({key: value.value if isinstance(value, enum.Enum) else value
-                       for key, value in asdict(config).items()}, sort_keys=True)
+    return json.dumps(asdict(config), sort_keys=True, default=choice_name)
 
 
 def _write_shard(job: tuple[DatasetConfig, Path, str, int]) -> int:

@@ -33,7 +33,6 @@ calibrates the sigma alone (a small head: minutes on a CPU).
 
 from __future__ import annotations
 
-import enum
 import json
 import math
 import os
@@ -46,7 +45,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepsync.configio import ConfigError, build_dataclass, load_yaml, require_mapping
+from deepsync.configio import ConfigError, build_dataclass, choice_name, load_yaml, require_mapping
 from deepsync.frontend.config import FrontendConfig
 from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_checkpoint
 from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND
@@ -201,13 +200,6 @@ def learning_rate(step: int, config: TrainConfig) -> float:
     return config.final_learning_rate + (config.learning_rate - config.final_learning_rate) * cosine
 
 
-def _choice_name(value: object) -> str:
-    """A model choice (``Fusion``, ``Head``) as the run's JSON record holds it: by name."""
-    if isinstance(value, enum.Enum):
-        return value.value
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
 @torch.no_grad()
 def evaluate(model: TimingNet, examples: Examples, normalisation: Normalisation, frames: int,
              device: torch.device, min_stacked_snr_db: float, batch: int = 512) -> dict[str, float]:
@@ -281,7 +273,7 @@ def train(run: RunConfig, config_path: str = "") -> Path:
             print(f"resuming {last} at step {step}")
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     meta = {"config": str(config_path),
-            "run": json.dumps(asdict(run), default=_choice_name),
+            "run": json.dumps(asdict(run), default=choice_name),
             "examples": len(train_set), "normalisation": json.dumps(asdict(normalisation))}
     # the checkpoint to ship: the best RMSE where there is a code to find (the RMSE over every
     # example is the undetectable ones' guessing, and rises while the median still falls)
