@@ -158,6 +158,7 @@ class _SearchState:
     site_noise: SiteNoise | None
     rows: np.ndarray | None = None  # timing rows computed (None: all; the others stay zero)
     site_z: np.ndarray | None = None  # the pairs' statistic, once the single peaks are exhausted
+    site_pairs: np.ndarray | None = None  # the pairs (indices) site_z tests: those with no sector found
     detections: list[CellDetection] = field(default_factory=list)
     cancelled: int = 0  # how many of the detections the residual has cancelled
 
@@ -544,15 +545,24 @@ class CellSearch:
         pairs' statistic, the costliest part of the search, is computed once per stack."""
         if self.sites is None:
             return None
-        every = self.sites.every_pair
         if state.site_z is None:
-            correlations = self.sites.correlations(scipy.fft.rfft(state.residual), state.correlations, every)
-            state.site_z = self.sites.statistic(correlations, state.site_noise.covariances(every, correlations))
+            # a pair with a sector found already cannot be added (``_add_site``): only the others
+            # are hypotheses; once a site is heard, that spares most of the stack's costliest work
+            found = {d.pci for d in state.detections}
+            state.site_pairs = np.array([k for k, pair in enumerate(self.sites.pairs) if not found & set(pair)],
+                                        dtype=int)
+            if not state.site_pairs.size:
+                return None
+            correlations = self.sites.correlations(scipy.fft.rfft(state.residual), state.correlations,
+                                                   state.site_pairs)
+            covariances = state.site_noise.covariances(state.site_pairs, correlations)
+            state.site_z = self.sites.statistic(correlations, covariances)
         best = np.where(state.given_up[_SITE], -np.inf, state.site_z)
         peak = int(np.argmax(best))
         if best[peak] < state.threshold:
             return None
-        match = self.sites.identify(state.residual, peak, every, state.site_noise.covariances(every),
+        match = self.sites.identify(state.residual, peak, state.site_pairs,
+                                    state.site_noise.covariances(state.site_pairs),
                                     self.config.pair_false_alarm, self.config.pair_min_gain)
         return peak, match is not None and self._add_site(match, float(best[peak]), state.detections)
 

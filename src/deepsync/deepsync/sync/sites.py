@@ -113,10 +113,6 @@ class SiteSearch:
         """Hypotheses tested at every lag: one per pair and template phase."""
         return len(self.pairs) * len(self.phases)
 
-    @property
-    def every_pair(self) -> np.ndarray:
-        return np.arange(len(self.pairs))
-
     def pair_index(self, a: int, b: int) -> int | None:
         """Index of the pair of sectors ``a`` and ``b``, if they are one."""
         pair = cosited_pair(a, b)
