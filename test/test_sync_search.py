@@ -17,6 +17,7 @@ from deepsync.frontend.templates import SyncTemplates, code_template, known_fram
 from deepsync.frontend.video import VideoFilter
 from deepsync.lte.cell import CellConfig
 from deepsync.sources import BagSource, squared_iq_frontend
+from deepsync.sync.correlation import correlate, correlate_every, template_spectra
 from deepsync.sync.search import CellDetection, CellSearch, ExpectedCell, SearchConfig
 from deepsync.sync.sites import SiteFit
 from deepsync.sync.stacking import FrameStacker, StackConfig
@@ -330,6 +331,17 @@ def test_noise_alone_gives_false_alarms_at_the_stated_rate(templates, known):
     assert false <= 4  # 1 expected at a 1 % per-stack rate
 
 
+@pytest.mark.parametrize("n, step", [(19200, 32), (9600, 4), (1001, 7), (1000, 3)])
+def test_correlations_at_every_step_th_lag_are_the_full_ones_sampled(n, step):
+    rng = np.random.default_rng(n)
+    spectrum = scipy.fft.rfft(rng.standard_normal(n))
+    spectra = template_spectra(rng.standard_normal((2, 3, 50)), n)
+    full = correlate(spectrum, spectra, n)
+    sampled = correlate_every(spectrum, spectra, n, step)
+    assert sampled.shape == full[..., ::step].shape
+    np.testing.assert_allclose(sampled, full[..., ::step], atol=1e-5 * np.abs(full).max())
+
+
 @pytest.mark.parametrize("amplitude", [0.4, 1.5])
 def test_cosited_sectors_are_found_together(templates, amplitude):
     """Two sectors of one site at equal power, at several relative phases: the cross term of
@@ -353,6 +365,30 @@ def test_cosited_sectors_are_found_together(templates, amplitude):
         singles_found_both += {120, 121} <= {d.pci for d in singles.search(stacked)}
     if amplitude < 1:
         assert singles_found_both <= 1
+
+
+def test_a_second_site_is_found_and_pairs_of_found_sectors_are_not_searched(templates, monkeypatch):
+    """Two sites' pairs in one stack: both are found. The pairs' statistic (the search's
+    costliest pass) is computed only for pairs none of whose sectors is found yet: a pair
+    with a found sector could not be added."""
+    rng = np.random.default_rng(9)
+    db = load_tower_database(CAMPUS_TOWERS)
+    search = CellSearch(templates, allowed_pcis=db.pcis, cosited_pairs=db.cosited_pairs())
+    searched = []
+    correlations = type(search.sites).correlations
+    def spy(self, spectrum, single, pairs, step=1):
+        if step == 1:
+            searched.append({pci for k in pairs for pci in self.pairs[k]})
+        return correlations(self, spectrum, single, pairs, step)
+    monkeypatch.setattr(type(search.sites), "correlations", spy)
+    rows = (frame_with_cosited_pair(templates, (120, 121), 3100.4, (1.0, 1.0), 1.1) * 1.5
+            + frame_with_cosited_pair(templates, (301, 302), 9900.7, (1.0, 0.8), 2.3) * 0.6)[None, :] \
+        + coloured_noise(rng, (10, FRAME))
+    found = search.search(rows.mean(axis=0))
+    assert sorted(d.pci for d in found) == [120, 121, 301, 302]
+    assert searched, "the pairs' statistic was never computed"
+    for pcis in searched:  # the strong pair is found first, by its own templates
+        assert not pcis & {120, 121}
 
 
 def test_a_single_sector_is_not_taken_for_a_pair(templates):

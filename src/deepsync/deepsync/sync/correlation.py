@@ -52,3 +52,17 @@ def correlate(spectrum: np.ndarray, spectra: np.ndarray, n: int) -> np.ndarray:
     conjugate spectra."""
     return scipy.fft.irfft(spectrum.astype(np.complex64) * spectra, n=n, axis=-1)
 
+
+
+def correlate_every(spectrum: np.ndarray, spectra: np.ndarray, n: int, step: int) -> np.ndarray:
+    """``correlate(spectrum, spectra, n)[..., ::step]``, without the lags between: sampling the
+    correlation every ``step`` lags folds its spectrum onto n / step bins (aliasing), so one
+    transform of that length replaces the n-point one (about 2.5 times cheaper at step 32 of a
+    frame). For a noise statistic that needs a sample of lags, not all of them."""
+    if n % step:
+        return correlate(spectrum, spectra, n)[..., ::step]
+    product = spectrum.astype(np.complex64) * spectra
+    # the whole spectrum of the real correlation: bins above n / 2 are the conjugates of those below
+    whole = np.concatenate([product, np.conj(product[..., (n - 1) // 2 : 0 : -1])], axis=-1)
+    folded = whole.reshape(*whole.shape[:-1], step, n // step).sum(axis=-2)
+    return scipy.fft.irfft(folded[..., : n // step // 2 + 1], n // step, axis=-1) / np.float32(step)

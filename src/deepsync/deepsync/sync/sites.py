@@ -35,9 +35,10 @@ import scipy.stats
 
 from deepsync.frontend.templates import SyncTemplates, code_template, cosited_pair
 from deepsync.numeric import mad_spread, parabolic_peak
-from deepsync.sync.correlation import correlate, frame_spectra, unit_frame_parts
+from deepsync.sync.correlation import correlate, correlate_every, frame_spectra, unit_frame_parts
 
 COMPONENTS = 4  # |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*)
+COVARIANCE_STEP = 32  # every how many lags the pairs' noise covariances are measured on
 _EXACT_FROM_Z = 2.9
 _EXACT_FROM_CHI2 = float(scipy.stats.chi2.isf(scipy.stats.norm.sf(_EXACT_FROM_Z), COMPONENTS))
 
@@ -122,16 +123,21 @@ class SiteSearch:
         """Indices of the pairs ``pci`` belongs to."""
         return np.array([k for k, pair in enumerate(self.pairs) if pci in pair], dtype=int)
 
-    def correlations(self, spectrum: np.ndarray, single: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-        """(pairs, phases, 4, frame) correlations with the given pairs' unit frame templates, of
-        the frame whose rfft is ``spectrum`` and whose correlations with the single-cell search's
-        frame templates (all allowed PCIs x phases) are ``single``: only the cross terms are new."""
+    def correlations(self, spectrum: np.ndarray, single: np.ndarray, pairs: np.ndarray, step: int = 1) -> np.ndarray:
+        """(pairs, phases, 4, frame / step) correlations with the given pairs' unit frame
+        templates at every ``step``-th lag, of the frame whose rfft is ``spectrum`` and whose
+        correlations with the single-cell search's frame templates (all allowed PCIs x phases)
+        are ``single``: only the cross terms are new."""
         frame = single.shape[-1]
         if frame not in self._spectra:
             self._spectra[frame] = frame_spectra(self._parts[:, :, 2:], frame)
-        out = np.empty((len(pairs), len(self.phases), COMPONENTS, frame), dtype=np.float32)
-        out[:, :, :2] = single[self._own_rows[pairs]]
-        out[:, :, 2:] = correlate(spectrum, self._spectra[frame][pairs], frame)
+        own = single[self._own_rows[pairs]][..., ::step]
+        out = np.empty((*own.shape[:2], COMPONENTS, own.shape[-1]), dtype=np.float32)
+        out[:, :, :2] = own
+        if step == 1:
+            out[:, :, 2:] = correlate(spectrum, self._spectra[frame][pairs], frame)
+        else:
+            out[:, :, 2:] = correlate_every(spectrum, self._spectra[frame][pairs], frame, step)
         return out
 
     def statistic(self, correlations: np.ndarray, covariances: np.ndarray) -> np.ndarray:
@@ -226,18 +232,20 @@ class SiteNoise:
         missing = np.array([i for i, k in enumerate(pairs) if int(k) not in self._covariances], dtype=int)
         if missing.size:
             if correlations is None:
-                measured = _covariances(self._search.correlations(self._spectrum, self._single, pairs[missing]))
+                measured = _covariances(self._search.correlations(self._spectrum, self._single, pairs[missing],
+                                                                  COVARIANCE_STEP))
             else:
-                measured = _covariances(correlations[missing])
+                measured = _covariances(correlations[:, :, :, ::COVARIANCE_STEP][missing])
             self._covariances.update(zip((int(k) for k in pairs[missing]), measured))
         return np.stack([self._covariances[int(k)] for k in pairs])
 
 
 def _covariances(correlations: np.ndarray) -> np.ndarray:
-    """(..., 4, 4) covariance of the four correlations over the lags where none stands out
-    (5 robust sigmas about zero, where correlations with zero-mean shapes are centred): codes
-    occupy a few lags of thousands. Every 32nd lag is enough."""
-    sample = correlations[..., ::32].astype(np.float64)
+    """(..., 4, 4) covariance of the four correlations (a sample of lags: every
+    ``COVARIANCE_STEP``-th is enough) over the lags where none stands out (5 robust sigmas about
+    zero, where correlations with zero-mean shapes are centred): codes occupy a few lags of
+    thousands."""
+    sample = correlations.astype(np.float64)
     spread = mad_spread(sample, axis=-1, keepdims=True, centre=0.0)
     quiet = np.all(np.abs(sample) < 5 * spread, axis=-2, keepdims=True)  # (..., 1, lags)
     count = quiet.sum(axis=-1, keepdims=True)

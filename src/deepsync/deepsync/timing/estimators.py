@@ -285,14 +285,17 @@ class _Fit:
     snr_db: float
 
 
-def _fit(problem: _Problem, lag: float, weights: np.ndarray, stacked_psd: np.ndarray) -> _Fit:
-    """Amplitude, sandwich std and SNR at the estimated ``lag`` (= margin + offset)."""
+def _fit(problem: _Problem, lag: float, weights: np.ndarray, stacked_psd: np.ndarray,
+         phases: np.ndarray | None = None) -> _Fit:
+    """Amplitude, sandwich std and SNR at the estimated ``lag`` (= margin + offset);
+    ``phases``: ``_phases(problem.omega, lag)``, if the caller has them."""
     k, omega, length = problem.inner, problem.omega, problem.length
+    phases = _phases(omega, lag) if phases is None else phases
     s = stacked_psd[k]
     weighted_power = 2 * np.abs(problem.t_spec[k]) ** 2 * weights  # 2 w |T|^2
     spread = weighted_power * weights * (length * s)  # 2 w^2 |T|^2 L S: the variance each bin adds
     total = float(np.sum(weighted_power))
-    a_hat = float(np.real(problem.cross[k] * _phases(omega, lag)) @ weights) * 2 / total
+    a_hat = float(np.real(problem.cross[k] * phases) @ weights) * 2 / total
     a_var = float(np.sum(spread)) / total**2
     amplitude = math.sqrt(max(a_hat**2 - a_var, 0.0)) if a_hat > 0 else 0.0
 
@@ -692,12 +695,13 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
                         tolerance=1e-6)
 
     power = np.abs(t_spec[inner]) ** 2
-    moved = t_spec[inner] * np.conj(_phases(omega, lag))  # the template with its code at `lag`
+    phases = _phases(omega, lag)
+    moved = t_spec[inner] * np.conj(phases)  # the template with its code at `lag`
     scale = float(np.sum(np.real(spectrum[inner] * np.conj(moved)))) / float(np.sum(power))
     residual = np.abs(spectrum) ** 2
     residual[inner] = np.abs(spectrum[inner] - scale * moved) ** 2
     problem.psd = _smoothed(residual / n, FRAME_PSD_HALF_WIDTH)
-    fit = _fit(problem, lag, np.ones(omega.size), problem.psd)
+    fit = _fit(problem, lag, np.ones(omega.size), problem.psd, phases)
 
     s = np.maximum(problem.psd[inner], 1e-12 * float(np.max(problem.psd[inner])))
     points = n * FRAME_GRID_FACTOR
