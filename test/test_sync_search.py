@@ -331,7 +331,7 @@ def test_noise_alone_gives_false_alarms_at_the_stated_rate(templates, known):
     assert false <= 4  # 1 expected at a 1 % per-stack rate
 
 
-@pytest.mark.parametrize("n, step", [(19200, 32), (9600, 4), (1001, 7), (1000, 3)])
+@pytest.mark.parametrize("n, step", [(19200, 32), (9600, 4), (1001, 7), (1000, 3), (500, 1)])
 def test_correlations_at_every_step_th_lag_are_the_full_ones_sampled(n, step):
     rng = np.random.default_rng(n)
     spectrum = scipy.fft.rfft(rng.standard_normal(n))

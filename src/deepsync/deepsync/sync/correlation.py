@@ -53,13 +53,12 @@ def correlate(spectrum: np.ndarray, spectra: np.ndarray, n: int) -> np.ndarray:
     return scipy.fft.irfft(spectrum.astype(np.complex64) * spectra, n=n, axis=-1)
 
 
-
 def correlate_every(spectrum: np.ndarray, spectra: np.ndarray, n: int, step: int) -> np.ndarray:
     """``correlate(spectrum, spectra, n)[..., ::step]``, without the lags between: sampling the
     correlation every ``step`` lags folds its spectrum onto n / step bins (aliasing), so one
     transform of that length replaces the n-point one (about 2.5 times cheaper at step 32 of a
     frame). For a noise statistic that needs a sample of lags, not all of them."""
-    if n % step:
+    if step == 1 or n % step:
         return correlate(spectrum, spectra, n)[..., ::step]
     product = spectrum.astype(np.complex64) * spectra
     # the whole spectrum of the real correlation: bins above n / 2 are the conjugates of those below

@@ -35,7 +35,7 @@ import scipy.stats
 
 from deepsync.frontend.templates import SyncTemplates, code_template, cosited_pair
 from deepsync.numeric import mad_spread, parabolic_peak
-from deepsync.sync.correlation import correlate, correlate_every, frame_spectra, unit_frame_parts
+from deepsync.sync.correlation import correlate_every, frame_spectra, unit_frame_parts
 
 COMPONENTS = 4  # |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*)
 COVARIANCE_STEP = 32  # every how many lags the pairs' noise covariances are measured on
@@ -134,10 +134,7 @@ class SiteSearch:
         own = single[self._own_rows[pairs]][..., ::step]
         out = np.empty((*own.shape[:2], COMPONENTS, own.shape[-1]), dtype=np.float32)
         out[:, :, :2] = own
-        if step == 1:
-            out[:, :, 2:] = correlate(spectrum, self._spectra[frame][pairs], frame)
-        else:
-            out[:, :, 2:] = correlate_every(spectrum, self._spectra[frame][pairs], frame, step)
+        out[:, :, 2:] = correlate_every(spectrum, self._spectra[frame][pairs], frame, step)
         return out
 
     def statistic(self, correlations: np.ndarray, covariances: np.ndarray) -> np.ndarray:
@@ -235,7 +232,7 @@ class SiteNoise:
                 measured = _covariances(self._search.correlations(self._spectrum, self._single, pairs[missing],
                                                                   COVARIANCE_STEP))
             else:
-                measured = _covariances(correlations[:, :, :, ::COVARIANCE_STEP][missing])
+                measured = _covariances(correlations[..., ::COVARIANCE_STEP][missing])
             self._covariances.update(zip((int(k) for k in pairs[missing]), measured))
         return np.stack([self._covariances[int(k)] for k in pairs])
 
