@@ -131,7 +131,7 @@ class SiteSearch:
         frame = single.shape[-1]
         if frame not in self._spectra:
             self._spectra[frame] = frame_spectra(self._parts[:, :, 2:], frame)
-        own = single[self._own_rows[pairs]][..., ::step]
+        own = single[:, ::step][self._own_rows[pairs]]  # sampled before the rows are gathered (copied)
         out = np.empty((*own.shape[:2], COMPONENTS, own.shape[-1]), dtype=np.float32)
         out[:, :, :2] = own
         out[:, :, 2:] = correlate_every(spectrum, self._spectra[frame][pairs], frame, step)
