@@ -1,6 +1,7 @@
 """The timing network inside the timing stage: one batch per stack, ML outside its training
 range (and saying why), the shipped checkpoint, and torch kept out of everything else."""
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -95,6 +96,19 @@ def test_a_cell_outside_the_training_range_is_timed_by_ml_and_says_why(checkpoin
     result = stage.process([cell, window(9)])
     assert sorted(c.estimator for c in result.cells) == ["ml", "network"]
     assert len(result.fallbacks) == 1 and result.fallbacks[0][0] == 5 and reason in result.fallbacks[0][1]
+
+
+def test_a_checkpoint_trained_on_pairs_times_both_sectors_of_a_pair_with_their_fitted_model(frontend, tmp_path):
+    torch.manual_seed(0)
+    path = tmp_path / "pairs.pt"
+    save_checkpoint(path, TimingNet().eval(), dataclasses.replace(RANGE, cosited_pairs=True), Normalisation(1.3))
+    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(path)))
+    pair = [window(5, pair=6), dataclasses.replace(window(5, pair=6), pci=6, cosited_pci=5)]
+    result = stage.process(pair)
+    assert not result.fallbacks and [c.estimator for c in result.cells] == ["network", "network"]
+    assert result.cells[0].toa == result.cells[1].toa  # one code, one template: one arrival
+    lone = stage.process([window(5)]).cells[0]
+    assert lone.toa != result.cells[0].toa  # the pair's model, not sector 5's own template, went in
 
 
 def test_a_bad_or_missing_checkpoint_fails_at_construction_and_keeps_the_running_stage(checkpoint, frontend, tmp_path):

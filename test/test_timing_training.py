@@ -95,6 +95,38 @@ def test_a_clean_channel_is_one_path_that_ml_times_at_its_sigma():
         assert abs(estimate.offset - offset) < max(4 * estimate.std, 0.03), (estimate, offset)
 
 
+def test_a_cosited_pair_is_one_example_whose_fitted_model_ml_times_where_a_sectors_own_code_fails():
+    """The pair's template must be the fitted sum of both sectors (fitted at the code, with the
+    pair's coefficient order): ML with it finds the label on a strong clean pair, and it
+    explains more of the stacked code window than either sector's own template (1.7-10x here)."""
+    config = DatasetConfig(max_frames=10, re_power_dbm=(-85.0, -75.0), channel="clean", cosited_share=1.0,
+                           cosited_power_db=(-3.0, 0.0))
+    frontend = FrontendConfig()
+    templates = SyncTemplates(frontend)
+    rng = np.random.default_rng(5)
+    pairs = 0
+    while pairs < 4:
+        examples = simulate_scene(config, frontend, rng, templates)
+        paired = [e for e in examples if e.cosited_pci >= 0]
+        assert len(paired) <= 1 and paired == examples[: len(paired)]  # the target's, one for both sectors
+        for example in paired:
+            pairs += 1
+            assert example.cosited_pci // 3 == example.pci // 3 and example.cosited_pci != example.pci
+            w = example.windows.astype(np.float64)
+            estimate = estimate_ml(w, example.template.astype(np.float64), config.window_margin, noise_psd(w))
+            assert abs(estimate.offset - example.offset) < max(4 * estimate.std, 0.05), (estimate, example.offset)
+            stacked = w.mean(axis=0)
+            start = config.window_margin + round(example.offset)
+
+            def explained(template: np.ndarray) -> float:  # share of the stacked code window's energy
+                code = stacked[start : start + len(template)] - stacked[start : start + len(template)].mean()
+                t = template - template.mean()
+                return float((code @ t) ** 2 / (t @ t) / (code @ code))
+
+            alone = max(explained(templates.template(pci)) for pci in (example.pci, example.cosited_pci))
+            assert explained(example.template) > 1.5 * alone, example
+
+
 def test_shards_made_before_a_config_field_existed_still_resume(tmp_path):
     """A shard's recorded config without a field added since (here ``channel``) was made with
     that field's default: resuming accepts it, and refuses it for another value."""
@@ -117,6 +149,8 @@ def test_shards_made_before_a_config_field_existed_still_resume(tmp_path):
     (dict(max_frames=1), "max_frames"),
     (dict(re_power_dbm=(-70.0, -90.0)), "re_power_dbm"),
     (dict(examples_per_shard=0), "examples_per_shard"),
+    (dict(cosited_share=1.5), "cosited_share"),
+    (dict(cosited_power_db=(0.0, -12.0)), "cosited_power_db"),
 ])
 def test_a_dataset_config_that_cannot_be_names_the_field(change, field):
     with pytest.raises(ValueError, match=field):
@@ -128,12 +162,12 @@ def test_a_dataset_config_that_cannot_be_names_the_field(change, field):
 torch = pytest.importorskip("torch", reason="torch is not installed (scripts/setup.sh installs the CPU wheel)")
 
 
-def run_yaml(tmp_path, steps: int, model: dict | None = None, **training) -> str:
+def run_yaml(tmp_path, steps: int, model: dict | None = None, dataset: dict | None = None, **training) -> str:
     import yaml
 
     path = tmp_path / "run.yaml"
     path.write_text(yaml.safe_dump({
-        "dataset": {"max_frames": 4, "examples_per_shard": 8},
+        "dataset": {"max_frames": 4, "examples_per_shard": 8, **(dataset or {})},
         "model": {"channels": [4, 8, 8], "heads": 2, "hidden": [16, 8], **(model or {})},
         "training": {"data_dir": str(tmp_path / "data"), "train_shards": 2, "val_shards": 1, "test_shards": 1,
                      "run_dir": str(tmp_path / "run"), "model_path": str(tmp_path / "net.pt"), "steps": steps,
@@ -151,6 +185,7 @@ def test_a_short_training_writes_a_checkpoint_the_stage_loads_and_resumes(tmp_pa
     path = train(load_run_config(config), config)
     checkpoint = load_checkpoint(path)
     assert checkpoint.training_range.max_frames == 4 and checkpoint.normalisation.window_scale > 0
+    assert not checkpoint.training_range.cosited_pairs  # its data held none: the stage times pairs by ML
     assert set(checkpoint.meta) == {"config", "run", "examples", "normalisation"}  # how it was made
     assert checkpoint.meta["examples"] > 0 and json.loads(checkpoint.meta["run"])["model"]["fusion"] == "cross_attention"
     history = json.loads((tmp_path / "run" / "history.json").read_text())
@@ -171,6 +206,20 @@ def test_a_short_training_writes_a_checkpoint_the_stage_loads_and_resumes(tmp_pa
     Path(other).write_text(yaml.safe_dump(content))
     with pytest.raises(ValueError, match="another model config"):
         train(load_run_config(other), other)
+
+
+def test_a_run_on_data_with_pairs_says_so_and_its_network_times_pairs(tmp_path):
+    from deepsync.timing.network import NetworkEstimator
+    from deepsync.training.train import load_run_config, train
+    from deepsync.types import SyncWindow
+
+    config = run_yaml(tmp_path, steps=2, dataset={"cosited_share": 1.0})
+    network = NetworkEstimator(train(load_run_config(config), config))
+    assert network.range.cosited_pairs
+    shard = load_split(tmp_path / "data", "train")
+    assert np.any(shard["cosited_pci"] >= 0)
+    pair = SyncWindow(0, 5, 5000, shard["windows"][0], 12.0, 0.0, cosited_pci=6, site_coefficients=(1.0, 1.0, 0.5, 0.0))
+    assert network.refusal(pair, 1.92e6, 276) is None
 
 
 @pytest.mark.parametrize("stop", [5, 15], ids=["training", "calibrating the sigma"])
@@ -285,7 +334,7 @@ def test_validation_picks_by_the_examples_with_a_code_and_by_all_where_none_has_
     rng = np.random.default_rng(0)
     arrays = {"windows": rng.normal(size=(6, 4, 296)).astype(np.float32),
               "template": rng.normal(size=(6, 276)).astype(np.float32),
-              "offset": np.array([0.0, 1.0, -2.0, 3.0, 0.5, -4.0])}
+              "offset": np.array([0.0, 1.0, -2.0, 3.0, 0.5, -4.0]), "cosited_pci": np.full(6, -1)}
     weak = Examples({**arrays, "snr_db": np.full(6, -40.0)})
     scores = evaluate(model, weak, Normalisation(1.0), 4, torch.device("cpu"), min_stacked_snr_db=-5.0)
     assert np.isfinite(scores["rmse_with_code"]) and scores["rmse_with_code"] == scores["rmse"]

@@ -172,6 +172,9 @@ def evaluate_timing(data_dir: str | Path, out: str | Path, checkpoint: str | Pat
             "by_profile": {name: breakdown(data, results, data["profile"] == k) for k, name in enumerate(PROFILES)
                            if np.any(data["profile"] == k)},
             "by_coarse_error": by_coarse_error(data, results),
+            # a co-sited pair is timed with its fitted model, as the sync stage reports it
+            "by_cosited": {kind: breakdown(data, results, mask) for kind, mask in
+                           (("single", data["cosited_pci"] < 0), ("pair", data["cosited_pci"] >= 0)) if np.any(mask)},
         }
     summary["headline"] = headline(data, summary)
     out = Path(out)

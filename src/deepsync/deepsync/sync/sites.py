@@ -181,7 +181,7 @@ class SiteSearch:
             refined += 0.5 * parabolic_peak(values, best)  # grid step: half a sample
         whole = round(refined)
         offset, fraction = int((code_start + whole) % frame), refined - whole
-        fit, snr_db = self._fit(centred, self.pairs[pairs[k]], offset, fraction)
+        fit, snr_db = fit_site(self.templates, centred, self.pairs[pairs[k]], offset, fraction)
         flat = windows.reshape(len(lags), -1)
         flat = flat - flat.mean(axis=1, keepdims=True)
         explained = np.einsum("kpmc,nm->kpcn", self._bases[pairs], flat)  # (pairs, phases, 4, lags)
@@ -195,21 +195,25 @@ class SiteSearch:
         z = float(chi2_4_z(np.array([full[k, p, n]]))[0])
         return SiteMatch(fit, offset, fraction, snr_db, z, tuple(ranked))
 
-    def _fit(self, centred: np.ndarray, pair: tuple[int, int], offset: int, fraction: float) -> tuple[SiteFit, float]:
-        """Least squares of the pair's four shapes (one set of coefficients for both codes)
-        plus a pedestal under each code, on the two code windows."""
-        frame, half, length = len(centred), len(centred) // 2, self.templates.length
-        shapes = np.concatenate([self.templates.pair_shapes(pair, sf, fraction) for sf in (0, 5)], axis=1)
-        pedestals = np.kron(np.eye(2), np.ones(length))
-        basis = np.vstack([shapes, pedestals]).T  # (2L, 6)
-        index = (offset + np.array([0, half])[:, None] + np.arange(length)) % frame
-        window = centred[index].ravel()
-        coefficients, *_ = np.linalg.lstsq(basis, window, rcond=None)
-        model = shapes.T @ coefficients[:COMPONENTS]
-        residual = window - basis @ coefficients
-        energy, rest = float(model @ model), float(residual @ residual)
-        snr_db = 10 * math.log10(energy / rest) if energy > 0 and rest > 0 else -math.inf
-        return SiteFit(pair, tuple(float(x) for x in coefficients[:COMPONENTS])), snr_db
+
+def fit_site(templates: SyncTemplates, centred: np.ndarray, pair: tuple[int, int], offset: int,
+             fraction: float) -> tuple[SiteFit, float]:
+    """Least squares of a co-sited ``pair``'s four shapes (one set of coefficients for both
+    codes) plus a pedestal under each code, on the two code windows of the zero-mean stacked
+    frame ``centred`` whose subframe-0 code starts ``offset + fraction`` samples in; the fit and
+    its SNR (model energy over residual energy, dB)."""
+    frame, half, length = len(centred), len(centred) // 2, templates.length
+    shapes = np.concatenate([templates.pair_shapes(pair, sf, fraction) for sf in (0, 5)], axis=1)
+    pedestals = np.kron(np.eye(2), np.ones(length))
+    basis = np.vstack([shapes, pedestals]).T  # (2L, 6)
+    index = (offset + np.array([0, half])[:, None] + np.arange(length)) % frame
+    window = centred[index].ravel()
+    coefficients, *_ = np.linalg.lstsq(basis, window, rcond=None)
+    model = shapes.T @ coefficients[:COMPONENTS]
+    residual = window - basis @ coefficients
+    energy, rest = float(model @ model), float(residual @ residual)
+    snr_db = 10 * math.log10(energy / rest) if energy > 0 and rest > 0 else -math.inf
+    return SiteFit(pair, tuple(float(x) for x in coefficients[:COMPONENTS])), snr_db
 
 
 class SiteNoise:

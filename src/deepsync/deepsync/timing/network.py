@@ -5,8 +5,8 @@ The checkpoint says what the network was trained on (``TrainingRange``); :meth:`
 names why a cell lies outside it, and the timing stage then times that cell with ML instead:
 
 * another sample rate or window layout than the checkpoint's (its templates would not match);
-* a co-sited pair found together: its code is a fitted mix of two sectors' codes, which the
-  network never saw;
+* a co-sited pair found together (its code is a fitted mix of two sectors' codes), unless the
+  checkpoint was trained on such pairs;
 * fewer or more stacked frames than it was trained with;
 * a per-frame SNR above the training range (the sync stage's stacked SNR less 10 log10 of the
   frames; at high SNR ML sits on the Cramer-Rao bound anyway). Below the range the network
@@ -49,7 +49,7 @@ class NetworkEstimator:
                     f"trained on {config.window_length} around {config.template_length}")
         if not np.all(np.isfinite(window.windows)):
             return "windows hold NaN or inf"
-        if window.cosited_pci is not None:
+        if window.cosited_pci is not None and not self.range.cosited_pairs:
             return f"a co-sited pair (PCI {window.pci} with {window.cosited_pci}): not in the training data"
         if not self.range.min_frames <= window.n_frames <= self.range.max_frames:
             return f"{window.n_frames} frames, trained on {self.range.min_frames}..{self.range.max_frames}"

@@ -14,6 +14,17 @@ as the stacker's tracking leaves it) and :func:`~deepsync.sync.windows.extract_w
 position is off by a few samples at low SNR). Every cell of a scene with a different PCI is
 an example, so one simulation gives up to four.
 
+Co-sited pairs (``cosited_share`` of the scenes): a second sector of the target's site, the
+other PCI of its group, sends from the same mast with the same timing and oscillator. It sees
+the target's very paths (the twin's statistical channel shares a site's fading among its
+sectors) scaled by its own antenna gain and transmit-chain phase: ``cosited_power_db`` relative
+to the target, a uniform phase. The two codes add before the square law, so the sync stage
+reports them together with a fitted model of their sum (``deepsync.sync.sites``); the example
+is that pair: one example for both sectors, its template the pair model that
+:func:`~deepsync.sync.sites.fit_site` fits on the stacked frame within half a sample of the
+true code start, as the search's lock leaves it. Its SNR is that fitted model's, as the sync
+stage measures a pair's (below about -25 dB per frame the fit's four noise dimensions lift it).
+
 Why whole scenes and not just the windows' symbols: the detector draws its noise per 8.5 ms
 block from the block's mean power, the AC coupling carries ~3 ms of state and the AGC is set
 from the first 10 ms, so a window alone is exact only as part of the stream it was cut from
@@ -55,8 +66,9 @@ from deepsync.configio import choice_name
 from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
-from deepsync.frontend.templates import SyncTemplates, code_template, sync_code_offset_seconds
+from deepsync.frontend.templates import SyncTemplates, code_template, cosited_pair, sync_code_offset_seconds
 from deepsync.lte.cell import CellConfig
+from deepsync.sync.sites import fit_site
 from deepsync.sync.stacking import FrameStacker, StackConfig
 from deepsync.sync.windows import extract_windows
 from deepsync.timing.crlb import snr_db
@@ -96,6 +108,8 @@ class DatasetConfig:
     max_site_drift_ppb: float = 50.0
     examples_per_shard: int = 256
     channel: Channel = Channel.TDL
+    cosited_share: float = 0.0  # scenes whose target has a co-sited sector (module docstring)
+    cosited_power_db: tuple[float, float] = (-12.0, 0.0)  # that sector's power relative to the target
 
     def __post_init__(self) -> None:
         if not isinstance(self.channel, Channel):  # the name, as YAML and the shards hold it
@@ -112,6 +126,11 @@ class DatasetConfig:
         low, high = self.re_power_dbm
         if not (math.isfinite(low) and math.isfinite(high) and low < high):
             raise ValueError(f"re_power_dbm: {self.re_power_dbm!r} must be an increasing pair of numbers")
+        if not 0.0 <= self.cosited_share <= 1.0:
+            raise ValueError(f"cosited_share: {self.cosited_share!r} must be a fraction in 0..1")
+        low, high = self.cosited_power_db
+        if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+            raise ValueError(f"cosited_power_db: {self.cosited_power_db!r} must be a non-decreasing pair of numbers")
         if not self.examples_per_shard >= 1:
             raise ValueError(f"examples_per_shard: {self.examples_per_shard!r} must be a positive integer")
 
@@ -129,6 +148,7 @@ class Example:
     coarse_error: int
     pci: int
     other_cells: int
+    cosited_pci: int  # the target's co-sited sector, timed with it as a pair; -1: a single cell
 
 
 SHARD_KEYS = tuple(f.name for f in fields(Example))
@@ -194,6 +214,12 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
         paths.append(_tdl_paths(rng, profile, spread, bulk, received, doppler) if config.channel is Channel.TDL
                      else _direct_path(rng, bulk, received, doppler))
         meta.append((cell_bandwidth, PROFILES.index(profile), spread, power_dbm, received))
+    # drawn only when pairs are asked for: a config without them makes the data it always made
+    sector = (_cosited_sector(config, rng, emitters[0], paths[0], {int(p) for p in pcis})
+              if config.cosited_share > 0 and rng.random() < config.cosited_share else None)
+    if sector is not None:
+        emitters.append(sector[0])
+        paths.append(sector[1])
     clock_ppm = float(rng.uniform(-1, 1)) * config.max_clock_ppm
     frontend = replace(frontend, clock_offset_ppm=clock_ppm, clock_drift_ppm_per_s=0.0)
     simulator = EnvelopeSimulator(emitters, FixedChannel(paths), frontend, seed=int(rng.integers(2**31)))
@@ -212,7 +238,7 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
     stack = stacks[0]
     first_s = float(simulator.clock.true_time(stack.first_sample_index / rate))
     examples = []
-    for k, emitter in enumerate(emitters):
+    for k, emitter in enumerate(emitters[: len(pcis)]):  # a co-sited sector is its target's pair
         bandwidth_k, profile, spread, power_dbm, received = meta[k]
         # the first subframe-0 code (first path) to arrive in the stack's first frame
         travel = sync_code_offset_seconds() + paths[k].first_delay_s
@@ -223,15 +249,37 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
         if cut < config.window_margin or cut + templates.length + config.window_margin > stack.frame_samples:
             continue  # across the frame edge: the rows would be cut circularly (rare; keeps labels simple)
         windows = extract_windows(stack, cut, templates.length, config.window_margin)
-        template = code_template(templates, emitter.cell.pci)
+        cosited = -1 if k > 0 or sector is None else sector[0].cell.pci
+        if cosited < 0:
+            template, scale = code_template(templates, emitter.cell.pci), received * gain
+        else:  # fitted where the search's refined lock would put it: within half a sample
+            lock = arrival - stack.first_sample_index + float(rng.uniform(-0.5, 0.5))
+            fit, _ = fit_site(templates, stack.mean - stack.mean.mean(), cosited_pair(emitter.cell.pci, cosited),
+                              round(lock) % stack.frame_samples, lock - round(lock))
+            template, scale = fit.template(templates), 1.0  # the fit is in volts already
         examples.append(Example(
             windows=windows, template=template.astype(np.float32),
             offset=arrival - (stack.first_sample_index + cut),
-            snr_db=_snr_db(windows, template, received * gain, config.window_margin),
+            snr_db=_snr_db(windows, template, scale, config.window_margin),
             bandwidth_mhz=bandwidth_k, profile=profile, delay_spread_ns=spread * 1e9,
             re_power_dbm=power_dbm, coarse_error=coarse_error, pci=emitter.cell.pci,
-            other_cells=len(emitters) - 1))
+            other_cells=len(pcis) - 1, cosited_pci=cosited))
     return examples
+
+
+def _cosited_sector(config: DatasetConfig, rng: np.random.Generator, target: Emitter, target_paths: Paths,
+                    taken: set[int]) -> tuple[Emitter, Paths] | None:
+    """Another sector of the target's site (module docstring): the other PCI of its group not in
+    ``taken``, the same mast, timing and oscillator, the target's paths scaled by its own gain
+    and phase. None when both of the group's other PCIs are taken."""
+    group = target.cell.pci - target.cell.pci % 3
+    free = [pci for pci in range(group, group + 3) if pci not in taken]
+    if not free:
+        return None
+    pci = free[int(rng.integers(len(free)))]
+    relative = 10 ** (float(rng.uniform(*config.cosited_power_db)) / 20) * np.exp(2j * np.pi * rng.random())
+    sector = replace(target, cell=CellConfig(pci, target.cell.bandwidth_mhz, float(rng.uniform(0.3, 1.0))))
+    return sector, Paths(target_paths.delays_s, target_paths.gains * relative, target_paths.doppler_hz)
 
 
 def _snr_db(windows: np.ndarray, template: np.ndarray, scale: float, margin: int) -> float:

@@ -139,6 +139,7 @@ class Examples:
         self.template = torch.from_numpy(arrays["template"])
         self.offset = torch.from_numpy(arrays["offset"].astype(np.float32))
         self.snr_db = arrays["snr_db"]  # per frame
+        self.has_pairs = bool(np.any(arrays["cosited_pci"] >= 0))  # co-sited pairs with their fitted model
 
     def __len__(self) -> int:
         return len(self.offset)
@@ -159,10 +160,10 @@ def measure_normalisation(examples: Examples, frames: int) -> Normalisation:
     return Normalisation(float(sample.pow(2).mean().sqrt()))
 
 
-def training_range(run: RunConfig, snr_db: np.ndarray) -> TrainingRange:
-    low, high = np.percentile(snr_db, [1, 99])
+def training_range(run: RunConfig, examples: Examples) -> TrainingRange:
+    low, high = np.percentile(examples.snr_db, [1, 99])
     return TrainingRange(FrontendConfig().adc_rate_hz, run.training.min_frames, run.training.max_frames,
-                         float(low), float(high), cosited_pairs=False)
+                         float(low), float(high), cosited_pairs=examples.has_pairs)
 
 
 # -- loss and schedule -----------------------------------------------------------------------
@@ -246,7 +247,7 @@ def train(run: RunConfig, config_path: str = "") -> Path:
         torch.distributed.barrier()
     train_set, val_set = Examples(load_split(root, "train")), Examples(load_split(root, "val"))
     normalisation = measure_normalisation(train_set, min(10, cfg.max_frames))
-    trained_on = training_range(run, train_set.snr_db)
+    trained_on = training_range(run, train_set)
 
     torch.manual_seed(cfg.seed)
     model = TimingNet(run.model).to(device)
