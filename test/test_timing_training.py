@@ -95,7 +95,7 @@ def test_a_clean_channel_is_one_path_that_ml_times_at_its_sigma():
         assert abs(estimate.offset - offset) < max(4 * estimate.std, 0.03), (estimate, offset)
 
 
-def test_a_cosited_pair_is_one_example_whose_fitted_model_ml_times_where_a_sectors_own_code_fails():
+def test_a_cosited_pair_is_one_example_whose_fitted_model_ml_times_and_explains_more_than_either_code():
     """The pair's template must be the fitted sum of both sectors (fitted at the code, with the
     pair's coefficient order): ML with it finds the label on a strong clean pair, and it
     explains more of the stacked code window than either sector's own template (1.7-10x here)."""
@@ -128,17 +128,22 @@ def test_a_cosited_pair_is_one_example_whose_fitted_model_ml_times_where_a_secto
 
 
 def test_shards_made_before_a_config_field_existed_still_resume(tmp_path):
-    """A shard's recorded config without a field added since (here ``channel``) was made with
-    that field's default: resuming accepts it, and refuses it for another value."""
+    """A shard's recorded config without a field added since (here ``channel`` and the pairs')
+    was made with that field's default: resuming accepts it, loading fills a key added since
+    with what such shards held, and another value of the field is refused."""
     generate(tmp_path, {"val": 1}, TINY)
     path = shard_path(tmp_path, "val", 0)
     with np.load(path) as shard:
         arrays = dict(shard)
     recorded = json.loads(str(arrays[CONFIG_KEY]))
-    del recorded["channel"]
+    for added in ("channel", "cosited_share", "cosited_power_db"):
+        del recorded[added]
     arrays[CONFIG_KEY] = np.array(json.dumps(recorded))
     np.savez(path, **arrays)
     assert generate(tmp_path, {"val": 1}, TINY) == 0
+    del arrays["cosited_pci"]  # nor a key added since: those shards held no pairs
+    np.savez(path, **arrays)
+    np.testing.assert_array_equal(load_split(tmp_path, "val")["cosited_pci"], [-1, -1, -1])
     with pytest.raises(ValueError, match="channel 'tdl' -> 'clean'"):
         generate(tmp_path, {"val": 1}, DatasetConfig(max_frames=4, examples_per_shard=3, channel=Channel.CLEAN))
 

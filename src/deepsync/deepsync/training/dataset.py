@@ -44,7 +44,8 @@ interference energy in the code window, measured from the frame-to-frame fluctua
 Shards: ``<split>/shard_<k>.npz`` (``SHARD_KEYS`` and the config that made it), shard k of a
 split drawn from ``(seed, split, k)`` alone, so any shard is regenerated identically, missing
 shards are made by a rerun (resume) and workers may make them in any order; a shard made with
-another config is refused rather than mixed in.
+another config is refused rather than mixed in; one made before a config field or shard key
+existed counts as made with that field's default (``ADDED_KEYS``: what it then held).
 """
 
 from __future__ import annotations
@@ -152,6 +153,9 @@ class Example:
 
 
 SHARD_KEYS = tuple(f.name for f in fields(Example))
+# keys added since shards were first made, and what shards without them held: a shard resumes
+# with its config's missing fields at their defaults (``_check_made_with``), so it loads so too
+ADDED_KEYS = {"cosited_pci": -1}  # no pairs before cosited_share existed
 
 
 # -- one scene ---------------------------------------------------------------------------------
@@ -388,8 +392,10 @@ def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
     parts = []
     for path in paths:
         with np.load(path, allow_pickle=False) as shard:
-            missing = [key for key in SHARD_KEYS if key not in shard.files]
+            missing = [key for key in SHARD_KEYS if key not in shard.files and key not in ADDED_KEYS]
             if missing:
                 raise ValueError(f"{path}: not a timing shard (missing {', '.join(missing)})")
-            parts.append({key: shard[key] for key in SHARD_KEYS})
+            count = len(shard["offset"])
+            parts.append({key: shard[key] if key in shard.files else np.full(count, ADDED_KEYS[key])
+                          for key in SHARD_KEYS})
     return {key: np.concatenate([part[key] for part in parts]) for key in SHARD_KEYS}
