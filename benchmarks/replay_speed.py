@@ -10,6 +10,9 @@ the message conversions of ``deepsync.bag`` that the nodes and ``deepsync replay
   the seconds. The target is 50 ms per second of data (20x real time). Also the whole
   ``replay_bag`` (reading, converting and writing the bag too) once over each bag, as a real-time
   factor; and the stages again with 50-frame stacks (a fix every 0.5 s: a tracker's choice).
+  The campus is an easy case (a few strong cells); where the dense walk's bag has been made
+  (``ROUTE``), its stages are timed too, 10 and 50 frames, on ``--seconds`` of the walk after
+  its first 10 s: more cells, weaker, in a larger tower database, as a city gives them.
 * **latency**: from a stack's ``SyncWindowArray`` message (as the timing node receives it) to
   the ``PoseWithCovarianceStamped`` message (timing, fusion and every conversion between: what
   the timing and fusion nodes do, without DDS), and from a ``CellTimingArray`` (the fusion node
@@ -32,6 +35,7 @@ Writes docs/results/replay_speed.json.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import platform
 import sys
@@ -65,6 +69,12 @@ from soak import Stream, rss_mb  # benchmarks/soak.py: the looped stream and /pr
 REPO = Path(__file__).resolve().parents[1]
 TOWERS = REPO / "config" / "towers" / "campus.yaml"
 BAGS = {"campus": REPO / "bags" / "campus", "campus_route": REPO / "bags" / "campus_route"}
+# a realistic walk (six sites on two carriers 0.2-1 km away, mostly NLOS, 33 tower-database
+# cells): made by `deepsync simulate --scenario config/scenarios/route_dense.yaml --seconds 96.4
+# --out bags/generated/route_dense` (about 18 minutes), timed where it has been made
+ROUTE = REPO / "bags" / "generated" / "route_dense"
+ROUTE_TOWERS = REPO / "config" / "towers" / "route_dense.yaml"
+ROUTE_WARMUP_S = 10  # the cells found and confirmed before the timed seconds, which follow on the route
 OUT = REPO / "docs" / "results" / "replay_speed.json"
 CHUNKS_PER_SECOND = round(1 / FRAME_SECONDS)
 
@@ -74,12 +84,20 @@ def percentiles(values: list[float]) -> dict:
             "n": len(values)}
 
 
-def stage_speed(bag: Path, seconds: int, config: PipelineConfig | None = None) -> dict:
-    """ms of each stage per second of ADC data, the bag looped on one stream."""
-    chunks = list(read_envelope(bag))
-    pipeline = Pipeline(bag_frontend(bag), config, towers=load_tower_database(TOWERS))
+def stage_speed(bag: Path, seconds: int, config: PipelineConfig | None = None, towers: Path = TOWERS,
+                warmup_seconds: float | None = None) -> dict:
+    """ms of each stage per second of ADC data, the bag looped on one stream, after a warm-up
+    of one loop (or of its first ``warmup_seconds``: a route then goes on where it was, timed
+    on the ``seconds`` after, never jumping back to its start)."""
+    if warmup_seconds is None:
+        chunks = list(read_envelope(bag))
+        warmup = len(chunks)
+    else:
+        warmup = round(warmup_seconds * CHUNKS_PER_SECOND)
+        chunks = list(itertools.islice(read_envelope(bag), warmup + seconds * CHUNKS_PER_SECOND))
+    pipeline = Pipeline(bag_frontend(bag), config, towers=load_tower_database(towers))
     stream = Stream(chunks)
-    for _ in range(len(chunks)):  # warm-up: templates and caches, as at a node's start
+    for _ in range(warmup):  # warm-up: templates, caches and the cells found, as at a node's start
         pipeline.process(stream.next())
     per_second = {"sync": [], "timing": [], "fusion": [], "total": []}
     for _ in tqdm(range(seconds), desc=f"speed {bag.name}", unit="s of data"):
@@ -245,6 +263,14 @@ def main() -> int:
         OUT.write_text(json.dumps(report, indent=1))  # what is measured so far, before the long part
         if args.minutes > 0:
             report["memory"] = memory(args.minutes)
+        # last: its chunks (a few hundred MB) would be part of the memory run's resident size
+        if ROUTE.exists():
+            report["speed_route_dense"] = {f"{frames}_frames": stage_speed(
+                ROUTE, args.seconds, PipelineConfig().with_choices(n_frames=frames), ROUTE_TOWERS, ROUTE_WARMUP_S)
+                for frames in (10, 50)}
+            print("dense walk", json.dumps(report["speed_route_dense"], indent=1))
+        else:
+            print(f"{ROUTE.relative_to(REPO)} not made: the dense walk is not timed", file=sys.stderr)
     OUT.write_text(json.dumps(report, indent=1))
     print(f"-> {OUT.relative_to(REPO)}")
     return 0

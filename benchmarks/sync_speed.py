@@ -8,7 +8,9 @@ once, before timing, as a running node builds them at start-up. A fresh stage pe
 full search, with nothing tracked yet. Then the running stage: the bag looped as one stream,
 each stack either a full search (with the cells found before tracked first) or, between full
 searches (``SyncConfig.search_every``), only the tracked cells; their medians and the mean per
-stack. Then ``TimingStage.process`` on the confirmed cells of each stack (4 cells, one
+stack; the same on the dense walk where its bag has been made (30 s of it after its first 10:
+six sites 0.2-1 km away, 33 tower-database cells; ``replay_speed.ROUTE``). Then
+``TimingStage.process`` on the confirmed cells of each stack (4 cells, one
 co-sited pair), per classical estimator. Prints the median of --repeats runs.
 
 Run:  .venv/bin/python benchmarks/sync_speed.py [--repeats 30]
@@ -18,6 +20,7 @@ Writes docs/results/sync_speed.json.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import statistics
 import time
@@ -31,6 +34,7 @@ from deepsync.sync.search import SearchConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
 from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
 from deepsync.towers import load_tower_database
+from replay_speed import CHUNKS_PER_SECOND, ROUTE, ROUTE_TOWERS, ROUTE_WARMUP_S  # the dense walk, where made
 from soak import Stream  # benchmarks/soak.py: the bag looped on one stream
 
 REPO = Path(__file__).resolve().parents[1]
@@ -57,12 +61,13 @@ def time_mode(chunks, towers, repeats: int, config: SyncConfig) -> tuple[float, 
     return statistics.median(times), times[int(0.9 * (len(times) - 1))]
 
 
-def time_stream(chunks, towers, stacks: int, config: SyncConfig) -> dict:
+def time_stream(chunks, towers, stacks: int, config: SyncConfig, bag: Path = BAG, warmup: int | None = None) -> dict:
     """ms per stack of one running stage over the bag looped: median, p90 and mean over all its
-    stacks, and full searches and tracked-only stacks apart (median, p90)."""
-    stage = SyncStage(bag_frontend(BAG), config, towers)
+    stacks, and full searches and tracked-only stacks apart (median, p90). Warmed up by one loop,
+    or by its first ``warmup`` chunks (a route then goes on from there)."""
+    stage = SyncStage(bag_frontend(bag), config, towers)
     stream = Stream(chunks)
-    for _ in range(len(chunks)):  # templates, CRS templates of the cells found, the tracks
+    for _ in range(len(chunks) if warmup is None else warmup):  # templates, CRS templates of the cells found, the tracks
         stage.process(stream.next())
     times: dict[bool, list[float]] = {True: [], False: []}
     while len(times[True]) + len(times[False]) < stacks:
@@ -128,6 +133,18 @@ def main() -> None:
                   f"{row['mean_ms']:.1f} mean per stack; full search "
                   f"{row['full_search']['median_ms']:.1f} ms median ({row['full_search_stacks']} stacks), tracked "
                   f"only {tracked:.1f} ms ({row['tracked_only_stacks']} stacks)")
+        if ROUTE.exists():  # a city's load: more cells, weaker, in a larger database
+            warmup = ROUTE_WARMUP_S * CHUNKS_PER_SECOND
+            route_chunks = list(itertools.islice(read_envelope(ROUTE), warmup + 10 * 10 * args.repeats))
+            row = time_stream(route_chunks, load_tower_database(ROUTE_TOWERS), 10 * args.repeats, SyncConfig(),
+                              ROUTE, warmup)
+            out["known_stream_dense_walk"] = row
+            print(f"{'running stage, known, dense walk':40s}: {row['median_ms']:6.1f} ms median, "
+                  f"{row['p90_ms']:.1f} p90, {row['mean_ms']:.1f} mean per stack; full search "
+                  f"{row['full_search']['median_ms']:.1f} ms median ({row['full_search_stacks']} stacks), tracked "
+                  f"only {row['tracked_only']['median_ms']:.1f} ms ({row['tracked_only_stacks']} stacks)")
+        else:
+            print(f"{ROUTE.relative_to(REPO)} not made: the dense walk is not timed")
         for estimator in Estimator:
             median, p90 = time_timing(chunks, database, args.repeats, estimator)
             out[f"timing_{estimator.value}"] = {"median_ms": median, "p90_ms": p90}
