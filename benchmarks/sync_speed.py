@@ -8,10 +8,10 @@ once, before timing, as a running node builds them at start-up. A fresh stage pe
 full search, with nothing tracked yet. Then the running stage: the bag looped as one stream,
 each stack either a full search (with the cells found before tracked first) or, between full
 searches (``SyncConfig.search_every``), only the tracked cells; their medians and the mean per
-stack; the same on the dense walk where its bag has been made (30 s of it after its first 10:
-six sites 0.2-1 km away, 33 tower-database cells; ``replay_speed.ROUTE``). Then
-``TimingStage.process`` on the confirmed cells of each stack (4 cells, one
-co-sited pair), per classical estimator. Prints the median of --repeats runs.
+stack; the same on the dense walk where its bag has been made (--repeats seconds of it after
+its first 10: six sites 0.2-1 km away, 33 tower-database cells; ``replay_speed.ROUTE``). Then
+``TimingStage.process`` on the confirmed cells of each stack (4 cells, one co-sited pair), per
+classical estimator. Prints the median of --repeats runs.
 
 Run:  .venv/bin/python benchmarks/sync_speed.py [--repeats 30]
 Writes docs/results/sync_speed.json.
@@ -88,6 +88,14 @@ def time_stream(chunks, towers, stacks: int, config: SyncConfig, bag: Path = BAG
     return row
 
 
+def print_stream(label: str, row: dict) -> None:
+    tracked = row.get("tracked_only", {}).get("median_ms", float("nan"))
+    print(f"{'running stage, ' + label:40s}: {row['median_ms']:6.1f} ms median, {row['p90_ms']:.1f} p90, "
+          f"{row['mean_ms']:.1f} mean per stack; full search "
+          f"{row['full_search']['median_ms']:.1f} ms median ({row['full_search_stacks']} stacks), tracked "
+          f"only {tracked:.1f} ms ({row['tracked_only_stacks']} stacks)")
+
+
 def time_timing(chunks, towers, repeats: int, estimator: Estimator) -> tuple[float, float]:
     """Median and 90th percentile (ms) of timing one stack's confirmed cells."""
     frontend = bag_frontend(BAG)
@@ -126,23 +134,14 @@ def main() -> None:
             print(f"{label:40s}: {median:6.1f} ms median, {p90:6.1f} ms p90 per 10-frame stack "
                   f"(192,000 samples), one core")
         for mode, towers, label in (("blind_stream", None, "blind"), ("known_stream", database, "known, default")):
-            row = time_stream(chunks, towers, 10 * args.repeats, SyncConfig())
-            out[mode] = row
-            tracked = row.get("tracked_only", {}).get("median_ms", float("nan"))
-            print(f"{'running stage, ' + label:40s}: {row['median_ms']:6.1f} ms median, {row['p90_ms']:.1f} p90, "
-                  f"{row['mean_ms']:.1f} mean per stack; full search "
-                  f"{row['full_search']['median_ms']:.1f} ms median ({row['full_search_stacks']} stacks), tracked "
-                  f"only {tracked:.1f} ms ({row['tracked_only_stacks']} stacks)")
+            out[mode] = time_stream(chunks, towers, 10 * args.repeats, SyncConfig())
+            print_stream(label, out[mode])
         if ROUTE.exists():  # a city's load: more cells, weaker, in a larger database
             warmup = ROUTE_WARMUP_S * CHUNKS_PER_SECOND
             route_chunks = list(itertools.islice(read_envelope(ROUTE), warmup + 10 * 10 * args.repeats))
-            row = time_stream(route_chunks, load_tower_database(ROUTE_TOWERS), 10 * args.repeats, SyncConfig(),
-                              ROUTE, warmup)
-            out["known_stream_dense_walk"] = row
-            print(f"{'running stage, known, dense walk':40s}: {row['median_ms']:6.1f} ms median, "
-                  f"{row['p90_ms']:.1f} p90, {row['mean_ms']:.1f} mean per stack; full search "
-                  f"{row['full_search']['median_ms']:.1f} ms median ({row['full_search_stacks']} stacks), tracked "
-                  f"only {row['tracked_only']['median_ms']:.1f} ms ({row['tracked_only_stacks']} stacks)")
+            out["known_stream_dense_walk"] = time_stream(route_chunks, load_tower_database(ROUTE_TOWERS),
+                                                         10 * args.repeats, SyncConfig(), ROUTE, warmup)
+            print_stream("known, dense walk", out["known_stream_dense_walk"])
         else:
             print(f"{ROUTE.relative_to(REPO)} not made: the dense walk is not timed")
         for estimator in Estimator:
