@@ -137,10 +137,12 @@ def main() -> None:
             out[mode] = time_stream(chunks, towers, 10 * args.repeats, SyncConfig())
             print_stream(label, out[mode])
         if ROUTE.exists():  # a city's load: more cells, weaker, in a larger database
-            warmup = ROUTE_WARMUP_S * CHUNKS_PER_SECOND
-            route_chunks = list(itertools.islice(read_envelope(ROUTE), warmup + 10 * 10 * args.repeats))
-            out["known_stream_dense_walk"] = time_stream(route_chunks, load_tower_database(ROUTE_TOWERS),
-                                                         10 * args.repeats, SyncConfig(), ROUTE, warmup)
+            warmup, stacks = ROUTE_WARMUP_S * CHUNKS_PER_SECOND, 10 * args.repeats
+            # one 10 ms chunk per frame: the walk is read as far as the timed stacks reach, never looped
+            needed = warmup + stacks * SyncConfig().stack.n_frames
+            out["known_stream_dense_walk"] = time_stream(list(itertools.islice(read_envelope(ROUTE), needed)),
+                                                         load_tower_database(ROUTE_TOWERS), stacks, SyncConfig(),
+                                                         ROUTE, warmup)
             print_stream("known, dense walk", out["known_stream_dense_walk"])
         else:
             print(f"{ROUTE.relative_to(REPO)} not made: the dense walk is not timed")
