@@ -376,10 +376,10 @@ def test_a_second_site_is_found_and_pairs_of_found_sectors_are_not_searched(temp
     search = CellSearch(templates, allowed_pcis=db.pcis, cosited_pairs=db.cosited_pairs())
     searched = []
     correlations = type(search.sites).correlations
-    def spy(self, spectrum, single, pairs, step=1):
+    def spy(self, spectrum, single, pairs, step=1, single_step=1):
         if step == 1:
             searched.append({pci for k in pairs for pci in self.pairs[k]})
-        return correlations(self, spectrum, single, pairs, step)
+        return correlations(self, spectrum, single, pairs, step, single_step)
     monkeypatch.setattr(type(search.sites), "correlations", spy)
     rows = (frame_with_cosited_pair(templates, (120, 121), 3100.4, (1.0, 1.0), 1.1) * 1.5
             + frame_with_cosited_pair(templates, (301, 302), 9900.7, (1.0, 0.8), 2.3) * 0.6)[None, :] \
@@ -535,6 +535,25 @@ def test_tracking_confirms_and_times_the_campus_cells_as_a_search_every_stack_do
         positions = {c.pci: c.code_position for c in full.cells}
         for cell in tracked.cells:
             assert cell.code_position == pytest.approx(positions[cell.pci], abs=0.05)
+
+
+def test_a_stack_that_only_tracks_times_its_cells_as_a_full_search_does(templates):
+    """Tracking only, the statistic is the frame templates' dot products at the few tracked
+    lags, over spreads measured at every 4th lag by a shorter transform; a full search takes it
+    from every lag's FFT correlation. Same stack, same cells expected: same peaks, positions and
+    scales, on the first pass and on the residual of a cancelled strong cell next to them."""
+    rng = np.random.default_rng(12)
+    cells = [(40, 5200.3, 9.0), (301, 5230.6, 1.2), (156, 12000.8, 1.5)]  # 301 overlaps the strong 40
+    stacked = stack_rows(templates, cells, 1.0, 10, rng).mean(axis=0)
+    expected = [ExpectedCell(pci, start, held=True) for pci, start, _ in cells]
+    search = CellSearch(templates, allowed_pcis=[40, 156, 301, 302, 57])
+    tracked = search.search(stacked, expected, discover=False)
+    full = search.search(stacked, expected, discover=True)[: len(tracked)]
+    assert [d.pci for d in tracked] == [40, 301, 156]
+    for a, b in zip(tracked, full):
+        assert (a.pci, a.frame_offset) == (b.pci, b.frame_offset)
+        assert a.peak_metric == pytest.approx(b.peak_metric, rel=1e-5)
+        assert a.fraction == pytest.approx(b.fraction, abs=1e-6) and a.amplitude == pytest.approx(b.amplitude, rel=1e-6)
 
 
 def test_detect_command_reports_cells_and_refuses_ambiguous_input(capsys):

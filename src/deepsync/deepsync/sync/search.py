@@ -52,11 +52,13 @@ from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.lte.cell import N_CELL_IDS
 from deepsync.lte.numerology import SUPPORTED_BANDWIDTHS_MHZ
 from deepsync.numeric import mad_spread, parabolic_peak
-from deepsync.sync.correlation import correlate, frame_spectra, parseval_weights, template_spectra, unit_frame_parts
+from deepsync.sync.correlation import (correlate, correlate_every, frame_spectra, parseval_weights, template_spectra,
+                                       unit_frame_parts)
 from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
 from deepsync.sync.stacking import HELD_FRACTION, held_fraction
 
 PHASES = np.array([0.0, 0.5])  # sub-sample delays at which every timing template is tried
+_SPREAD_STEP = 4  # every how many lags a timing correlation's noise spread is measured on
 
 
 @dataclass(frozen=True)
@@ -147,8 +149,8 @@ class _SearchState:
     residual: np.ndarray  # what remains once the detections so far are cancelled
     crs: np.ndarray  # the fitted CRS of the strongest detections, cancelled with them
     period: int  # of the timing statistic's lag axis (a frame, or a half-frame blind)
-    correlations: np.ndarray  # single-template timing correlations of the residual
-    z: np.ndarray  # and their z-scores
+    correlations: np.ndarray | None  # single-template timing correlations of the residual (None: tracking only)
+    z: np.ndarray | None  # and their z-scores (tracking only: ``CellSearch._timing_block`` where needed)
     spreads: np.ndarray  # their noise spreads, measured on the first pass
     pss_z: np.ndarray | None  # PSS z-scores of the residual (plausibility check; None: not needed)
     pss_spreads: np.ndarray | None
@@ -156,7 +158,6 @@ class _SearchState:
     given_up: np.ndarray  # (2, period): lags whose single / site peak could not be explained
     near_new: np.ndarray  # (period,) single lags overlapping cells found since the last cancellation
     site_noise: SiteNoise | None
-    rows: np.ndarray | None = None  # timing rows computed (None: all; the others stay zero)
     site_z: np.ndarray | None = None  # the pairs' statistic, once the single peaks are exhausted
     site_pairs: np.ndarray | None = None  # the pairs (indices) site_z tests: those with no sector found
     detections: list[CellDetection] = field(default_factory=list)
@@ -217,15 +218,19 @@ class CellSearch:
             self._cache[key] = template_spectra(shapes / np.linalg.norm(shapes, axis=1, keepdims=True), half)
         return self._cache[key]
 
+    @cached_property
+    def _frame_parts(self) -> np.ndarray:
+        """(P x phases, 2, L) each allowed PCI's frame template as its two codes: the zero-mean
+        subframe-0 code (at 0) and subframe-5 code (half a frame later), unit norm together."""
+        parts = np.array([[self.templates.template(int(pci), subframe, PHASES) for subframe in (0, 5)]
+                          for pci in self.allowed])  # (P, 2, phases, L)
+        return unit_frame_parts(np.swapaxes(parts, 1, 2)).reshape(-1, 2, self.templates.length)
+
     def _frame_spectra(self, frame: int) -> np.ndarray:
-        """(P x phases, frame/2+1) conjugate spectra of each allowed PCI's frame template: its
-        zero-mean subframe-0 code at 0 and subframe-5 code half a frame later, unit norm."""
+        """(P x phases, frame/2+1) conjugate spectra of the frame templates (``_frame_parts``)."""
         key = ("frame", frame)
         if key not in self._cache:
-            parts = np.array([[self.templates.template(int(pci), subframe, PHASES) for subframe in (0, 5)]
-                              for pci in self.allowed])  # (P, 2, phases, L)
-            spectra = frame_spectra(unit_frame_parts(np.swapaxes(parts, 1, 2)), frame)
-            self._cache[key] = spectra.reshape(-1, spectra.shape[-1])
+            self._cache[key] = frame_spectra(self._frame_parts, frame)
         return self._cache[key]
 
     def pss_correlations(self, centred: np.ndarray) -> np.ndarray:
@@ -265,26 +270,30 @@ class CellSearch:
         """The same search over all 504 PCIs, to check a database PCI against everyone else."""
         return CellSearch(self.templates, self.config)
 
-    def timing_correlations(self, centred: np.ndarray, rows: np.ndarray | None = None,
-                            spectrum: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    def timing_correlations(self, centred: np.ndarray, spectrum: np.ndarray | None = None) -> tuple[np.ndarray, int]:
         """Correlations over candidate code positions and the period of the lag axis. Blind:
         the three PSS templates against the half-frame fold (lag = PSS start, mod a half-frame).
         Known PCIs: each PCI's full frame template (lag = subframe-0 code start, mod a frame),
-        twice the code energy; only ``rows`` of them if given (the others left zero). Every
-        template is also tried half a sample later: the envelope has energy near Nyquist, and a
-        code between two samples would otherwise lose up to 3 dB of correlation. (Divided by
-        their noise spreads, they are the timing statistic, in sigmas.) ``spectrum``: the rfft of
-        ``centred``, if the caller has it."""
+        twice the code energy. Every template is also tried half a sample later: the envelope
+        has energy near Nyquist, and a code between two samples would otherwise lose up to 3 dB
+        of correlation. (Divided by their noise spreads, they are the timing statistic, in
+        sigmas.) ``spectrum``: the rfft of ``centred``, if the caller has it."""
         if not self.full_code_timing:
             return self.pss_correlations(centred), len(centred) // 2
         period = len(centred)
-        spectra = self._frame_spectra(period)
         spectrum = scipy.fft.rfft(centred) if spectrum is None else spectrum
-        if rows is None:
-            return correlate(spectrum, spectra, period), period
-        correlations = np.zeros((len(spectra), period), dtype=np.float32)
-        correlations[rows] = correlate(spectrum, spectra[rows], period)
-        return correlations, period
+        return correlate(spectrum, self._frame_spectra(period), period), period
+
+    def _timing_block(self, state: _SearchState, rows: np.ndarray, lags: np.ndarray) -> np.ndarray:
+        """(rows, lags) timing statistic of the residual: from the whole statistic where the pass
+        has it, else (a stack that only tracks) the frame templates' dot products with the
+        residual's code windows at those lags, over the first pass's spreads."""
+        if state.z is not None:
+            return state.z[np.ix_(rows, lags)]
+        frame, half = len(state.residual), len(state.residual) // 2
+        index = lags[:, None, None] + np.array([0, half])[None, :, None] + np.arange(self.templates.length)
+        windows = state.residual[index % frame]  # (lags, 2, L)
+        return _over_spreads(np.einsum("rsl,nsl->rn", self._frame_parts[rows], windows), state.spreads[rows])
 
     def _tracked_rows(self, expected: Sequence[ExpectedCell]) -> np.ndarray | None:
         """The timing rows a stack that only tracks ``expected`` needs (None: all of them)."""
@@ -313,9 +322,10 @@ class CellSearch:
         (:meth:`_site_pass`), after which single peaks are looked at again. The threshold
         counts both kinds of test.
 
-        Without ``discover`` only the expected cells are looked for, and only their templates
-        are correlated: a few of the dozens a full search needs, and no second pass unless two
-        of them overlap."""
+        Without ``discover`` only the expected cells are looked for, at their few lags: only
+        their templates' noise spreads are measured (on every 4th lag, by a transform a quarter
+        of a frame long), their statistic is the templates' dot products with the residual at
+        those lags, and a cancellation recomputes no correlation."""
         if not np.all(np.isfinite(stacked)):
             raise ValueError("stacked frame contains NaN or inf")
         centred = stacked - stacked.mean()
@@ -405,22 +415,34 @@ class CellSearch:
     def _start(self, centred: np.ndarray, rows: np.ndarray | None = None, pss: bool = True) -> _SearchState:
         """The first pass's statistics, noise spreads and CFAR threshold of a stack (the
         threshold of a full search, whichever ``rows`` are computed); the PSS statistic of
-        known-PCI timing if ``pss``."""
+        known-PCI timing if ``pss``. With ``rows`` (a stack that only tracks: their few
+        lags are all it tests), the noise spreads of those rows alone, and the statistic is
+        taken where it is needed (``_timing_block``)."""
         spectrum = scipy.fft.rfft(centred)  # the correlations' and the pairs' noise's
-        correlations, period = self.timing_correlations(centred, rows, spectrum)
-        z, spreads = _normalised(correlations, None, rows)
+        if rows is None:
+            correlations, period = self.timing_correlations(centred, spectrum)
+            z, spreads = _normalised(correlations, None)
+            single, step = correlations, 1
+        else:  # only the noise spreads, from the lags they are measured on: one transform a quarter long
+            period = len(centred)
+            spectra = self._frame_spectra(period)
+            step = _SPREAD_STEP if period % _SPREAD_STEP == 0 else 1
+            single = np.zeros((len(spectra), period // step), dtype=np.float32)
+            single[rows] = correlate_every(spectrum, spectra[rows], period, step)
+            spreads = np.zeros(len(spectra))
+            spreads[rows] = mad_spread(single[rows, :: _SPREAD_STEP // step], axis=1, centre=0.0)
+            correlations = z = None
         if not self.full_code_timing:
             pss_z, pss_spreads = z, spreads
         else:
             pss_z, pss_spreads = self.pss_statistic(centred) if pss else (None, None)
-        tests = z.size + (0 if self.sites is None else self.sites.rows * period)
+        tests = len(spreads) * period + (0 if self.sites is None else self.sites.rows * period)
         return _SearchState(
             centred=centred, residual=centred, crs=np.zeros(len(centred)), period=period,
             correlations=correlations, z=z, spreads=spreads, pss_z=pss_z, pss_spreads=pss_spreads,
             threshold=cfar_threshold(self.config.false_alarm_rate, tests), given_up=np.zeros((2, period), dtype=bool),
             near_new=np.zeros(period, dtype=bool),
-            site_noise=None if self.sites is None else SiteNoise(self.sites, spectrum, correlations),
-            rows=rows,
+            site_noise=None if self.sites is None else SiteNoise(self.sites, spectrum, single, step),
         )
 
     def _mark_new(self, state: _SearchState, before: int) -> None:
@@ -478,7 +500,7 @@ class CellSearch:
         tentative one's as the search places a peak's."""
         if cell.pci not in self.allowed:
             return
-        block = state.z[np.ix_(self._timing_rows(cell.pci), self._timing_lags(lags, state.period))]
+        block = self._timing_block(state, self._timing_rows(cell.pci), self._timing_lags(lags, state.period))
         best = block.max(axis=0)
         peak = int(np.argmax(best))
         if cell.held:
@@ -579,8 +601,9 @@ class CellSearch:
             state.site_z = None  # the CRS spans the whole frame: the pairs' statistic is computed again
         known = state.centred - state.crs
         state.residual = known - self._fit(known, state.detections)
-        state.correlations, _ = self.timing_correlations(state.residual, state.rows)
-        state.z, _ = _normalised(state.correlations, state.spreads, state.rows)
+        if state.z is not None:  # (tracking only, the statistic is taken from the residual where needed)
+            state.correlations, _ = self.timing_correlations(state.residual)
+            state.z, _ = _normalised(state.correlations, state.spreads)
         if not self.full_code_timing:
             state.pss_z = state.z
         elif state.pss_spreads is not None:
@@ -771,22 +794,17 @@ def _pss_rows(pci: int) -> np.ndarray:
     return np.arange(len(PHASES)) if pci % 3 == 0 else np.arange(len(PHASES), 3 * len(PHASES))
 
 
-def _normalised(c: np.ndarray, spreads: np.ndarray | None,
-                rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _normalised(c: np.ndarray, spreads: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Correlation rows in units of their noise spread (median absolute deviation about zero,
     where a zero-mean template's circular correlation is centred; measured here unless given:
-    later passes keep the first pass's spread), and the spreads. Only ``rows`` if given: the
-    others' z and spread stay 0. Every fourth lag is enough for the median (thousands of lags),
-    at a quarter of the cost."""
-    if rows is None:
-        if spreads is None:
-            spreads = mad_spread(c[:, ::4], axis=1, centre=0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(spreads[:, None] > 0, c / spreads[:, None].astype(c.dtype), 0.0)
-        return z.astype(c.dtype, copy=False), spreads  # in the correlations' precision (float32)
+    later passes keep the first pass's spread), and the spreads. Every ``_SPREAD_STEP``-th lag
+    is enough for the median (thousands of lags), at a fraction of the cost."""
     if spreads is None:
-        spreads = np.zeros(len(c))
-        spreads[rows] = mad_spread(c[rows, ::4], axis=1, centre=0.0)
-    z = np.zeros(c.shape, dtype=c.dtype)
-    z[rows] = _normalised(c[rows], spreads[rows])[0]
-    return z, spreads
+        spreads = mad_spread(c[:, ::_SPREAD_STEP], axis=1, centre=0.0)
+    return _over_spreads(c, spreads).astype(c.dtype, copy=False), spreads  # in the correlations' precision (float32)
+
+
+def _over_spreads(c: np.ndarray, spreads: np.ndarray) -> np.ndarray:
+    """Rows of ``c`` over their spreads; 0 where a row has none (a constant stretch)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(spreads[:, None] > 0, c / spreads[:, None].astype(c.dtype), 0.0)

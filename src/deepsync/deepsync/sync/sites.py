@@ -123,15 +123,17 @@ class SiteSearch:
         """Indices of the pairs ``pci`` belongs to."""
         return np.array([k for k, pair in enumerate(self.pairs) if pci in pair], dtype=int)
 
-    def correlations(self, spectrum: np.ndarray, single: np.ndarray, pairs: np.ndarray, step: int = 1) -> np.ndarray:
+    def correlations(self, spectrum: np.ndarray, single: np.ndarray, pairs: np.ndarray, step: int = 1,
+                     single_step: int = 1) -> np.ndarray:
         """(pairs, phases, 4, frame / step) correlations with the given pairs' unit frame
         templates at every ``step``-th lag, of the frame whose rfft is ``spectrum`` and whose
         correlations with the single-cell search's frame templates (all allowed PCIs x phases)
-        are ``single``: only the cross terms are new."""
-        frame = single.shape[-1]
+        are ``single``, at every ``single_step``-th lag (a divisor of ``step``): only the cross
+        terms are new."""
+        frame = single.shape[-1] * single_step
         if frame not in self._spectra:
             self._spectra[frame] = frame_spectra(self._parts[:, :, 2:], frame)
-        own = single[:, ::step][self._own_rows[pairs]]  # sampled before the rows are gathered (copied)
+        own = single[:, :: step // single_step][self._own_rows[pairs]]  # sampled before the rows are gathered (copied)
         out = np.empty((*own.shape[:2], COMPONENTS, own.shape[-1]), dtype=np.float32)
         out[:, :, :2] = own
         out[:, :, 2:] = correlate_every(spectrum, self._spectra[frame][pairs], frame, step)
@@ -221,10 +223,11 @@ class SiteNoise:
     measured when a pass first needs the pair and kept for the stack's later passes, as the
     single templates' spreads are."""
 
-    def __init__(self, search: SiteSearch, spectrum: np.ndarray, single: np.ndarray) -> None:
+    def __init__(self, search: SiteSearch, spectrum: np.ndarray, single: np.ndarray, single_step: int = 1) -> None:
         """``spectrum``: the rfft of the stack's first pass (its centred frame); ``single``: its
-        correlations with the single-cell search's frame templates."""
-        self._search, self._spectrum, self._single = search, spectrum, single
+        correlations with the single-cell search's frame templates, at every ``single_step``-th
+        lag (a divisor of ``COVARIANCE_STEP``)."""
+        self._search, self._spectrum, self._single, self._single_step = search, spectrum, single, single_step
         self._covariances: dict[int, np.ndarray] = {}  # pair index -> (phases, 4, 4)
 
     def covariances(self, pairs: np.ndarray, correlations: np.ndarray | None = None) -> np.ndarray:
@@ -234,7 +237,7 @@ class SiteNoise:
         if missing.size:
             if correlations is None:
                 measured = _covariances(self._search.correlations(self._spectrum, self._single, pairs[missing],
-                                                                  COVARIANCE_STEP))
+                                                                  COVARIANCE_STEP, self._single_step))
             else:
                 measured = _covariances(correlations[..., ::COVARIANCE_STEP][missing])
             self._covariances.update(zip((int(k) for k in pairs[missing]), measured))
