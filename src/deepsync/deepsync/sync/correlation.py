@@ -19,6 +19,14 @@ def unit_frame_parts(parts: np.ndarray) -> np.ndarray:
     return centred / np.linalg.norm(centred, axis=(-2, -1), keepdims=True)
 
 
+def frame_code_windows(signal: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
+    """(len(starts), 2, length) what a frame template's two codes (``unit_frame_parts``) meet
+    placed at each of ``starts``: the circular frame ``signal`` from each start and half a frame
+    later. Their dot products with the parts are the timing correlation at those lags."""
+    index = np.asarray(starts)[:, None, None] + np.array([0, len(signal) // 2])[None, :, None] + np.arange(length)
+    return signal[index % len(signal)]
+
+
 def parseval_weights(n: int) -> np.ndarray:
     """(n // 2 + 1,) weights w with sum_j x[j] y[j] = sum_k w_k Re(X_k conj(Y_k)) for real
     n-sample x and y and their rffts X and Y: each bin stands for itself and its negative-frequency

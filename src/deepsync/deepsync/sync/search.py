@@ -52,8 +52,8 @@ from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.lte.cell import N_CELL_IDS
 from deepsync.lte.numerology import SUPPORTED_BANDWIDTHS_MHZ
 from deepsync.numeric import mad_spread, parabolic_peak
-from deepsync.sync.correlation import (correlate, correlate_every, frame_spectra, parseval_weights, template_spectra,
-                                       unit_frame_parts)
+from deepsync.sync.correlation import (correlate, correlate_every, frame_code_windows, frame_spectra, parseval_weights,
+                                       template_spectra, unit_frame_parts)
 from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
 from deepsync.sync.stacking import HELD_FRACTION, held_fraction
 
@@ -290,9 +290,7 @@ class CellSearch:
         residual's code windows at those lags, over the first pass's spreads."""
         if state.z is not None:
             return state.z[np.ix_(rows, lags)]
-        frame, half = len(state.residual), len(state.residual) // 2
-        index = lags[:, None, None] + np.array([0, half])[None, :, None] + np.arange(self.templates.length)
-        windows = state.residual[index % frame]  # (lags, 2, L)
+        windows = frame_code_windows(state.residual, lags, self.templates.length)  # (lags, 2, L)
         return _over_spreads(np.einsum("rsl,nsl->rn", self._frame_parts[rows], windows), state.spreads[rows])
 
     def _tracked_rows(self, expected: Sequence[ExpectedCell]) -> np.ndarray | None:
@@ -385,7 +383,7 @@ class CellSearch:
                 return
             known = self._known_frame(cell.pci, frame)
             correlations = correlate(spectrum, known.spectra, frame)
-            spread = mad_spread(correlations[:, ::4], centre=0.0)  # every 4th lag, as _normalised
+            spread = mad_spread(correlations[:, ::_SPREAD_STEP], centre=0.0)  # the lags _normalised takes
             lags = self._tracked_lags(cell) % frame
             block = correlations[:, lags] / spread  # (PHASES, lags)
             if block.max() < cfar_threshold(self.config.false_alarm_rate, block.size):
@@ -427,7 +425,7 @@ class CellSearch:
             period = len(centred)
             spectra = self._frame_spectra(period)
             step = _SPREAD_STEP if period % _SPREAD_STEP == 0 else 1
-            single = np.zeros((len(spectra), period // step), dtype=np.float32)
+            single = np.zeros((len(spectra), period // step), dtype=np.float32)  # by row, as SiteNoise gathers pairs
             single[rows] = correlate_every(spectrum, spectra[rows], period, step)
             spreads = np.zeros(len(spectra))
             spreads[rows] = mad_spread(single[rows, :: _SPREAD_STEP // step], axis=1, centre=0.0)

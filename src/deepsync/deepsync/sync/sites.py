@@ -35,7 +35,7 @@ import scipy.stats
 
 from deepsync.frontend.templates import SyncTemplates, code_template, cosited_pair
 from deepsync.numeric import mad_spread, parabolic_peak
-from deepsync.sync.correlation import correlate_every, frame_spectra, unit_frame_parts
+from deepsync.sync.correlation import correlate_every, frame_code_windows, frame_spectra, unit_frame_parts
 
 COMPONENTS = 4  # |s_a|^2, |s_b|^2, 2Re(s_a s_b*), 2Im(s_a s_b*)
 COVARIANCE_STEP = 32  # every how many lags the pairs' noise covariances are measured on
@@ -156,10 +156,9 @@ class SiteSearch:
         it about as well: the pair must add significantly (at ``pair_false_alarm``, shared
         among the pairs tried) and at least ``min_gain`` x the sector's own statistic (template
         mismatch at high SNR leaks a little of a lone sector into the other shapes)."""
-        frame, half, length = len(centred), len(centred) // 2, self.templates.length
+        frame, length = len(centred), self.templates.length
         lags = np.arange(-reach, reach + 1)
-        index = code_start + lags[:, None, None] + np.array([0, half])[None, :, None] + np.arange(length)
-        windows = centred[index % frame]  # (lags, 2, L)
+        windows = frame_code_windows(centred, code_start + lags, length)  # (lags, 2, L)
         c = np.einsum("kpcsl,nsl->kpcn", self._parts[pairs], windows)  # (pairs, phases, 4, lags)
         precisions = np.linalg.inv(covariances)
         full = np.einsum("kpin,kpij,kpjn->kpn", c, precisions, c)
@@ -204,12 +203,11 @@ def fit_site(templates: SyncTemplates, centred: np.ndarray, pair: tuple[int, int
     codes) plus a pedestal under each code, on the two code windows of the zero-mean stacked
     frame ``centred`` whose subframe-0 code starts ``offset + fraction`` samples in; the fit and
     its SNR (model energy over residual energy, dB)."""
-    frame, half, length = len(centred), len(centred) // 2, templates.length
+    length = templates.length
     shapes = np.concatenate([templates.pair_shapes(pair, sf, fraction) for sf in (0, 5)], axis=1)
     pedestals = np.kron(np.eye(2), np.ones(length))
     basis = np.vstack([shapes, pedestals]).T  # (2L, 6)
-    index = (offset + np.array([0, half])[:, None] + np.arange(length)) % frame
-    window = centred[index].ravel()
+    window = frame_code_windows(centred, np.array([offset]), length).ravel()
     coefficients, *_ = np.linalg.lstsq(basis, window, rcond=None)
     model = shapes.T @ coefficients[:COMPONENTS]
     residual = window - basis @ coefficients
