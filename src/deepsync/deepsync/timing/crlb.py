@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -136,9 +137,29 @@ def fisher_information(
     else:
         raise ValueError(f"template_spectrum ({np.shape(template_spectrum)}) is not the rfft of a "
                          f"{length}-sample window")
-    k = np.arange(1, (length + 1) // 2)
-    omega = 2 * np.pi * k / length
-    return float(np.sum(2 * omega**2 * amplitude**2 * np.abs(spectrum[k]) ** 2 / (length * psd[k])))
+    k = slice(1, (length + 1) // 2)
+    return fisher_information_bins(amplitude, np.abs(spectrum[k]) ** 2, psd[k], length)
+
+
+def fisher_information_bins(amplitude: float, power: np.ndarray, psd: np.ndarray, length: int) -> float:
+    """The Whittle sum of :func:`fisher_information` itself, unchecked, for a caller that holds
+    its terms at the bins between DC and Nyquist (k = 1 .. ceil(L/2) - 1): ``power`` = |T_k|^2,
+    ``psd`` the stacked noise PSD there, ``length`` = L."""
+    return float(np.sum(2 * bin_omega(length) ** 2 * amplitude**2 * power / (length * psd)))
+
+
+@lru_cache(maxsize=32)
+def bin_omega(length: int) -> np.ndarray:
+    """Angular frequencies (radians per sample) of a ``length``-point rfft's bins strictly between
+    DC and Nyquist (k = 1 .. ceil(L/2) - 1), where the delay information lives; read-only."""
+    omega = 2 * np.pi * np.arange(1, (length + 1) // 2) / length
+    omega.flags.writeable = False
+    return omega
+
+
+def std_from_fisher(info: float) -> float:
+    """The 1-sigma bound (samples) of a Fisher information (1 / samples^2); inf where it is none."""
+    return math.inf if info <= 0 else 1 / math.sqrt(info)
 
 
 def delay_crlb(
@@ -159,7 +180,7 @@ def delay_crlb(
     if not (math.isfinite(sample_rate) and sample_rate > 0):
         raise ValueError(f"sample_rate must be a positive number, got {sample_rate!r}")
     info = fisher_information(template, amplitude, noise_psd, n_frames, window_length, template_spectrum)
-    std = math.inf if info <= 0 else 1 / math.sqrt(info)
+    std = std_from_fisher(info)
     return Bound(std, std * SPEED_OF_LIGHT_M_S / sample_rate)
 
 
@@ -182,7 +203,7 @@ def delay_crlb_white(
     if not (sigma > 0 and math.isfinite(sigma)):
         raise ValueError(f"sigma must be a positive number, got {sigma!r}")
     info = n_frames * amplitude**2 * float(np.sum(d**2)) / sigma**2
-    std = math.inf if info <= 0 else 1 / math.sqrt(info)
+    std = std_from_fisher(info)
     return Bound(std, std * SPEED_OF_LIGHT_M_S / sample_rate)
 
 

@@ -76,10 +76,11 @@ from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.fft
+import scipy.ndimage
 import scipy.optimize
 
 from deepsync.numeric import parabolic_offset
-from deepsync.timing.crlb import check_template, psd_bins
+from deepsync.timing.crlb import bin_omega, check_template, fisher_information_bins, psd_bins, std_from_fisher
 
 MODEL_FLOOR_SAMPLES = 0.003
 MAX_JACKKNIFE_GROUPS = 20
@@ -167,11 +168,7 @@ def _smoothed(psd: np.ndarray, half: int) -> np.ndarray:
     """A periodogram averaged over ``2 * half + 1`` neighbouring bins (mirrored at the band's
     ends); its DC bin, empty for zero-mean data and never used, copies the next one."""
     if half > 0:
-        inner = psd[1:]
-        padded = np.concatenate([[0.0], inner[half:0:-1], inner, inner[-2 : -half - 2 : -1]])
-        running = np.cumsum(padded)  # a moving average as differences of a running sum: O(bins)
-        inner = (running[2 * half + 1 :] - running[: -2 * half - 1]) / (2 * half + 1)
-        psd = np.concatenate([psd[:1], inner[: psd.size - 1]])
+        psd = np.concatenate([psd[:1], scipy.ndimage.uniform_filter1d(psd[1:], 2 * half + 1, mode="mirror")])
     psd[0] = psd[1]
     return psd
 
@@ -211,17 +208,22 @@ class _Problem:
     @cached_property
     def cross(self) -> np.ndarray:
         """Cross-spectrum of the stacked (row-mean) window with the template."""
-        return self.row_cross.mean(axis=0)
+        return self.row_cross[0] if self.n_frames == 1 else self.row_cross.mean(axis=0)
+
+    @cached_property
+    def power(self) -> np.ndarray:
+        """|T_k|^2 of the template at the bins between DC and Nyquist."""
+        return np.abs(self.t_spec[self.inner]) ** 2
 
     @property
     def inner(self) -> slice:
         """Bins strictly between DC and Nyquist (a slice: their arrays are views, not copies)."""
         return slice(1, (self.length + 1) // 2)
 
-    @cached_property
+    @property
     def omega(self) -> np.ndarray:
         """Their angular frequencies (radians per sample)."""
-        return 2 * np.pi * np.arange(1, (self.length + 1) // 2) / self.length
+        return bin_omega(self.length)
 
 
 def _problem(windows: np.ndarray, template: np.ndarray, margin: int) -> _Problem:
@@ -272,8 +274,7 @@ def _phases(omega: np.ndarray, lag: float) -> np.ndarray:
 def _phase_grid(length: int, margin: int) -> tuple[np.ndarray, np.ndarray]:
     """Lags 0..2*margin every ``GRID_STEP`` and exp(j w_k lag) for the bins between DC and Nyquist."""
     lags = np.arange(0.0, 2 * margin + 1e-9, GRID_STEP)
-    omega = 2 * np.pi * np.arange(1, (length + 1) // 2) / length
-    phases = np.exp(1j * np.outer(lags, omega))
+    phases = np.exp(1j * np.outer(lags, bin_omega(length)))
     phases.flags.writeable = False
     return lags, phases
 
@@ -292,7 +293,7 @@ def _fit(problem: _Problem, lag: float, weights: np.ndarray, stacked_psd: np.nda
     k, omega, length = problem.inner, problem.omega, problem.length
     phases = _phases(omega, lag) if phases is None else phases
     s = stacked_psd[k]
-    weighted_power = 2 * np.abs(problem.t_spec[k]) ** 2 * weights  # 2 w |T|^2
+    weighted_power = 2 * problem.power * weights  # 2 w |T|^2
     spread = weighted_power * weights * (length * s)  # 2 w^2 |T|^2 L S: the variance each bin adds
     total = float(np.sum(weighted_power))
     a_hat = float(np.real(problem.cross[k] * phases) @ weights) * 2 / total
@@ -336,7 +337,7 @@ def _posterior(problem: _Problem, stacked_psd: np.ndarray, allowed: np.ndarray |
     s = np.maximum(s, 1e-12 * float(np.max(s)))
     length = problem.length
     z = problem.cross[k] / (length * s)
-    energy = float(np.sum(np.abs(problem.t_spec[k]) ** 2 / (length * s)))
+    energy = float(np.sum(problem.power / (length * s)))
     lags, phases = _phase_grid(length, problem.margin)
     return _posterior_of(lags, np.real(phases @ z), energy, allowed)
 
@@ -623,12 +624,13 @@ FRAME_POSTERIOR_REACH = 64
 
 @dataclass(frozen=True)
 class FrameTiming:
-    """A full-frame ML estimate with what the bound needs: the template's fitted scale and the
-    stacked frame's noise spectrum."""
+    """A full-frame ML estimate with its Cramer-Rao bound and what that bound rests on: the
+    template's fitted scale and the stacked frame's noise spectrum."""
 
     estimate: TimingEstimate  # offset from the ``start`` searched around
     amplitude: float  # fitted scale of the template, bias-corrected (>= 0)
     stacked_psd: np.ndarray  # of the frame's residual, rfft bins of the frame
+    crlb_std: float  # samples: ``crlb.delay_crlb`` of the template at ``amplitude`` in ``stacked_psd``
 
 
 def frame_spectrum(frame: np.ndarray) -> np.ndarray:
@@ -694,7 +696,7 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     lag = _maximum_near(z, omega, near, max(lags[0], lags[best] - 1.0), min(lags[-1], lags[best] + 1.0),
                         tolerance=1e-6)
 
-    power = np.abs(t_spec[inner]) ** 2
+    power = problem.power
     phases = _phases(omega, lag)
     moved = t_spec[inner] * np.conj(phases)  # the template with its code at `lag`
     scale = float(np.sum(np.real(spectrum[inner] * np.conj(moved)))) / float(np.sum(power))
@@ -708,7 +710,8 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     # single precision: its rounding (1e-7 of the correlation) moves the posterior by far less
     # than its own grid, at half the cost of this transform (the estimator's largest)
     weighted = np.zeros(points // 2 + 1, dtype=np.complex64)
-    weighted[inner] = z / (n * s)
+    inverse = 1 / (n * s)
+    weighted[inner] = z * inverse
     span = max(FRAME_POSTERIOR_REACH, reach)
     steps = np.arange((int(start) - span) * FRAME_GRID_FACTOR, (int(start) + span) * FRAME_GRID_FACTOR + 1)
     u = scipy.fft.irfft(weighted, points)[steps % points] * (points / 2)  # circular: the frame repeats
@@ -716,6 +719,7 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     searched = np.abs(lags - int(start)) <= reach
     if searched[np.argmax(u)]:  # the code lock agrees with the frame: the prior is the reach searched
         lags, u = lags[searched], u[searched]
-    posterior = _posterior_of(lags, u, float(np.sum(power / (n * s))))
+    posterior = _posterior_of(lags, u, float(power @ inverse))
     std = _total_std(lag, fit.sandwich_std, posterior)
-    return FrameTiming(TimingEstimate(lag - int(start), std, fit.snr_db, "ml_frame"), fit.amplitude, problem.psd)
+    bound = std_from_fisher(fisher_information_bins(fit.amplitude, power, problem.psd[inner], n))
+    return FrameTiming(TimingEstimate(lag - int(start), std, fit.snr_db, "ml_frame"), fit.amplitude, problem.psd, bound)

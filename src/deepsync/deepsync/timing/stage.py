@@ -49,7 +49,7 @@ from deepsync.frontend.templates import (
     pair_frame_parts,
 )
 from deepsync.timing import network_install_hint
-from deepsync.timing.crlb import Bound, delay_crlb, fit_amplitude, snr_db
+from deepsync.timing.crlb import delay_crlb, fit_amplitude, snr_db
 from deepsync.timing.estimators import (
     SNR_FLOOR_DB,
     FrameTiming,
@@ -171,7 +171,7 @@ class TimingStage:
         stack = windows if isinstance(windows, StackWindows) else None
         spectrum = self._frame_spectrum(stack)
         cells, events, fallbacks, for_network = [], [], [], []
-        frame_fits: dict[tuple, tuple[FrameTiming, Bound]] = {}  # a co-sited pair's two windows: one fit
+        frame_fits: dict[tuple, FrameTiming] = {}  # a co-sited pair's two windows: one fit
         for window in (windows if stack is None else stack.windows):
             reason = None if self.network is None else self.network.refusal(
                 window, self.sample_rate, self.templates.length)
@@ -236,7 +236,7 @@ class TimingStage:
             return None
 
     def _frame_cell(self, window: SyncWindow, stack: StackWindows, spectrum: np.ndarray,
-                    fits: dict[tuple, tuple[FrameTiming, Bound]]) -> CellTiming:
+                    fits: dict[tuple, FrameTiming]) -> CellTiming:
         """A cell timed by its known frame (``estimate_ml_frame``) within the windows' margin
         of the sync stage's coarse code start. ``fits``: those of the stack so far, by what
         decides them (the two sectors of a pair found together share one window, template and fit)."""
@@ -246,11 +246,8 @@ class TimingStage:
         if key not in fits:
             template, template_spectrum = self._known_frame(window)
             start = (window.coarse_index - stack.first_sample_index) % len(template)
-            timing = estimate_ml_frame(spectrum, template, start, self._margin(window, codes), template_spectrum)
-            bound = delay_crlb(template, timing.amplitude, timing.stacked_psd, 1, self.sample_rate, len(template),
-                               template_spectrum)
-            fits[key] = timing, bound
-        timing, bound = fits[key]
+            fits[key] = estimate_ml_frame(spectrum, template, start, self._margin(window, codes), template_spectrum)
+        timing = fits[key]
         estimate = timing.estimate
         noise = float(np.mean(timing.stacked_psd))
         return CellTiming(
@@ -260,7 +257,7 @@ class TimingStage:
             # the codes' SNR at the fitted scale, as for the other estimators
             snr_db=max(snr_db(timing.amplitude, codes, noise), SNR_FLOOR_DB),
             estimator=Estimator.ML_FRAME.value,
-            crlb_std=bound.std_samples,
+            crlb_std=timing.crlb_std,
             flags=self._weak(window, estimate.std),
             earfcn=window.earfcn,
             amplitude=timing.amplitude * float(np.sqrt(np.mean(codes**2))),
