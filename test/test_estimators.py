@@ -320,10 +320,10 @@ def test_full_frame_ml_times_a_known_cell_with_an_honest_sigma(whole_frame):
         errors.append(5000 + timing.estimate.offset - start)
         stds.append(timing.estimate.std)
         assert timing.stacked_psd.shape == (template.size // 2 + 1,)
-    # the fit's own bound is the Cramer-Rao bound of the template at its fitted scale and spectrum
-    bound = delay_crlb(template, timing.amplitude, timing.stacked_psd, 1, window_length=template.size)
-    assert timing.crlb_std == pytest.approx(bound.std_samples, rel=1e-9)
-    assert timing.crlb_std <= timing.estimate.std  # the honest sigma is never below the bound
+        # the fit's own bound: the template's Cramer-Rao bound at its fitted scale and spectrum
+        bound = delay_crlb(template, timing.amplitude, timing.stacked_psd, 1, window_length=template.size)
+        assert timing.crlb_std == pytest.approx(bound.std_samples, rel=1e-9)
+        assert timing.crlb_std <= timing.estimate.std  # the honest sigma is never below the bound
     errors = np.array(errors)
     rms_std = math.sqrt(np.mean(np.square(stds)))
     assert 0.02 < rms_std < 0.1
