@@ -698,10 +698,15 @@ class CellSearch:
         columns: list[list[tuple[np.ndarray, int]]] = []  # each column: shapes placed at starts (mod frame)
 
         for d in detections:
-            padded = {sf: np.pad(self.templates.shifted(d.pci, sf, d.fraction), (spread, spread)) for sf in (0, 5)}
-            for shift in range(-spread, spread + 1):
-                columns.append([(np.roll(padded[sf], shift), start - spread)
-                                for sf, start in ((0, d.frame_offset), (5, d.frame_offset + half))])
+            # row k: the code moved by k - spread whole samples within a padding of spread either
+            # side (windows, latest first, over the code padded by twice the spread: no copies)
+            moved = []
+            for sf in (0, 5):
+                padded = np.zeros(length + 4 * spread)
+                padded[2 * spread : 2 * spread + length] = self.templates.shifted(d.pci, sf, d.fraction)
+                moved.append(np.lib.stride_tricks.sliding_window_view(padded, length + 2 * spread)[::-1])
+            columns += [[(moved[0][k], d.frame_offset - spread), (moved[1][k], d.frame_offset + half - spread)]
+                        for k in range(2 * spread + 1)]
             pedestal = np.ones(length + 2 * spread)
             columns += [[(pedestal, start - spread)] for start in (d.frame_offset, d.frame_offset + half)]
         for i, a in enumerate(detections):
@@ -719,12 +724,15 @@ class CellSearch:
                 shapes = [self.templates.cross_terms(a.pci, b.pci, sf, delay_a, delay_a + gap, span) for sf in (0, 5)]
                 columns += [[(shapes[0][k], origin), (shapes[1][k], origin + half)] for k in range(2)]
         # the codes cover a few hundred samples of the frame: the fit is solved on those alone
-        placed = [[((start + np.arange(len(shape))) % frame, shape) for shape, start in column] for column in columns]
-        rows = np.unique(np.concatenate([at for column in placed for at, _ in column]))
+        # (a cell's shifts share their places: each place is indexed once)
+        places = {(start % frame, len(shape)) for column in columns for shape, start in column}
+        spans = {place: (place[0] + np.arange(place[1])) % frame for place in places}
+        rows = np.unique(np.concatenate(list(spans.values())))
+        at = {place: np.searchsorted(rows, span) for place, span in spans.items()}
         basis = np.zeros((len(rows), len(columns)))
-        for j, column in enumerate(placed):
-            for at, shape in column:
-                basis[np.searchsorted(rows, at), j] += shape
+        for j, column in enumerate(columns):
+            for shape, start in column:
+                basis[at[start % frame, len(shape)], j] += shape
         coefficients, *_ = np.linalg.lstsq(basis, centred[rows], rcond=None)
         fitted = np.zeros(frame)
         fitted[rows] = basis @ coefficients
