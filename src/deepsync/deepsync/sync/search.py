@@ -807,11 +807,12 @@ def _normalised(c: np.ndarray, spreads: np.ndarray | None) -> tuple[np.ndarray, 
     is enough for the median (thousands of lags), at a fraction of the cost."""
     if spreads is None:
         spreads = mad_spread(c[:, ::_SPREAD_STEP], axis=1, centre=0.0)
-    return _over_spreads(c, spreads).astype(c.dtype, copy=False), spreads  # in the correlations' precision (float32)
+    return _over_spreads(c, spreads), spreads
 
 
 def _over_spreads(c: np.ndarray, spreads: np.ndarray) -> np.ndarray:
-    """Rows of ``c`` over their spreads; 0 where a row has none (a constant stretch)."""
+    """Rows of ``c`` over their spreads, in ``c``'s precision (the correlations' float32); 0
+    where a row has none (a constant stretch)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         out = c / spreads[:, None].astype(c.dtype)
     out[spreads <= 0] = 0.0  # (rows, not a select over every element: six times cheaper)
