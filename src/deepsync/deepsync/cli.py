@@ -26,10 +26,7 @@ from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
 from deepsync.numeric import one_blas_thread
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, SampleFormat, Source, open_source
-from deepsync.sync.stacking import StackConfig
-from deepsync.sync.stage import SyncConfig
 from deepsync.timing import network_install_hint
-from deepsync.timing.stage import TimingConfig
 from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS
 
@@ -455,15 +452,16 @@ def _print_route(summary: dict) -> None:
 def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_help: str, *,
                       bag_options: Sequence[str] = ("--bag",), towers_required: bool = True) -> None:
     """What every command that replays a bag through the whole chain takes."""
+    defaults = PipelineConfig()
     command.add_argument(*bag_options, dest="bag", required=True, help=bag_help)
     command.add_argument("--towers", required=towers_required, help=towers_help)
-    command.add_argument("--frames", type=int, default=StackConfig().n_frames,
-                         help=f"frames per stack (default {StackConfig().n_frames})")
+    command.add_argument("--frames", type=int, default=defaults.sync.stack.n_frames,
+                         help=f"frames per stack (default {defaults.sync.stack.n_frames})")
     command.add_argument("--hop", type=int, help="frames from one stack to the next (default: --frames, back to "
                          "back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz)")
     command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
-                         f"{SyncConfig().search_every}; between, the cells found are tracked; 1: every stack)")
-    command.add_argument("--estimator", default=TimingConfig().estimator.value, metavar="NAME",
+                         f"{defaults.sync.search_every}; between, the cells found are tracked; 1: every stack)")
+    command.add_argument("--estimator", default=defaults.timing.estimator.value, metavar="NAME",
                          help="sub-sample timing estimator: ml_frame (default: a known cell's whole frame where the "
                               "tower database gives its bandwidth, else ml), ml, ml_white, fft_upsampled, parabolic, "
                               "network, network_ml (the last two need torch)")
@@ -497,8 +495,8 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--scale", type=_positive_float,
                         help="envelope units per ADC code for --input (default: the recording's peak maps to 32766)")
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
-    detect.add_argument("--frames", type=int, default=StackConfig().n_frames,
-                        help=f"frames per stack (default {StackConfig().n_frames})")
+    frames = PipelineConfig().sync.stack.n_frames
+    detect.add_argument("--frames", type=int, default=frames, help=f"frames per stack (default {frames})")
     detect.set_defaults(run=_cmd_detect)
 
     route = commands.add_parser("evaluate-route", help="fixes along a recorded route against its ground truth "
