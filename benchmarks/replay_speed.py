@@ -63,7 +63,6 @@ from deepsync.bag.convert import CELL_TIMING_ARRAY, ENVELOPE_SAMPLES, SYNC_WINDO
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.replay import replay_bag
 from deepsync.sources import bag_frontend
-from deepsync.sync.stacking import StackConfig
 from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS, Fix
 from soak import Stream, rss_mb  # benchmarks/soak.py: the looped stream and /proc's RSS
@@ -271,7 +270,7 @@ def main() -> int:
         if ROUTE.exists():
             report["speed_route_dense"] = {f"{frames}_frames": stage_speed(
                 ROUTE, args.seconds, PipelineConfig().with_choices(n_frames=frames), ROUTE_TOWERS, ROUTE_WARMUP_S)
-                for frames in (StackConfig().n_frames, *LONGER_STACKS)}
+                for frames in (PipelineConfig().sync.stack.n_frames, *LONGER_STACKS)}
             print("dense walk", json.dumps(report["speed_route_dense"], indent=1))
         else:
             print(f"{ROUTE.relative_to(REPO)} not made: the dense walk is not timed", file=sys.stderr)
