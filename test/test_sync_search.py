@@ -522,12 +522,35 @@ def test_a_confirmed_cell_is_held_through_a_fade_the_full_search_misses(template
     assert [r.searched for r in results[:5]] == [True, False, False, False, False]
 
 
+def test_full_searches_back_off_while_they_find_nothing_new_and_resume_when_a_cell_appears(templates):
+    """Cell 56 from the start, cell 301 from stack 40 on: while the full searches find nothing
+    new their gap doubles from search_every (5 stacks) up to max_search_interval_s (2 s: 20
+    10-frame stacks); the one that finds 301 brings the gap back to 5."""
+    db = load_tower_database(CAMPUS_TOWERS)
+    rng = np.random.default_rng(5)
+    one = frame_with_codes(templates, [(56, 1672.3, 1.0)])
+    two = one + frame_with_codes(templates, [(301, 9021.6, 1.0)])
+    stream = np.concatenate([(one if frame < 400 else two) + coloured_noise(rng, (FRAME,)) for frame in range(750)])
+    searched = {}
+    for limit in (2.0, 0.0):
+        stage = SyncStage(CONFIG, SyncConfig(search_every=5, max_search_interval_s=limit), db)
+        results = stage.process_samples(stream, 0, 1.92e6)
+        assert len(results) == 75
+        searched[limit] = [i for i, r in enumerate(results) if r.searched]
+        first_301 = next(i for i, r in enumerate(results) if 301 in {c.pci for c in r.cells + r.tentative})
+        assert first_301 == next(i for i in searched[limit] if i >= 40)  # the first full search after it appears
+        assert all(301 in r.pcis for r in results[first_301 + 2 :])  # then tracked and confirmed
+        assert all(56 in r.pcis for r in results[2:])
+    assert searched[2.0] == [0, 5, 15, 35, 55, 60, 70]
+    assert searched[0.0] == list(range(0, 75, 5))  # no backoff
+
+
 def test_tracking_confirms_and_times_the_campus_cells_as_a_search_every_stack_does():
     bag = REPO / "bags" / "campus"
     db = load_tower_database(CAMPUS_TOWERS)
     runs = {}
     for every in (1, 5):
-        stage = SyncStage(BagSource(bag).frontend, SyncConfig(search_every=every), db)
+        stage = SyncStage(BagSource(bag).frontend, SyncConfig(search_every=every, max_search_interval_s=0.0), db)
         runs[every] = [r for chunk in read_envelope(bag) for r in stage.process(chunk)]
     assert sum(r.searched for r in runs[1]) == 30 and sum(r.searched for r in runs[5]) <= 8
     for full, tracked in zip(runs[1], runs[5]):

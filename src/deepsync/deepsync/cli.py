@@ -460,7 +460,8 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
     command.add_argument("--hop", type=int, help="frames from one stack to the next (default: --frames, back to "
                          "back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz)")
     command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
-                         f"{defaults.sync.search_every}; between, the cells found are tracked; 1: every stack)")
+                         f"{defaults.sync.search_every}; between, the cells found are tracked; while none finds a new "
+                         f"cell the gap doubles up to {defaults.sync.max_search_interval_s:g} s of stream)")
     command.add_argument("--estimator", default=defaults.timing.estimator.value, metavar="NAME",
                          help="sub-sample timing estimator: ml_frame (default: a known cell's whole frame where the "
                               "tower database gives its bandwidth, else ml), ml, ml_white, fft_upsampled, parabolic, "

@@ -135,8 +135,11 @@ SYNC = (
     ParamSpec("confirm_stacks", _SYNC.confirm_stacks, "Stacks in a row a cell must be found in, where its code "
               "should be, before it is reported.", range=(1, 100)),
     ParamSpec("search_every", _SYNC.search_every, "Stacks per full search for new cells; between, the cells "
-              "found are only tracked where their codes should be (a few templates instead of dozens). 1: every "
-              "stack.", range=(1, 1000)),
+              "found are only tracked where their codes should be (a few templates instead of dozens). 1 (with "
+              "max_search_interval_s 0): every stack.", range=(1, 1000)),
+    ParamSpec("max_search_interval_s", _SYNC.max_search_interval_s, "While full searches find no new cell, the gap "
+              "between them doubles up to this much stream [s]; one that finds a cell brings it back to "
+              "search_every. 0: every search_every stacks.", range=(0.0, 3600.0)),
     ParamSpec("hold_stacks", _SYNC.hold_stacks, "Stacks a confirmed cell is still looked for after a stack it "
               "was missed in (a fade).", range=(0, 100)),
     ParamSpec("report_z", _SYNC.report_z, "A confirmed cell found below this many sigmas is kept tracked but not "
@@ -234,15 +237,16 @@ def _config(build: Callable[..., T], specs: tuple[ParamSpec, ...], values: Mappi
 
 
 def _sync(n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int,
-          search_every: int, hold_stacks: int, report_z: float, false_alarm_rate: float, max_cells: int,
-          full_code_timing: bool, crs_cancel_z: float, hold_by_frame: bool, learn_bandwidths: bool) -> SyncConfig:
+          search_every: int, max_search_interval_s: float, hold_stacks: int, report_z: float,
+          false_alarm_rate: float, max_cells: int, full_code_timing: bool, crs_cancel_z: float, hold_by_frame: bool,
+          learn_bandwidths: bool) -> SyncConfig:
     return SyncConfig(
         stack=StackConfig(n_frames=n_frames, hop_frames=hop_frames or None, clock_ppm=clock_ppm,
                           track_clock=track_clock),
         search=SearchConfig(false_alarm_rate=false_alarm_rate, max_cells=max_cells, full_code_timing=full_code_timing,
                             crs_cancel_z=crs_cancel_z, hold_by_frame=hold_by_frame),
-        confirm_stacks=confirm_stacks, search_every=search_every, hold_stacks=hold_stacks, report_z=report_z,
-        learn_bandwidths=learn_bandwidths)
+        confirm_stacks=confirm_stacks, search_every=search_every, max_search_interval_s=max_search_interval_s,
+        hold_stacks=hold_stacks, report_z=report_z, learn_bandwidths=learn_bandwidths)
 
 
 def _timing(estimator: str, weak_std_samples: float, checkpoint: str) -> TimingConfig:

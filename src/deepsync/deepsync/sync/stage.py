@@ -28,7 +28,11 @@ A confirmed cell held below ``report_z`` sigmas is kept but not reported: below 
 13-22 % of arrivals a sample or more off at 3.5-4.5 sigmas, 2 % at 5-6). The full search for
 new cells, the costly part, runs every ``search_every`` stacks, on the stack after one where a
 tracked cell was missed, and when none is tracked; between, a stack costs the few templates of
-the cells it tracks.
+the cells it tracks. As a GNSS receiver backs off its acquisition once every satellite in view
+is tracked, the gap between full searches doubles after each that finds no cell not already
+tracked, up to ``max_search_interval_s`` of stream, and falls back to ``search_every`` as soon
+as one does: where the cells heard stay the same, a new cell then waits at most that long to be
+found.
 """
 
 from __future__ import annotations
@@ -46,7 +50,7 @@ from deepsync.sync.search import CellDetection, CellSearch, ExpectedCell, Search
 from deepsync.sync.stacking import FrameStacker, Stack, StackConfig
 from deepsync.sync.windows import extract_windows_at
 from deepsync.towers import TowerDatabase
-from deepsync.types import EnvelopeChunk, Health, HealthKind, StackWindows, SyncWindow
+from deepsync.types import FRAME_SECONDS, EnvelopeChunk, Health, HealthKind, StackWindows, SyncWindow
 
 
 @dataclass(frozen=True)
@@ -57,6 +61,7 @@ class SyncConfig:
     confirm_stacks: int = 3  # stacks in a row a PCI must be found in, where its code should be, to be reported
     confirm_tolerance: float = 2.0  # samples a cell may move between stacks beyond the clock drift
     search_every: int = 5  # stacks per full search for new cells; between, the cells found are tracked
+    max_search_interval_s: float = 2.0  # stream time the gap between full searches grows to while none finds a new cell
     hold_stacks: int = 2  # stacks a confirmed cell is still looked for after a stack it was missed in
     report_z: float = 5.0  # a confirmed cell found below this many sigmas is kept tracked but not reported
     learn_bandwidths: bool = True  # with a tower database, learn the bandwidth of cells it gives none (sync.bandwidths)
@@ -68,6 +73,8 @@ class SyncConfig:
             raise ValueError(f"confirm_stacks must be >= 1, got {self.confirm_stacks!r}")
         if self.search_every < 1:
             raise ValueError(f"search_every must be >= 1 stack, got {self.search_every!r}")
+        if not (math.isfinite(self.max_search_interval_s) and self.max_search_interval_s >= 0):
+            raise ValueError(f"max_search_interval_s must be >= 0 seconds, got {self.max_search_interval_s!r}")
         if self.hold_stacks < 0:
             raise ValueError(f"hold_stacks must be >= 0, got {self.hold_stacks!r}")
         if not (math.isfinite(self.report_z) and self.report_z >= 0):
@@ -157,6 +164,10 @@ class SyncStage:
         self.stacker = FrameStacker(frontend.adc_rate_hz, self.config.stack)
         self._tracks: dict[int, _Track] = {}  # by PCI
         self._since_search = 0  # stacks since the last full search
+        self._search_interval = self.config.search_every  # stacks from one full search to the next
+        stack_seconds = self.config.stack.hop * FRAME_SECONDS
+        self._longest_interval = max(self.config.search_every,
+                                     math.floor(self.config.max_search_interval_s / stack_seconds + 1e-9))
         self._lost = False  # a tracked cell was not found in the last stack
 
     def process(self, chunk: EnvelopeChunk) -> list[SyncResult]:
@@ -177,7 +188,7 @@ class SyncStage:
     def _search(self, stack: Stack) -> SyncResult:
         cells: list[DetectedCell] = []
         expected = self._expected(stack)
-        discover = not expected or self._lost or self._since_search + 1 >= self.config.search_every
+        discover = not expected or self._lost or self._since_search + 1 >= self._search_interval
         if not any(flag.kind is HealthKind.NO_SIGNAL for flag in stack.flags):
             detections = self.search.search(stack.stacked(), expected, discover)
             # by code start, cut together: a co-sited pair's two sectors share theirs
@@ -186,6 +197,8 @@ class SyncStage:
             windows = dict(zip(starts, cut))
             cells = [DetectedCell(d, self._window(stack, d, windows[d.frame_offset])) for d in detections]
         self._since_search = 0 if discover else self._since_search + 1
+        if discover:
+            self._back_off(found_new=not {c.pci for c in cells} <= {e.pci for e in expected})
         self._lost = not {e.pci for e in expected} <= {c.pci for c in cells}
         streaks = {c.pci: self._streak(stack, c) for c in cells}
         reported = {c.pci for c in cells if streaks[c.pci] >= self.config.confirm_stacks
@@ -208,6 +221,12 @@ class SyncStage:
             searched=discover,
             frame=stack.mean if frame_wanted else None,
         )
+
+    def _back_off(self, found_new: bool) -> None:
+        """After a full search: the next one as soon as ``search_every`` allows if it found a
+        cell not tracked before, else twice as late as the last (up to the longest interval)."""
+        self._search_interval = (self.config.search_every if found_new
+                                 else min(2 * self._search_interval, self._longest_interval))
 
     def _window(self, stack: Stack, detection: CellDetection, windows: np.ndarray) -> SyncWindow:
         earfcn = self._earfcn(detection.pci)
