@@ -8,7 +8,8 @@ the simulation's true site clocks, so what changes is what the receiver hears an
 times it, not the clocks. Scored on the whole route. A layout is N frames per stack, back to
 back (one fix per stack: 10 Hz at N = 10, 2 Hz at N = 50), or N/H: N frames every H frames,
 sliding (50/10: 50-frame stacks at 10 Hz). ``--search-every`` sets how often the full search
-for new cells runs (``SyncConfig.search_every``; 1: every stack, the cells found tracked too).
+for new cells runs (``SyncConfig.search_every``: the shortest gap, which doubles up to
+``max_search_interval_s`` while the searches find nothing new).
 
     python benchmarks/stack_length.py [--route route_dense] [--stacks 10 20 50 100] [--search-every K] [--out NAME]
 

@@ -7,7 +7,8 @@ default) and window extraction, on one core (BLAS limited to one thread). Templa
 once, before timing, as a running node builds them at start-up. A fresh stage per stack: the
 full search, with nothing tracked yet. Then the running stage: the bag looped as one stream,
 each stack either a full search (with the cells found before tracked first) or, between full
-searches (``SyncConfig.search_every``), only the tracked cells; their medians and the mean per
+searches (``SyncConfig.search_every``, the gap doubling up to ``max_search_interval_s`` while
+they find nothing new), only the tracked cells; their medians and the mean per
 stack; the same on the dense walk where its bag has been made (--repeats seconds of it after
 its first 10: six sites 0.2-1 km away, 33 tower-database cells; ``replay_speed.ROUTE``). Then
 ``TimingStage.process`` on the confirmed cells of each stack (4 cells, one co-sited pair), per
