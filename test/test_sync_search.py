@@ -543,6 +543,9 @@ def test_full_searches_back_off_while_they_find_nothing_new_and_resume_when_a_ce
         assert all(56 in r.pcis for r in results[2:])
     assert searched[2.0] == [0, 5, 15, 35, 55, 60, 70]
     assert searched[0.0] == list(range(0, 75, 5))  # no backoff
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="max_search_interval_s must be >= 0 seconds"):
+            SyncConfig(max_search_interval_s=bad)
 
 
 def test_tracking_confirms_and_times_the_campus_cells_as_a_search_every_stack_does():
