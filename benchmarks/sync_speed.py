@@ -90,11 +90,11 @@ def time_stream(chunks, towers, stacks: int, config: SyncConfig, bag: Path = BAG
 
 
 def print_stream(label: str, row: dict) -> None:
-    tracked = row.get("tracked_only", {}).get("median_ms", float("nan"))
+    # either kind may be absent from a short run: the full searches back off to one per 2 s
+    full, tracked = (row.get(kind, {}).get("median_ms", float("nan")) for kind in ("full_search", "tracked_only"))
     print(f"{'running stage, ' + label:40s}: {row['median_ms']:6.1f} ms median, {row['p90_ms']:.1f} p90, "
-          f"{row['mean_ms']:.1f} mean per stack; full search "
-          f"{row['full_search']['median_ms']:.1f} ms median ({row['full_search_stacks']} stacks), tracked "
-          f"only {tracked:.1f} ms ({row['tracked_only_stacks']} stacks)")
+          f"{row['mean_ms']:.1f} mean per stack; full search {full:.1f} ms median ({row['full_search_stacks']} "
+          f"stacks), tracked only {tracked:.1f} ms ({row['tracked_only_stacks']} stacks)")
 
 
 def time_timing(chunks, towers, repeats: int, estimator: Estimator) -> tuple[float, float]:

@@ -166,6 +166,7 @@ class SyncStage:
         self._since_search = 0  # stacks since the last full search
         self._search_interval = self.config.search_every  # stacks from one full search to the next
         stack_seconds = self.config.stack.hop * FRAME_SECONDS
+        # (the epsilon: 2 s over 0.1 s stacks is 19.999... in floating point, and means 20)
         self._longest_interval = max(self.config.search_every,
                                      math.floor(self.config.max_search_interval_s / stack_seconds + 1e-9))
         self._lost = False  # a tracked cell was not found in the last stack
