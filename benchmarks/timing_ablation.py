@@ -8,9 +8,15 @@ error, the share of outliers (beyond a sample), the median per SNR bin, the sigm
 parameters and FLOPs. ML on the same windows is the yardstick. The budget is a CPU one (the
 shipped network had 5x more steps): it ranks the variants, it does not say where each ends.
 
+A variant is ``fusion[+head][@poolN]``: ``@pool1`` gives the encoders one token per sample
+instead of the shipped two (a lag grid twice as fine for the votes, at twice the FLOPs).
+``--test-data`` scores another test split (the clean channel's, ``benchmarks/clean_channel.py``)
+and ``--name`` keeps its results apart from the ablation's.
+
 Run:  .venv/bin/python benchmarks/timing_ablation.py  [--steps 2000] [--jobs 2] [--variants ...]
+                                                      [--test-data DIR] [--name ablation]
 Interrupt at any time: a rerun resumes each variant's training (``runs/ablation/<variant>``)
-and skips what is scored. Writes docs/results/timing_network/ablation.json and ablation.png.
+and skips what is scored. Writes docs/results/timing_network/<name>.json and <name>.png.
 """
 
 from __future__ import annotations
@@ -40,10 +46,12 @@ FRAMES = 10
 
 
 def variant_run(base: RunConfig, variant: str, steps: int) -> RunConfig:
-    """``base`` with the variant's fusion (and head, after a '+'), trained ``steps`` steps on one thread."""
-    fusion, _, head = variant.partition("+")
+    """``base`` with the variant's fusion (and head, after a '+'; pool, after '@pool'), trained
+    ``steps`` steps on one thread."""
+    layout, _, pool = variant.partition("@pool")
+    fusion, _, head = layout.partition("+")
     run_dir = ROOT / "runs" / "ablation" / variant
-    model = dataclasses.replace(base.model, fusion=fusion, head=head or "dense")
+    model = dataclasses.replace(base.model, fusion=fusion, head=head or "dense", pool=int(pool) if pool else base.model.pool)
     training = dataclasses.replace(base.training, steps=steps, run_dir=str(run_dir), threads=1,
                                    model_path=str(run_dir / "best.pt"), data_dir=str(ROOT / base.training.data_dir))
     return dataclasses.replace(base, model=model, training=training)
@@ -122,15 +130,17 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--jobs", type=int, default=2, help="variants trained at once (one thread each)")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
+    parser.add_argument("--test-data", help="the data directory whose test split is scored (default: the training data's)")
+    parser.add_argument("--name", default="ablation", help="stem of the JSON and PNG written")
     args = parser.parse_args()
     base = load_run_config(args.config)
     runs = {name: variant_run(base, name, args.steps) for name in args.variants}
     with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         list(pool.map(train_variant, runs.values()))
 
-    data = load_split(Path(runs[args.variants[0]].training.data_dir), "test")
+    data = load_split(Path(args.test_data or runs[args.variants[0]].training.data_dir), "test")
     OUT.mkdir(parents=True, exist_ok=True)
-    path = OUT / "ablation.json"
+    path = OUT / f"{args.name}.json"
     summary = json.loads(path.read_text()) if path.exists() else {}
     if summary.get("steps") != args.steps:
         summary = {"steps": args.steps, "frames": FRAMES, "examples": int(len(data["offset"])), "variants": {}}
@@ -145,8 +155,8 @@ def main() -> None:
     ml = summary["ml"]["all"]
     print(f"{'ml':28s} median {ml['median']:.3f}  p90 {ml['p90']:.2f}  RMSE {ml['rmse']:.2f}  outliers {ml['outliers']:.1%}")
     path.write_text(json.dumps(summary, indent=1))
-    plot(summary, OUT / "ablation.png")
-    print(f"wrote {path} and {OUT / 'ablation.png'}")
+    plot(summary, OUT / f"{args.name}.png")
+    print(f"wrote {path} and {OUT / f'{args.name}.png'}")
 
 
 if __name__ == "__main__":
