@@ -51,7 +51,8 @@ def variant_run(base: RunConfig, variant: str, steps: int) -> RunConfig:
     layout, _, pool = variant.partition("@pool")
     fusion, _, head = layout.partition("+")
     run_dir = ROOT / "runs" / "ablation" / variant
-    model = dataclasses.replace(base.model, fusion=fusion, head=head or "dense", pool=int(pool) if pool else base.model.pool)
+    model = dataclasses.replace(base.model, fusion=fusion, head=head or "dense",
+                                pool=int(pool) if pool else base.model.pool)
     training = dataclasses.replace(base.training, steps=steps, run_dir=str(run_dir), threads=1,
                                    model_path=str(run_dir / "best.pt"), data_dir=str(ROOT / base.training.data_dir))
     return dataclasses.replace(base, model=model, training=training)
@@ -130,7 +131,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--jobs", type=int, default=2, help="variants trained at once (one thread each)")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
-    parser.add_argument("--test-data", help="the data directory whose test split is scored (default: the training data's)")
+    parser.add_argument("--test-data", help="the data directory (in the repository) whose test split is scored "
+                        "(default: the training data's)")
     parser.add_argument("--name", default="ablation", help="stem of the JSON and PNG written")
     args = parser.parse_args()
     base = load_run_config(args.config)
@@ -138,12 +140,14 @@ def main() -> None:
     with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         list(pool.map(train_variant, runs.values()))
 
-    data = load_split(Path(args.test_data or runs[args.variants[0]].training.data_dir), "test")
+    test_data = args.test_data or base.training.data_dir
+    data = load_split(ROOT / test_data, "test")
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / f"{args.name}.json"
     summary = json.loads(path.read_text()) if path.exists() else {}
-    if summary.get("steps") != args.steps:
-        summary = {"steps": args.steps, "frames": FRAMES, "examples": int(len(data["offset"])), "variants": {}}
+    if (summary.get("steps"), summary.get("test_data")) != (args.steps, test_data):  # ML's row is of that split
+        summary = {"steps": args.steps, "frames": FRAMES, "test_data": test_data, "examples": int(len(data["offset"])),
+                   "variants": {}}
     if "ml" not in summary:
         summary["ml"] = score(*ml_errors(data), data)
     for name, run in runs.items():
