@@ -2,7 +2,17 @@
 
 import numpy as np
 
-from deepsync.eval.timing import CLASSICAL, ESTIMATORS, by_coarse_error, by_snr, error_stats, headline, run_estimators
+from deepsync.eval.timing import (
+    CLASSICAL,
+    ESTIMATORS,
+    by_coarse_error,
+    by_snr,
+    error_stats,
+    headline,
+    run_estimators,
+    time_by_frame,
+)
+from deepsync.training.dataset import DatasetConfig, frame_key, make_shard
 
 
 def _results(errors: np.ndarray) -> dict[str, np.ndarray]:
@@ -79,3 +89,23 @@ def test_without_a_network_the_classical_estimators_run_and_the_networks_rows_st
     assert np.all(np.isnan(results["network_error"])) and np.all(np.isnan(results["network_ml_error"]))
     for name in CLASSICAL:
         assert np.all(np.abs(results[f"{name}_error"]) < 0.1), name
+
+
+def test_ml_frame_times_the_examples_of_a_split_that_keeps_their_mean_frames_at_the_label():
+    """``frame_means``: each example's mean frame of F stacked frames, its sample 0 at the
+    window's coarse code start. Through the timing stage, ``ml_frame`` finds the label on
+    strong clean cells and pairs at every F kept (a frame turned the wrong way, or a pair's
+    coefficients in the wrong order, would put it samples off), and the side by side scores it
+    only at the F the split keeps."""
+    config = DatasetConfig(max_frames=6, re_power_dbm=(-85.0, -75.0), examples_per_shard=8, channel="clean",
+                           cosited_share=0.5, cosited_power_db=(-3.0, 0.0), frame_means=(3, 6))
+    shard = make_shard(config, "test", 0)
+    assert shard[frame_key(3)].shape == shard[frame_key(6)].shape == (8, 19200)
+    strong = shard["snr_db"] > -25
+    assert strong.sum() >= 4 and np.any(shard["cosited_pci"][strong] >= 0)
+    for frames in (3, 6):
+        timed = np.array(time_by_frame(shard, frames, progress=False))
+        errors = timed[:, 0] - shard["offset"]
+        assert np.all(np.abs(errors[strong]) < np.maximum(4 * timed[strong, 1], 0.1)), (errors, timed[:, 1])
+    assert "ml_frame_error" in run_estimators(shard, 6, None, progress=False)
+    assert "ml_frame_error" not in run_estimators(shard, 5, None, progress=False)

@@ -141,9 +141,11 @@ def test_shards_made_before_a_config_field_existed_still_resume(tmp_path):
     arrays[CONFIG_KEY] = np.array(json.dumps(recorded))
     np.savez(path, **arrays)
     assert generate(tmp_path, {"val": 1}, TINY) == 0
-    del arrays["cosited_pci"]  # nor a key added since: those shards held no pairs
+    del arrays["cosited_pci"], arrays["site_coefficients"]  # nor keys added since: those shards held no pairs
     np.savez(path, **arrays)
-    np.testing.assert_array_equal(load_split(tmp_path, "val")["cosited_pci"], [-1, -1, -1])
+    loaded = load_split(tmp_path, "val")
+    np.testing.assert_array_equal(loaded["cosited_pci"], [-1, -1, -1])
+    assert loaded["site_coefficients"].shape == (3, 4) and np.all(np.isnan(loaded["site_coefficients"]))
     with pytest.raises(ValueError, match="channel 'tdl' -> 'clean'"):
         generate(tmp_path, {"val": 1}, DatasetConfig(max_frames=4, examples_per_shard=3, channel=Channel.CLEAN))
 
@@ -156,6 +158,8 @@ def test_shards_made_before_a_config_field_existed_still_resume(tmp_path):
     (dict(examples_per_shard=0), "examples_per_shard"),
     (dict(cosited_share=1.5), "cosited_share"),
     (dict(cosited_power_db=(0.0, -12.0)), "cosited_power_db"),
+    (dict(max_frames=4, frame_means=(2, 6)), "frame_means"),
+    (dict(frame_means=(10, 5)), "frame_means"),
 ])
 def test_a_dataset_config_that_cannot_be_names_the_field(change, field):
     with pytest.raises(ValueError, match=field):

@@ -1,10 +1,14 @@
 """Side by side on the timing test set: the network, ML, FFT-upsampled, parabolic, and the
-Cramer-Rao bound, against the true first-path arrival.
+Cramer-Rao bound, against the true first-path arrival; and ``ml_frame``, the timing stage's
+default, where the split holds the examples' mean frames (``DatasetConfig.frame_means``).
 
 Every estimator sees the same windows (the first F frames of each test example, F in
-``frames``). Errors are estimate minus the true first-path offset, in samples. The bound is
+``frames``); ``ml_frame`` the mean of the same F frames, through the timing stage itself.
+Errors are estimate minus the true first-path offset, in samples. The bound is
 ``crlb.delay_crlb`` at the amplitude fitted at the true offset and the noise spectrum measured
 from the rows: what an unbiased estimator of the *peak* could reach; multipath bias is on top.
+``ml_frame``'s is its own (``CellTiming.crlb_std``: the whole known frame's, at its fitted
+amplitude and residual spectrum), about 10 dB lower at 10 MHz.
 Breakdowns: per-frame SNR bins, frames, bandwidth, LOS (TDL-D/E) vs NLOS (TDL-A/B/C), the size
 of the coarse error (how far the sync stage's code lock was from the true start), and the
 sigma calibration (share of errors within +-1 reported sigma, 68 % if honest) of each
@@ -29,6 +33,7 @@ from tqdm import tqdm
 
 from deepsync.eval.cell_search import timing_error
 from deepsync.frontend.config import FrontendConfig
+from deepsync.frontend.templates import SyncTemplates
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources.bagfile import BagSource
 from deepsync.timing.crlb import delay_crlb, fit_amplitude
@@ -41,7 +46,8 @@ from deepsync.timing.estimators import (
 )
 from deepsync.timing.stage import Estimator, TimingConfig, TimingStage, refine_with_ml
 from deepsync.towers import TowerDatabase
-from deepsync.training.dataset import LOS_PROFILES, PROFILES, load_split
+from deepsync.training.dataset import LOS_PROFILES, PROFILES, frame_key, load_split
+from deepsync.types import StackWindows, SyncWindow
 
 if TYPE_CHECKING:
     from deepsync.timing.network import NetworkEstimator
@@ -53,8 +59,10 @@ CLASSICAL: dict[str, Callable] = {
     "parabolic": lambda w, t, m, psd: estimate_parabolic(w, t, m),
 }
 ESTIMATORS = ("network", "network_ml", *CLASSICAL)
-# on a recording the stack's mean frame comes along: a known cell can be timed by its whole frame
-BAG_ESTIMATORS = ("ml_frame", *ESTIMATORS)
+# where the stack's mean frame comes along (a recording; a split that keeps it), a known cell
+# can also be timed by its whole frame
+ALL_ESTIMATORS = ("ml_frame", *ESTIMATORS)
+FRAME_BOUND = "crlb_frame"  # ml_frame's own bound, beside the code windows' "crlb"
 
 
 COARSE_ERROR_EDGES = np.array([0, 3, 6, 9, 20, 40])  # bins of the coarse error's size (samples)
@@ -82,14 +90,20 @@ def error_stats(errors: np.ndarray, sigmas: np.ndarray | None = None) -> dict[st
 def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEstimator | None,
                    progress: bool = True) -> dict[str, np.ndarray]:
     """Per example: each estimator's error and sigma, and the bound (samples). Without a
-    ``network`` (windows it does not take) its rows and network_ml's stay NaN."""
+    ``network`` (windows it does not take) its rows and network_ml's stay NaN; ``ml_frame``'s
+    are there where the split holds the mean frames of ``frames`` stacked frames."""
     windows = data["windows"][:, :frames]
     templates = data["template"]
     margin = (windows.shape[2] - templates.shape[1]) // 2
     rate = FrontendConfig().adc_rate_hz
     n = len(windows)
-    results = {f"{name}_{kind}": np.full(n, np.nan) for name in ESTIMATORS for kind in ("error", "sigma")}
+    names = ALL_ESTIMATORS if frame_key(frames) in data else ESTIMATORS
+    results = {f"{name}_{kind}": np.full(n, np.nan) for name in names for kind in ("error", "sigma")}
     results["crlb"] = np.full(n, np.nan)
+    if frame_key(frames) in data:
+        timed = np.array(time_by_frame(data, frames, progress)).reshape(n, 3)
+        results["ml_frame_error"], results["ml_frame_sigma"] = timed[:, 0] - data["offset"], timed[:, 1]
+        results[FRAME_BOUND] = timed[:, 2]
     for start in range(0, n if network is not None else 0, 256):
         batch = network.estimate(list(windows[start : start + 256]), list(templates[start : start + 256]))
         for i, (offset, sigma) in enumerate(batch, start):
@@ -110,13 +124,45 @@ def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEst
     return results
 
 
+def time_by_frame(data: dict[str, np.ndarray], frames: int,
+                  progress: bool = True) -> list[tuple[float, float, float]]:
+    """(offset, sigma, Cramer-Rao bound) of each example by ``ml_frame`` through the timing stage, as a stack of
+    ``frames`` frames hands it the cell: its windows, its bandwidth from the tower database, a
+    pair's fit, and the stack's mean frame (its sample 0 at the coarse code start)."""
+    frontend = FrontendConfig()
+    templates = SyncTemplates(frontend)
+    means = data[frame_key(frames)]
+    out = []
+    for i in tqdm(range(len(means)), desc=f"ml_frame, {frames} frames", disable=not progress):
+        pair = int(data["cosited_pci"][i]) >= 0
+        window = SyncWindow(
+            stamp_ns=0, pci=int(data["pci"][i]), coarse_index=0, windows=data["windows"][i, :frames],
+            peak_metric=math.nan, snr_db=float(data["snr_db"][i]), bandwidth_mhz=float(data["bandwidth_mhz"][i]),
+            cosited_pci=int(data["cosited_pci"][i]) if pair else None,
+            site_coefficients=tuple(map(float, data["site_coefficients"][i])) if pair else None)
+        # a stage per example: its cache of known frames would grow by one per PCI and bandwidth
+        stage = TimingStage(frontend, TimingConfig(Estimator.ML_FRAME), templates)
+        timed = stage.process(StackWindows(0, 0, frontend.adc_rate_hz, (window,), frame=means[i]))
+        cell = timed.cells[0] if timed.cells else None
+        out.append((math.nan,) * 3 if cell is None else (cell.toa, cell.toa_std, cell.crlb_std))
+    return out
+
+
+def estimator_names(results: dict[str, np.ndarray]) -> tuple[str, ...]:
+    """The estimators ``results`` holds, in the side by side's order."""
+    return tuple(name for name in ALL_ESTIMATORS if f"{name}_error" in results)
+
+
 def breakdown(data: dict[str, np.ndarray], results: dict[str, np.ndarray], mask: np.ndarray) -> dict:
     """Every estimator's statistics over the examples in ``mask``, and the bound's RMS."""
-    out = {name: error_stats(results[f"{name}_error"][mask], results[f"{name}_sigma"][mask]) for name in ESTIMATORS}
-    bound = results["crlb"][mask]
-    bound = bound[np.isfinite(bound)]
+    out = {name: error_stats(results[f"{name}_error"][mask], results[f"{name}_sigma"][mask])
+           for name in estimator_names(results)}
     # the median: a few codes barely above the noise have a bound of many samples
-    out["crlb_median"] = float(np.median(bound)) if bound.size else math.nan
+    for key in ("crlb", FRAME_BOUND):
+        if key in results:
+            bound = results[key][mask]
+            bound = bound[np.isfinite(bound)]
+            out[f"{key}_median"] = float(np.median(bound)) if bound.size else math.nan
     return out
 
 
@@ -139,9 +185,11 @@ def by_coarse_error(data: dict[str, np.ndarray], results: dict[str, np.ndarray])
 
 def threshold_snr_db(rows: list[dict], name: str) -> dict[str, float | None]:
     """Upper edge of the highest SNR bin (None: none) where the RMSE exceeds 2x the (median)
-    bound, and where more than 10 % of the errors are outliers (beyond ``OUTLIER_SAMPLES``)."""
+    bound (``ml_frame``: its own), and where more than 10 % of the errors are outliers (beyond
+    ``OUTLIER_SAMPLES``)."""
+    bound = f"{FRAME_BOUND}_median" if name == "ml_frame" else "crlb_median"
     filled = [row for row in rows if row[name].get("n", 0) >= 10]
-    rmse = [row["snr_db"][1] for row in filled if row[name]["rmse"] > 2 * row["crlb_median"]]
+    rmse = [row["snr_db"][1] for row in filled if row[name]["rmse"] > 2 * row[bound]]
     outliers = [row["snr_db"][1] for row in filled if row[name]["outliers"] > 0.1]
     return {"rmse_over_2_crlb": max(rmse) if rmse else None, "outliers_over_10_percent": max(outliers) if outliers else None}
 
@@ -211,12 +259,13 @@ def headline(data: dict[str, np.ndarray], summary: dict) -> dict:
                 "sigma_too_small": sum(m["within_1_sigma_ci"][1] < low for m in measured),
                 "sigma_too_large": sum(m["within_1_sigma_ci"][0] > high for m in measured)}
 
+    names = [name for name in ALL_ESTIMATORS if name in rows[0]]
     return {
-        "threshold_snr_db_los": {name: threshold_snr_db(ten["los_by_snr"], name) for name in ESTIMATORS},
-        "multipath_rmse_-10_to_0_db": {name: pooled_rmse(mid, name) for name in ESTIMATORS},
-        "high_snr_los_rmse_from_0_db": {name: pooled_rmse(high_los, name) for name in ESTIMATORS},
-        "within_1_sigma_range_over_snr_bins": {name: calibration(name) for name in ESTIMATORS},
-        "within_1_sigma_snr_bins": {name: calibration_verdicts(name) for name in ESTIMATORS},
+        "threshold_snr_db_los": {name: threshold_snr_db(ten["los_by_snr"], name) for name in names},
+        "multipath_rmse_-10_to_0_db": {name: pooled_rmse(mid, name) for name in names},
+        "high_snr_los_rmse_from_0_db": {name: pooled_rmse(high_los, name) for name in names},
+        "within_1_sigma_range_over_snr_bins": {name: calibration(name) for name in names},
+        "within_1_sigma_snr_bins": {name: calibration_verdicts(name) for name in names},
     }
 
 
@@ -227,6 +276,7 @@ def plot(summary: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     ten = summary["frames"].get("10") or next(iter(summary["frames"].values()))
+    estimators = [name for name in ALL_ESTIMATORS if name in ten["all"]]
     figure, axes = plt.subplots(1, 3, figsize=(15, 4.5))
     profiles = list(ten["by_profile"])
     for ax, key, title, los in ((axes[0], "los_by_snr", "LOS", True), (axes[1], "nlos_by_snr", "NLOS", False)):
@@ -237,16 +287,18 @@ def plot(summary: dict, path: Path) -> None:
             continue
         rows = ten[key]
         centres = [np.mean(row["snr_db"]) for row in rows]
-        for name in ESTIMATORS:
+        for name in estimators:
             ax.semilogy(centres, [row[name].get("rmse", np.nan) for row in rows], marker="o", label=name)
         ax.semilogy(centres, [row["crlb_median"] for row in rows], "k--", label="CRLB (median)")
+        if f"{FRAME_BOUND}_median" in rows[0]:
+            ax.semilogy(centres, [row[f"{FRAME_BOUND}_median"] for row in rows], "k:", label="ml_frame's CRLB")
         ax.set_xlabel("per-frame SNR (dB)")
         ax.set_ylabel("RMSE (samples)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     rows = ten["by_snr"]
     centres = [np.mean(row["snr_db"]) for row in rows]
-    for name in ESTIMATORS:
+    for name in estimators:
         axes[2].plot(centres, [row[name].get("within_1_sigma", np.nan) for row in rows], marker="o", label=name)
     axes[2].axhspan(*SIGMA_CALIBRATION_BAND, color="green", alpha=0.15, label="calibrated")
     axes[2].set_title("errors within +-1 reported sigma")
@@ -270,7 +322,7 @@ def evaluate_timing_bag(source: BagSource, towers: TowerDatabase | None, out: st
     pipeline = Pipeline(source.frontend, PipelineConfig().with_choices(frames), towers)
     stages = {name: TimingStage(source.frontend, TimingConfig(Estimator(name), checkpoint=None if checkpoint is None
                                                               else str(checkpoint)))
-              for name in BAG_ESTIMATORS}
+              for name in ALL_ESTIMATORS}
     records: dict[str, list[tuple[float, float, float]]] = {name: [] for name in stages}
     fallbacks: list[str] = []
     for chunk in tqdm(source.chunks(), desc="timing on the recording", unit="chunk", disable=not progress):

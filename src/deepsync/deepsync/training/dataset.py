@@ -31,6 +31,13 @@ from the first 10 ms, so a window alone is exact only as part of the stream it w
 (``EnvelopeSimulator.analog`` gives any window exactly, test_frontend, but at the cost of its
 whole block). A scene is ``max_frames + 1`` frames long: the first settles the coupling.
 
+``frame_means`` (F, ...): each example also holds the stacked mean frame of its scene's first
+F frames (``frame_<F>``, the frame a stack of F frames hands the timing stage), turned so the
+window's coarse code start is its sample 0, and a pair its fit's ``site_coefficients``: what
+``ml_frame``, the timing stage's default, times a known cell with (the codes and the CRS of the
+whole frame), so that the side by side can score it on the very examples the network is scored
+on. Not for training: one frame is 77 kB an example against the windows' 14 kB.
+
 ``channel: clean`` replaces every TDL channel by the direct path alone (no multipath, no
 fading): not for training, but the reference case in which an estimator can meet its Cramer-Rao
 bound, for evaluation (``benchmarks/clean_channel.py``).
@@ -111,6 +118,7 @@ class DatasetConfig:
     channel: Channel = Channel.TDL
     cosited_share: float = 0.0  # scenes whose target has a co-sited sector (module docstring)
     cosited_power_db: tuple[float, float] = (-12.0, 0.0)  # that sector's power relative to the target
+    frame_means: tuple[int, ...] = ()  # stacked frames of each mean frame kept (module docstring)
 
     def __post_init__(self) -> None:
         if not isinstance(self.channel, Channel):  # the name, as YAML and the shards hold it
@@ -132,6 +140,11 @@ class DatasetConfig:
         low, high = self.cosited_power_db
         if not (math.isfinite(low) and math.isfinite(high) and low <= high):
             raise ValueError(f"cosited_power_db: {self.cosited_power_db!r} must be a non-decreasing pair of numbers")
+        object.__setattr__(self, "frame_means", tuple(self.frame_means))
+        if (not all(isinstance(f, int) and 2 <= f <= self.max_frames for f in self.frame_means)
+                or list(self.frame_means) != sorted(set(self.frame_means))):
+            raise ValueError(f"frame_means: {self.frame_means!r} must be increasing frame counts in 2..max_frames "
+                             f"({self.max_frames})")
         if not self.examples_per_shard >= 1:
             raise ValueError(f"examples_per_shard: {self.examples_per_shard!r} must be a positive integer")
 
@@ -150,12 +163,21 @@ class Example:
     pci: int
     other_cells: int
     cosited_pci: int  # the target's co-sited sector, timed with it as a pair; -1: a single cell
+    site_coefficients: np.ndarray  # (4,) a pair's fitted model (SyncWindow.site_coefficients); NaN: a single cell
+    # the config's frame_means' mean frames (each (frame samples,), coarse code start at 0)
+    mean_frames: tuple[np.ndarray, ...] = ()
 
 
-SHARD_KEYS = tuple(f.name for f in fields(Example))
+SHARD_KEYS = tuple(f.name for f in fields(Example) if f.name != "mean_frames")
 # keys added since shards were first made, and what shards without them held: a shard resumes
 # with its config's missing fields at their defaults (``_check_made_with``), so it loads so too
-ADDED_KEYS = {"cosited_pci": -1}  # no pairs before cosited_share existed
+ADDED_KEYS = {"cosited_pci": -1, "site_coefficients": np.full(4, np.nan)}  # no pairs before cosited_share existed
+FRAME_KEY = "frame_{}"  # a shard's mean frames of F stacked frames, F in its config's frame_means
+
+
+def frame_key(frames: int) -> str:
+    """The key of the mean frames of ``frames`` stacked frames, in a shard and in ``load_split``."""
+    return FRAME_KEY.format(frames)
 
 
 # -- one scene ---------------------------------------------------------------------------------
@@ -232,14 +254,16 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
     chunks = list(simulator.stream((config.max_frames + 1) * FRAME_SECONDS, stats=stats))
     gain = 10 ** (stats.gain_db / 20)  # ADC volts per diode volt
     frame = round(rate * FRAME_SECONDS)
-    stacker = FrameStacker(rate, StackConfig(n_frames=config.max_frames,
-                                             clock_ppm=clock_ppm + float(rng.uniform(-0.02, 0.02)),
-                                             track_clock=False, max_drift_samples=10.0))
+    stacking = StackConfig(n_frames=config.max_frames, clock_ppm=clock_ppm + float(rng.uniform(-0.02, 0.02)),
+                           track_clock=False, max_drift_samples=10.0)
     samples = np.concatenate([c.samples for c in chunks]).astype(np.float64) * frontend.volts_per_code
-    stacks = stacker.push_samples(samples[frame:], frame, rate)
+    stacks = FrameStacker(rate, stacking).push_samples(samples[frame:], frame, rate)
     if not stacks:
         return []
     stack = stacks[0]
+    # as a stack of F frames would hold it: the same stream through a stacker of F frames
+    means = [FrameStacker(rate, replace(stacking, n_frames=f)).push_samples(samples[frame:], frame, rate)[0].mean
+             for f in config.frame_means]
     first_s = float(simulator.clock.true_time(stack.first_sample_index / rate))
     examples = []
     for k, emitter in enumerate(emitters[: len(pcis)]):  # a co-sited sector is its target's pair
@@ -254,6 +278,7 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
             continue  # across the frame edge: the rows would be cut circularly (rare; keeps labels simple)
         windows = extract_windows(stack, cut, templates.length, config.window_margin)
         cosited = -1 if k > 0 or sector is None else sector[0].cell.pci
+        coefficients = np.full(4, np.nan)
         if cosited < 0:
             template, scale = code_template(templates, emitter.cell.pci), received * gain
         else:  # fitted where the search's refined lock would put it: within half a sample
@@ -261,13 +286,15 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
             fit, _ = fit_site(templates, stack.mean - stack.mean.mean(), cosited_pair(emitter.cell.pci, cosited),
                               round(lock) % stack.frame_samples, lock - round(lock))
             template, scale = fit.template(templates), 1.0  # the fit is in volts already
+            coefficients = np.array(fit.coefficients)
         examples.append(Example(
             windows=windows, template=template.astype(np.float32),
             offset=arrival - (stack.first_sample_index + cut),
             snr_db=_snr_db(windows, template, scale, config.window_margin),
             bandwidth_mhz=bandwidth_k, profile=profile, delay_spread_ns=spread * 1e9,
             re_power_dbm=power_dbm, coarse_error=coarse_error, pci=emitter.cell.pci,
-            other_cells=len(pcis) - 1, cosited_pci=cosited))
+            other_cells=len(pcis) - 1, cosited_pci=cosited, site_coefficients=coefficients,
+            mean_frames=tuple(np.roll(mean, -cut).astype(np.float32) for mean in means)))
     return examples
 
 
@@ -315,6 +342,8 @@ def make_shard(config: DatasetConfig, split: str, index: int, frontend: Frontend
     arrays = {key: np.asarray([getattr(e, key) for e in examples]) for key in SHARD_KEYS}
     arrays["windows"] = arrays["windows"].astype(np.float32)
     arrays["template"] = arrays["template"].astype(np.float32)
+    for k, frames in enumerate(config.frame_means):
+        arrays[frame_key(frames)] = np.asarray([e.mean_frames[k] for e in examples])
     arrays[CONFIG_KEY] = np.array(_config_json(config))
     return arrays
 
@@ -385,7 +414,8 @@ def generate(root: Path, shards: dict[str, int], config: DatasetConfig | None = 
 
 
 def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
-    """Every shard of a split, concatenated (``SHARD_KEYS``); ValueError when there is none."""
+    """Every shard of a split, concatenated (``SHARD_KEYS``, and the mean frames every shard
+    holds: ``frame_key``); ValueError when there is none."""
     paths = sorted((Path(root) / split).glob("shard_*.npz"))
     if not paths:
         raise ValueError(f"no shards in {Path(root) / split}: `deepsync train` makes them")
@@ -396,6 +426,11 @@ def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
             if missing:
                 raise ValueError(f"{path}: not a timing shard (missing {', '.join(missing)})")
             count = len(shard["offset"])
-            parts.append({key: shard[key] if key in shard.files else np.full(count, ADDED_KEYS[key])
-                          for key in SHARD_KEYS})
-    return {key: np.concatenate([part[key] for part in parts]) for key in SHARD_KEYS}
+            part = {key: shard[key] for key in shard.files if key != CONFIG_KEY}
+            for key in SHARD_KEYS:
+                if key not in part:
+                    default = ADDED_KEYS[key]
+                    part[key] = np.broadcast_to(default, (count, *np.shape(default)))
+            parts.append(part)
+    keys = [key for key in parts[0] if all(key in part for part in parts)]
+    return {key: np.concatenate([part[key] for part in parts]) for key in keys}
