@@ -9,7 +9,7 @@ import pytest
 
 from deepsync.bag import sync_window_array_from_msg, sync_window_array_to_msg
 from deepsync.eval.cell_search import timing_error
-from deepsync.frontend.templates import known_frame
+from deepsync.frontend.templates import cosited_pair, known_frame, pair_coefficients, pair_frame_folds
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources import BagSource
 from deepsync.sync.stage import SyncConfig
@@ -103,13 +103,24 @@ def test_a_pair_found_together_is_fitted_once_and_each_sector_is_timed_as_alone(
         fits.clear()
         cells = stage.process(stack).cells
         assert len(fits) == len({frozenset((w.pci, w.cosited_pci)) for w in stack.windows}) < len(stack.windows)
-        # the frames the stage keeps (a pair's as its coefficients times kept parts) are the cells' known frames
+        # the frames the stage keeps (a pair's as its coefficients times kept parts) are the cells'
+        # known frames, and their folds those of the cell's CRS (a pair's: of its four parts, so scaled)
         for window in {frozenset((w.pci, w.cosited_pci)): w for w in stack.windows}.values():
-            (_, template, _, _, spectrum), = [f for f in fits if f[2] == window.coarse_index - stack.first_sample_index]
+            (_, template, _, _, spectrum, (orders, folds)), = [
+                f for f in fits if f[2] == window.coarse_index - stack.first_sample_index]
             expected = known_frame(stage.templates, window.pci, window.bandwidth_mhz, window.cosited_pci,
                                    window.site_coefficients)
             np.testing.assert_allclose(template, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
             np.testing.assert_allclose(spectrum, np.fft.rfft(expected), rtol=0, atol=1e-9 * np.abs(spectrum).max())
+            if window.cosited_pci is None:
+                expected_orders, expected_folds = stage.templates.crs_folds(window.pci, window.bandwidth_mhz)
+            else:
+                expected_orders, parts = pair_frame_folds(stage.templates, cosited_pair(window.pci, window.cosited_pci),
+                                                          window.bandwidth_mhz)
+                expected_folds = np.tensordot(pair_coefficients(window.pci, window.cosited_pci,
+                                                                window.site_coefficients), parts, axes=1)
+            assert list(orders) == list(expected_orders) == [-1, 1]  # 10 MHz at 1.92 MS/s
+            np.testing.assert_allclose(folds, expected_folds, rtol=0, atol=1e-9 * np.abs(expected_folds).max())
         for window, cell in zip(stack.windows, cells):
             alone = stage.process(dataclasses.replace(stack, windows=(window,))).cells[0]
             assert (cell.pci, cell.earfcn) == (window.pci, window.earfcn)

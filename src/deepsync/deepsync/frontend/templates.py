@@ -45,6 +45,11 @@ PSS_TEMPLATE_LENGTH = PSS_OFFSET_BASE + 2
 _OVERSAMPLING = 16  # template waveform rate: 16 x 1.92 MHz, far above any ADC rate used
 _RING_BASE = 64  # base samples (33 us) left after the shapes for the video filter's ringing: it lasts a few us
 _WAVEFORM_RATE = _OVERSAMPLING * BASE_RATE_HZ
+# a fold order of the CRS envelope (``SyncTemplates.crs_folds``) is kept where the video filter
+# passes its band above this: at 1.92 MS/s the orders -1 and +1 (0.96-2.88 MHz); the ones left
+# out change a 5-20 MHz template by 0.4 % of its energy and its timing by under 0.001 samples
+FOLD_FLOOR_DB = -40.0
+_FOLD_FLOOR = 10 ** (FOLD_FLOOR_DB / 20)
 FRACTION_GRID = 32
 
 
@@ -104,6 +109,7 @@ class SyncTemplates:
         self._filters: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}  # (n_fft, rate) -> (f, H(f))
         self._crs: dict[tuple[int, ...], np.ndarray] = {}  # (PCI(s), 10 x bandwidth) -> CRS envelope(s) of a frame
         self._code_aligned_crs: dict[tuple, np.ndarray] = {}  # the same, its code starting at 0
+        self._folds: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # the same key -> ``crs_folds``
 
     def response(self, envelopes: np.ndarray, rate_hz: float, delays_s: np.ndarray | float = 0.0,
                  length: int | None = None) -> np.ndarray:
@@ -209,8 +215,8 @@ class SyncTemplates:
         rises above the search's threshold (``deepsync.sync.search``). Cached."""
         key = (pci, round(10 * bandwidth_mhz))
         if key not in self._crs:
-            waveform, rate = self._crs_waveform(pci, bandwidth_mhz)
-            self._crs[key] = self._symbol_demeaned(self._periodic_response(np.abs(waveform) ** 2, rate))
+            envelope, rate = self._crs_square_law(pci, bandwidth_mhz)
+            self._crs[key] = self._symbol_demeaned(self._periodic_response(envelope, rate))
         return self._crs[key]
 
     def crs_cross_envelopes(self, pci_a: int, pci_b: int, bandwidth_mhz: float) -> np.ndarray:
@@ -220,11 +226,66 @@ class SyncTemplates:
         product as the codes' cross terms are (``cross_terms``). Cached."""
         key = (pci_a, pci_b, round(10 * bandwidth_mhz))
         if key not in self._crs:
-            (a, rate), (b, _) = (self._crs_waveform(pci, bandwidth_mhz) for pci in (pci_a, pci_b))
-            product = a * np.conj(b)
-            self._crs[key] = np.stack([self._symbol_demeaned(self._periodic_response(2 * part, rate))
-                                       for part in (product.real, product.imag)])
+            envelopes, rate = self._crs_square_law(pci_a, bandwidth_mhz, pci_b)
+            self._crs[key] = np.stack([self._symbol_demeaned(self._periodic_response(part, rate))
+                                       for part in envelopes])
         return self._crs[key]
+
+    def _crs_square_law(self, pci: int, bandwidth_mhz: float,
+                        cosited_pci: int | None = None) -> tuple[np.ndarray, float]:
+        """One frame of |CRS|^2 at the numerology's rate, or with a ``cosited_pci`` (2, ...)
+        2Re and 2Im of the two sectors' CRS product, and that rate."""
+        waveform, rate = self._crs_waveform(pci, bandwidth_mhz)
+        if cosited_pci is None:
+            return np.abs(waveform) ** 2, rate
+        product = 2 * waveform * np.conj(self._crs_waveform(cosited_pci, bandwidth_mhz)[0])
+        return np.stack([product.real, product.imag]), rate
+
+    def crs_folds(self, pci: int, bandwidth_mhz: float,
+                  cosited_pci: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """What sampling at the ADC rate folds into ``code_aligned_crs`` (same arguments):
+        ``(orders, spectra)``, spectra (M, frame // 2 + 1), with a ``cosited_pci`` (2, M, ...).
+
+        The CRS comb spans the whole carrier, so its envelope holds content above the ADC's
+        Nyquist frequency that the video filter passes in part (-4 dB at 0.96 MHz, -26 dB at
+        1.92 MHz at 1.92 MS/s); sampling folds it onto the bins below. Spectrum bin k of the
+        envelope sampled with its code starting at p samples is sum_m A_m(k) e^{-j (w_k + 2 pi m) p}
+        over the orders m (frequency k + m x frame bins); a template built at p = 0 and moved by
+        a phase ramp takes every A_m as in band, and is off by up to 0.08 samples at p between
+        whole samples (docs/timing_network.md). These are the A_m, m != 0, of the orders whose
+        band the video filter passes above ``FOLD_FLOOR_DB`` (none for 1.4 MHz, whose envelope
+        is made at the ADC rate), code-aligned as ``code_aligned_crs`` and in its units but with
+        no per-symbol mean removed: the folded content is far above the symbol rate. Cached."""
+        key = (pci, round(10 * bandwidth_mhz), cosited_pci)
+        if key not in self._folds:
+            envelopes, rate = self._crs_square_law(pci, bandwidth_mhz, cosited_pci)
+            self._folds[key] = self._folded(envelopes, rate)
+        return self._folds[key]
+
+    def _folded(self, envelopes: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+        """``crs_folds`` of a periodic envelope (..., L) at ``rate_hz`` (``_periodic_response``'s)."""
+        ratio = round(rate_hz / self.sample_rate)
+        length = envelopes.shape[-1]
+        frame = length // ratio
+        video = self._video.response(scipy.fft.rfftfreq(length, 1 / rate_hz))
+        spectrum = scipy.fft.rfft(envelopes, axis=-1) * video
+        bins = np.arange(frame // 2 + 1)
+        coupling = 1.0 if self._highpass is None else scipy.signal.sosfreqz(
+            self._highpass, scipy.fft.rfftfreq(frame, 1 / self.sample_rate), fs=self.sample_rate)[1]
+        scale = coupling * (self.config.detector_responsivity_v_per_w * self.config.rf_power_gain) / ratio
+        start = -sync_code_offset_seconds() * self.sample_rate  # where the frame starts, its code at 0
+        orders, folds = [], []
+        for order in range(-ratio, ratio + 1):
+            signed = bins + order * frame  # the envelope's frequency, in bins of the frame
+            inside = (signed > -(length // 2)) & (signed <= length // 2)  # the DFT's own frequencies, once each
+            if order == 0 or not inside.any() or np.max(np.abs(video[np.abs(signed[inside])])) < _FOLD_FLOOR:
+                continue
+            index = np.minimum(np.abs(signed), length // 2)
+            values = np.where(signed < 0, np.conj(spectrum[..., index]), spectrum[..., index])
+            orders.append(order)
+            folds.append(np.where(inside, values, 0) * scale * np.exp(-2j * np.pi * signed * start / frame))
+        return np.array(orders, dtype=int), np.stack(folds, axis=-2) if folds else np.zeros(
+            (*envelopes.shape[:-1], 0, frame // 2 + 1), dtype=complex)
 
     def _crs_waveform(self, pci: int, bandwidth_mhz: float) -> tuple[np.ndarray, float]:
         """One frame of a cell's port-0 CRS at its numerology's rate, the subcarriers outside the
@@ -365,6 +426,17 @@ def known_frame(
         return templates.frame_template(pci, bandwidth_mhz, [0.0])[0]
     coefficients = pair_coefficients(pci, cosited_pci, site_coefficients)
     return coefficients @ pair_frame_parts(templates, cosited_pair(pci, cosited_pci), bandwidth_mhz)
+
+
+def pair_frame_folds(templates: SyncTemplates, pair: tuple[int, int],
+                     bandwidth_mhz: float) -> tuple[np.ndarray, np.ndarray]:
+    """(orders, (4, M, frame // 2 + 1)) the folds of ``pair_frame_parts``' four parts, which
+    the pair's site coefficients scale as they scale the parts."""
+    lower, higher = pair
+    orders, own_a = templates.crs_folds(lower, bandwidth_mhz)
+    own_b = templates.crs_folds(higher, bandwidth_mhz)[1]
+    cross = templates.crs_folds(lower, bandwidth_mhz, higher)[1]
+    return orders, np.concatenate([own_a[None], own_b[None], cross])
 
 
 def pair_frame_parts(templates: SyncTemplates, pair: tuple[int, int], bandwidth_mhz: float) -> np.ndarray:

@@ -534,29 +534,38 @@ def _ml_lag(problem: _Problem, weights: np.ndarray, allowed: np.ndarray | None =
 
 
 def _maximum_near(z: np.ndarray, omega: np.ndarray, best: float, low: float, high: float,
-                  tolerance: float = 1e-9) -> float:
+                  tolerance: float = 1e-9, shifts: np.ndarray | None = None) -> float:
     """The maximum of sum Re(z e^{j omega lag}) in [low, high], from its grid point ``best``
-    (Newton's method, settled when a step falls below ``tolerance`` samples)."""
-    lag = _newton(z, omega, best, low, high, NEWTON_STEPS, tolerance=tolerance)
+    (Newton's method, settled when a step falls below ``tolerance`` samples). With ``shifts``
+    (R,), z is (R, bins) and row r's frequencies are omega + shifts[r] (a template's folds)."""
+    lag = _newton(z, omega, best, low, high, NEWTON_STEPS, tolerance=tolerance, shifts=shifts)
     if lag is not None:
         return lag
     result = scipy.optimize.minimize_scalar(
-        lambda x: -float(np.sum(np.real(z * np.exp(1j * omega * x)))), bounds=(low, high), method="bounded",
+        lambda x: -float(np.sum(np.real(_turned(z, omega, x, shifts)))), bounds=(low, high), method="bounded",
         options={"xatol": 1e-6})
-    polished = _newton(z, omega, float(result.x), low, high, 2, settle=False)  # Brent stops at its tolerance
+    polished = _newton(z, omega, float(result.x), low, high, 2, settle=False, shifts=shifts)  # Brent stops at its tolerance
     return float(result.x) if polished is None else polished
 
 
+def _turned(z: np.ndarray, omega: np.ndarray, lag: float, shifts: np.ndarray | None) -> np.ndarray:
+    """z e^{j (omega + shift) lag}: each term of the correlation at ``lag``."""
+    turned = z * _phases(omega, lag)
+    return turned if shifts is None else turned * np.exp(1j * shifts * lag)[:, None]
+
+
 def _newton(z: np.ndarray, omega: np.ndarray, lag: float, low: float, high: float, steps: int,
-            settle: bool = True, tolerance: float = 1e-9) -> float | None:
+            settle: bool = True, tolerance: float = 1e-9, shifts: np.ndarray | None = None) -> float | None:
     """Newton's method on the correlation's slope from ``lag``, at most ``steps`` steps: the
     point where a step falls below ``tolerance`` samples (else, unless ``settle``, the last one);
-    None if a step leaves [low, high] or meets a point where the correlation is not concave."""
-    omega_sq = omega**2
+    None if a step leaves [low, high] or meets a point where the correlation is not concave.
+    ``shifts``: as ``_maximum_near``'s."""
+    frequencies = omega if shifts is None else omega + shifts[:, None]
+    frequencies_sq = frequencies**2
     for _ in range(steps):
-        phase = z * _phases(omega, lag)
-        slope = -float(omega @ phase.imag)  # d/dlag of sum Re(phase)
-        curvature = -float(omega_sq @ phase.real)
+        phase = _turned(z, omega, lag, shifts)
+        slope = -float(np.vdot(frequencies, phase.imag))  # d/dlag of sum Re(phase); vdot: any shape, flat
+        curvature = -float(np.vdot(frequencies_sq, phase.real))
         if curvature >= 0:
             return None
         step = -slope / curvature
@@ -648,13 +657,18 @@ def frame_spectrum(frame: np.ndarray) -> np.ndarray:
 
 
 def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, reach: int,
-                      template_spectrum: np.ndarray | None = None) -> FrameTiming:
+                      template_spectrum: np.ndarray | None = None,
+                      folds: tuple[np.ndarray, np.ndarray] | None = None) -> FrameTiming:
     """Maximum-likelihood code start of a known cell within ``reach`` samples of ``start``, from
     everything the cell sends the same in every frame.
 
     ``spectrum``: ``frame_spectrum`` of a stack's mean frame (N samples). ``template`` (N,): the
     cell's known frame (``frontend.templates.known_frame``: codes and CRS), its subframe-0 code
-    starting at sample 0; ``template_spectrum`` its rfft, if the caller keeps it. Both repeat
+    starting at sample 0; ``template_spectrum`` its rfft, if the caller keeps it; ``folds``:
+    ``(orders, spectra)`` of what the ADC's sampling folds into it (``SyncTemplates.crs_folds``),
+    so that the template at a lag between samples is the one sampled there (the sum of its
+    folds, each turned by its own frequency), not the one at a whole sample moved by a phase
+    ramp: up to 0.08 samples apart at 5-20 MHz, where the CRS envelope reaches past Nyquist. Both repeat
     every frame, so the circular correlation is exact and the template has no edges. The sync
     codes are 4 of a frame's 140 symbols, the CRS 40 more: at 10 MHz the template carries ~10 dB
     more matched-filter energy than the codes alone (``benchmarks/full_frame_template.py``). Its
@@ -662,7 +676,8 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     +-``reach`` searched around a code lock.
 
     White weights (the correlation's maximum, found as ``estimate_ml`` finds it: the best
-    integer lag, then Newton's method, here to 1e-6 samples). The noise: one stacked frame has
+    integer lag, where every fold is as at lag 0, then Newton's method with the folds, here to
+    1e-6 samples). The noise: one stacked frame has
     no frame-to-frame fluctuation to measure it from, so it is the periodogram of what the
     fitted template leaves of the frame, averaged over ``2 FRAME_PSD_HALF_WIDTH + 1`` bins. That
     residual holds everything in the stack that is not this cell: detector noise, the data's
@@ -693,13 +708,21 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     best = int(np.clip(np.argmax(correlation), 1, 2 * reach - 1))
     near = lags[best] + float(np.clip(parabolic_offset(*correlation[best - 1 : best + 2]), -0.5, 0.5))
     z = cross[inner]
-    lag = _maximum_near(z, omega, near, max(lags[0], lags[best] - 1.0), min(lags[-1], lags[best] + 1.0),
-                        tolerance=1e-6)
+    orders, folded = (np.zeros(0, dtype=int), np.zeros((0, t_spec.size))) if folds is None else folds
+    if np.shape(folded) != (len(orders), t_spec.size):
+        raise ValueError(f"folds ({np.shape(folded)}) are not those of {len(orders)} orders of this template's bins")
+    folded = folded[:, inner]
+    # the in-band part, exact at whole-sample lags (where every fold turns by a whole turn),
+    # and the folds, each a correlation of its own at its own frequencies
+    terms = np.concatenate([(t_spec[inner] - folded.sum(axis=0))[None], folded])
+    shifts = 2 * np.pi * np.concatenate([[0], orders])
+    lag = _maximum_near(spectrum[inner] * np.conj(terms), omega, near, max(lags[0], lags[best] - 1.0),
+                        min(lags[-1], lags[best] + 1.0), tolerance=1e-6, shifts=shifts)
 
     power = problem.power
     phases = _phases(omega, lag)
-    moved = t_spec[inner] * np.conj(phases)  # the template with its code at `lag`
-    scale = float(np.sum(np.real(spectrum[inner] * np.conj(moved)))) / float(np.sum(power))
+    moved = np.conj(_turned(np.conj(terms), omega, lag, shifts)).sum(axis=0)  # the template with its code at `lag`
+    scale = float(np.sum(np.real(spectrum[inner] * np.conj(moved)))) / float(np.sum(np.abs(moved) ** 2))
     residual = np.abs(spectrum) ** 2
     residual[inner] = np.abs(spectrum[inner] - scale * moved) ** 2
     problem.psd = _smoothed(residual / n, FRAME_PSD_HALF_WIDTH)

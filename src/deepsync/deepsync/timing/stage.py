@@ -46,6 +46,7 @@ from deepsync.frontend.templates import (
     cosited_pair,
     known_frame,
     pair_coefficients,
+    pair_frame_folds,
     pair_frame_parts,
 )
 from deepsync.timing import network_install_hint
@@ -141,8 +142,8 @@ class TimingStage:
         self.templates = templates or SyncTemplates(frontend)
         self.sample_rate = frontend.adc_rate_hz
         self._single: dict[int, np.ndarray] = {}  # PCI -> template: 3 ms to compute, the same every stack
-        # (PCI, MHz) -> known frame and its rfft; (PCI, PCI, MHz) -> a pair's parts and theirs
-        self._frames: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        # (PCI, MHz) -> known frame, its rfft and folds; (PCI, PCI, MHz) -> a pair's parts and theirs
+        self._frames: dict[tuple, tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]] = {}
         self.network = None
         if self.config.estimator.uses_network:
             try:
@@ -244,9 +245,10 @@ class TimingStage:
         coefficients = None if window.site_coefficients is None else tuple(map(float, window.site_coefficients))
         key = (frozenset((window.pci, window.cosited_pci)), window.coarse_index, window.bandwidth_mhz, coefficients)
         if key not in fits:
-            template, template_spectrum = self._known_frame(window)
+            template, template_spectrum, folds = self._known_frame(window)
             start = (window.coarse_index - stack.first_sample_index) % len(template)
-            fits[key] = estimate_ml_frame(spectrum, template, start, self._margin(window, codes), template_spectrum)
+            fits[key] = estimate_ml_frame(spectrum, template, start, self._margin(window, codes), template_spectrum,
+                                          folds)
         timing = fits[key]
         estimate = timing.estimate
         noise = float(np.mean(timing.stacked_psd))
@@ -263,23 +265,26 @@ class TimingStage:
             amplitude=timing.amplitude * float(np.sqrt(np.mean(codes**2))),
         )
 
-    def _known_frame(self, window: SyncWindow) -> tuple[np.ndarray, np.ndarray]:
-        """The cell's known frame and its spectrum: a single PCI's kept; a pair's built from its fit
-        and the pair's kept parts (``pair_frame_parts``)."""
+    def _known_frame(self, window: SyncWindow) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """The cell's known frame, its spectrum and what sampling folds into it
+        (``SyncTemplates.crs_folds``): a single PCI's kept; a pair's built from its fit and the
+        pair's kept parts (``pair_frame_parts``, ``pair_frame_folds``)."""
         if window.cosited_pci is None:
             key = (window.pci, window.bandwidth_mhz)
             if key not in self._frames:
                 template = known_frame(self.templates, window.pci, window.bandwidth_mhz)
-                self._frames[key] = (template, scipy.fft.rfft(template))
+                self._frames[key] = (template, scipy.fft.rfft(template),
+                                     self.templates.crs_folds(window.pci, window.bandwidth_mhz))
             return self._frames[key]
         coefficients = pair_coefficients(window.pci, window.cosited_pci, window.site_coefficients)
         pair = cosited_pair(window.pci, window.cosited_pci)
         key = (*pair, window.bandwidth_mhz)
         if key not in self._frames:
             parts = pair_frame_parts(self.templates, pair, window.bandwidth_mhz)
-            self._frames[key] = (parts, scipy.fft.rfft(parts, axis=1))
-        parts, spectra = self._frames[key]
-        return coefficients @ parts, coefficients @ spectra
+            self._frames[key] = (parts, scipy.fft.rfft(parts, axis=1), pair_frame_folds(self.templates, pair,
+                                                                                          window.bandwidth_mhz))
+        parts, spectra, (orders, folds) = self._frames[key]
+        return coefficients @ parts, coefficients @ spectra, (orders, np.tensordot(coefficients, folds, axes=1))
 
     @staticmethod
     def _margin(window: SyncWindow, template: np.ndarray) -> int:
