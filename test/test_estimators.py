@@ -6,6 +6,7 @@ row, and coloured Gaussian noise with a low-pass-shaped spectrum (8 dB from DC t
 drawn as a linear process (not circular within the window).
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
+from deepsync.sync.windows import extract_windows
 from deepsync.timing.crlb import delay_crlb
 from deepsync.timing.estimators import (
     MODEL_FLOOR_SAMPLES,
@@ -367,37 +369,46 @@ def test_full_frame_ml_refuses_bad_input(whole_frame):
     assert kept.offset == pytest.approx(fresh.offset, abs=1e-9) and kept.std == pytest.approx(fresh.std, rel=1e-9)
 
 
+def _clean_cell_stack(templates: SyncTemplates, rng: np.random.Generator, seed: int, clock_ppm: float = 0.0):
+    """A strong 10 MHz cell (-75 dBm per RE) on its direct path alone, through the simulator's
+    front end with the receiver clock ``clock_ppm`` off (and the stacker told so): its first
+    10-frame stack, and where its code truly starts in the stack's first frame (samples)."""
+    from deepsync.frontend.channel import Emitter, FixedChannel, Paths
+    from deepsync.frontend.simulator import EnvelopeSimulator
+    from deepsync.frontend.templates import sync_code_offset_seconds
+    from deepsync.lte.cell import CellConfig
+    from deepsync.sync.stacking import FrameStacker, StackConfig
+    from deepsync.types import FRAME_SECONDS
+
+    frontend = dataclasses.replace(templates.config, clock_offset_ppm=clock_ppm)
+    rate = frontend.adc_rate_hz
+    frame = round(rate * FRAME_SECONDS)
+    delay = float(rng.uniform(0.2e-6, 3.3e-6))
+    cell = Emitter(CellConfig(FRAME_PCI, 10, 1.0), 2.12e9, 2e-3, float(rng.uniform(0, FRAME_SECONDS)), 0.0, "A")
+    path = Paths(np.array([delay]), np.array([np.sqrt(10 ** (-10.5) / 2e-3) + 0j]), np.array([0.0]))
+    simulator = EnvelopeSimulator([cell], FixedChannel([path]), frontend, seed=seed)
+    samples = np.concatenate([c.samples for c in simulator.stream(11 * FRAME_SECONDS)]) * frontend.volts_per_code
+    stacker = FrameStacker(rate, StackConfig(n_frames=10, clock_ppm=clock_ppm, track_clock=False))
+    stack = stacker.push_samples(samples[frame:].astype(np.float64), frame, rate)[0]
+    first = float(simulator.clock.true_time(stack.first_sample_index / rate))
+    travel = sync_code_offset_seconds() + delay
+    sent = cell.frame_start_s(cell.frame_index_at(first - travel) + 1)
+    return stack, float(simulator.sample_index(sent + travel)) - stack.first_sample_index
+
+
 def test_full_frame_ml_times_a_clean_wideband_cell_on_its_bound_at_any_sub_sample_phase(templates):
     """A 10 MHz cell's CRS envelope reaches past the 1.92 MS/s Nyquist frequency, and what the
     video filter leaves of it there folds back differently at every sub-sample phase: timed with
     a template moved by a phase ramp alone, a strong clean cell came out up to 0.08 samples off,
     by its phase. With the template's folds (``crs_folds``) every arrival is within a few of the
     bound's 0.015 samples, through the simulator's own front end."""
-    from deepsync.frontend.channel import Emitter, FixedChannel, Paths
-    from deepsync.frontend.simulator import EnvelopeSimulator
-    from deepsync.frontend.templates import known_frame, sync_code_offset_seconds
-    from deepsync.lte.cell import CellConfig
-    from deepsync.sync.stacking import FrameStacker, StackConfig
-    from deepsync.types import FRAME_SECONDS
+    from deepsync.frontend.templates import known_frame
 
-    frontend = templates.config
-    rate = frontend.adc_rate_hz
-    frame = round(rate * FRAME_SECONDS)
     rng = np.random.default_rng(8)
     errors, phases = [], []
     for seed in range(6):
-        delay = float(rng.uniform(0.2e-6, 3.3e-6))
-        cell = Emitter(CellConfig(FRAME_PCI, 10, 1.0), 2.12e9, 2e-3, float(rng.uniform(0, FRAME_SECONDS)), 0.0, "A")
-        path = Paths(np.array([delay]), np.array([np.sqrt(10 ** (-10.5) / 2e-3) + 0j]), np.array([0.0]))
-        simulator = EnvelopeSimulator([cell], FixedChannel([path]), frontend, seed=seed)
-        samples = np.concatenate([c.samples for c in simulator.stream(11 * FRAME_SECONDS)]) * frontend.volts_per_code
-        stacker = FrameStacker(rate, StackConfig(n_frames=10, clock_ppm=frontend.clock_offset_ppm, track_clock=False))
-        stack = stacker.push_samples(samples[frame:].astype(np.float64), frame, rate)[0]
-        first = float(simulator.clock.true_time(stack.first_sample_index / rate))
-        travel = sync_code_offset_seconds() + delay
-        sent = cell.frame_start_s(cell.frame_index_at(first - travel) + 1)
-        arrival = float(simulator.sample_index(sent + travel)) - stack.first_sample_index
-        start = math.floor(arrival) % frame
+        stack, arrival = _clean_cell_stack(templates, rng, seed)
+        start = math.floor(arrival) % stack.frame_samples
         timing = estimate_ml_frame(frame_spectrum(stack.mean), known_frame(templates, FRAME_PCI, 10), start, 10,
                                    folds=templates.crs_folds(FRAME_PCI, 10))
         errors.append(timing.estimate.offset + start - arrival)
@@ -405,3 +416,28 @@ def test_full_frame_ml_times_a_clean_wideband_cell_on_its_bound_at_any_sub_sampl
         assert timing.crlb_std < 0.03
     assert np.ptp(phases) > 0.5  # arrivals spread over the sample, where the folds differ most
     assert np.max(np.abs(errors)) < 0.04 and math.sqrt(np.mean(np.square(errors))) < 0.025, errors
+
+
+def test_a_receiver_clock_off_moves_the_mean_frame_not_the_arrival_the_timing_stage_reports(templates):
+    """With the receiver clock 2 ppm off, each frame of a stack is cut a whole number of samples
+    after the one before and its code drifts 0.04 samples further in it: the mean frame holds the
+    code at the frames' mean remainder (``Stack.mean_delay``, 0.17 samples here) after the first
+    frame. The timing stage reports every arrival on the first frame's time base, as the windows
+    are read (their rows aligned on it): ``ml_frame`` takes the mean frame's delay off."""
+    from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
+    from deepsync.types import StackWindows, SyncWindow
+
+    stage = TimingStage(templates.config, TimingConfig(Estimator.ML_FRAME), templates)
+    rng = np.random.default_rng(9)
+    errors = []
+    for seed in range(4):
+        stack, arrival = _clean_cell_stack(templates, rng, seed, clock_ppm=2.0)
+        assert stack.mean_delay == pytest.approx(2e-6 * stack.frame_samples * 4.5, abs=0.01)
+        coarse = stack.first_sample_index + math.floor(arrival)
+        window = SyncWindow(0, FRAME_PCI, coarse, extract_windows(stack, math.floor(arrival), templates.length, 10),
+                            10.0, 0.0, bandwidth_mhz=10.0)
+        timed = stage.process(StackWindows(0, stack.first_sample_index, stack.sample_rate, (window,),
+                                           frame=stack.mean, frame_delay=stack.mean_delay))
+        errors.append(timed.cells[0].toa - stack.first_sample_index - arrival)
+    # (the rows spread the code over 0.35 samples, which blurs the mean frame a little)
+    assert np.max(np.abs(errors)) < 0.07 and math.sqrt(np.mean(np.square(errors))) < 0.04, errors

@@ -138,6 +138,7 @@ def test_field_types(parsed: dict) -> None:
         "clock_drift_ppm": "float64",
         "cells": "deepsync_msgs/SyncWindow[]",
         "frame": "float32[]",
+        "frame_delay": "float64",
     }
     assert field_types(parsed, "CellTiming") == {
         "header": "std_msgs/Header",

@@ -49,7 +49,8 @@ def stack() -> StackWindows:
         SyncWindow(STAMP_NS, 120, 97_001, rng.normal(size=(10, 301)).astype(np.float32), 9.0, -1.5,
                    cosited_pci=121, site_coefficients=(1.0, 0.5, 0.25, -0.125)),
     )
-    return StackWindows(STAMP_NS, 96_000, 1.92e6, windows, clock_drift_ppm=0.25)
+    return StackWindows(STAMP_NS, 96_000, 1.92e6, windows, clock_drift_ppm=0.25,
+                        frame=rng.normal(size=1920).astype(np.float32), frame_delay=0.0864)
 
 
 def arrivals() -> StackArrivals:
@@ -114,6 +115,8 @@ def rebuilt(message: object, msgtype: str, carry) -> object:
 def assert_same_windows(got: StackWindows, want: StackWindows) -> None:
     assert (got.stamp_ns, got.first_sample_index, got.sample_rate, got.clock_drift_ppm) == (
         want.stamp_ns, want.first_sample_index, want.sample_rate, want.clock_drift_ppm)
+    np.testing.assert_array_equal(got.frame, want.frame)
+    assert got.frame_delay == want.frame_delay
     assert len(got.windows) == len(want.windows)
     for a, b in zip(got.windows, want.windows):
         assert (a.stamp_ns, a.pci, a.coarse_index, a.earfcn, a.carrier_hz, a.cosited_pci) == (

@@ -12,7 +12,7 @@ from deepsync.eval.timing import (
     run_estimators,
     time_by_frame,
 )
-from deepsync.training.dataset import DatasetConfig, frame_key, make_shard
+from deepsync.training.dataset import DatasetConfig, frame_delay_key, frame_key, make_shard
 
 
 def _results(errors: np.ndarray) -> dict[str, np.ndarray]:
@@ -101,6 +101,7 @@ def test_ml_frame_times_the_examples_of_a_split_that_keeps_their_mean_frames_at_
                            cosited_share=0.5, cosited_power_db=(-3.0, 0.0), frame_means=(3, 6))
     shard = make_shard(config, "test", 0)
     assert shard[frame_key(3)].shape == shard[frame_key(6)].shape == (8, 19200)
+    assert shard[frame_delay_key(3)].shape == (8,)
     strong = shard["snr_db"] > -25
     assert strong.sum() >= 4 and np.any(shard["cosited_pci"][strong] >= 0)
     for frames in (3, 6):

@@ -285,7 +285,10 @@ class StackWindows:
     sample ``first_sample_index`` was taken at receiver time ``stamp_ns``; ``clock_drift_ppm``
     is the receiver clock error the sync stage measured (None: unknown). ``frame`` (None: not
     sent) is the stack's mean frame (volts), its sample 0 at ``first_sample_index``: where the
-    timing stage finds a known cell's CRS, which is spread over the whole frame.
+    timing stage finds a known cell's CRS, which is spread over the whole frame. What repeats
+    sits ``frame_delay`` samples later in it than in the stack's first frame, whose time base
+    the windows and every arrival use: the rows' mean receiver-clock remainder
+    (``Stack.mean_delay``), 0.043 samples per ppm of clock offset for a 10-frame stack.
     """
 
     stamp_ns: int
@@ -294,9 +297,12 @@ class StackWindows:
     windows: tuple[SyncWindow, ...]
     clock_drift_ppm: float | None = None
     frame: np.ndarray | None = None  # (frame_samples,) float32, volts
+    frame_delay: float = 0.0  # samples
 
     def __post_init__(self) -> None:
         _check_time_base(self)
+        if not math.isfinite(self.frame_delay):
+            raise ValueError(f"StackWindows.frame_delay {self.frame_delay!r} must be finite")
         object.__setattr__(self, "windows", tuple(self.windows))
         if self.frame is not None:
             frame = np.asarray(self.frame, dtype=np.float32)

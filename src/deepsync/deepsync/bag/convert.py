@@ -206,7 +206,7 @@ def sync_window_array_to_msg(stack: StackWindows, *, frame_id: str = ENVELOPE_FR
     return types.resolve(SYNC_WINDOW_ARRAY)(
         header=make_header(stack.stamp_ns, frame_id, types), first_sample_index=int(stack.first_sample_index),
         sample_rate=float(stack.sample_rate), clock_drift_ppm=_optional_drift(stack.clock_drift_ppm), cells=cells,
-        frame=types.sequence(frame))
+        frame=types.sequence(frame), frame_delay=float(stack.frame_delay))
 
 
 def sync_window_array_from_msg(msg: Any) -> StackWindows:
@@ -234,7 +234,8 @@ def sync_window_array_from_msg(msg: Any) -> StackWindows:
         ))
     frame = np.array(msg.frame, dtype=np.float32)
     return StackWindows(stamp_to_ns(msg.header.stamp), int(msg.first_sample_index), float(msg.sample_rate),
-                        tuple(windows), _drift_from_msg(msg.clock_drift_ppm), frame if frame.size else None)
+                        tuple(windows), _drift_from_msg(msg.clock_drift_ppm), frame if frame.size else None,
+                        float(msg.frame_delay))
 
 
 def _pose(types: MessageTypes, x: float, y: float, z: float) -> Any:

@@ -46,7 +46,7 @@ from deepsync.timing.estimators import (
 )
 from deepsync.timing.stage import Estimator, TimingConfig, TimingStage, refine_with_ml
 from deepsync.towers import TowerDatabase
-from deepsync.training.dataset import LOS_PROFILES, PROFILES, frame_key, load_split
+from deepsync.training.dataset import LOS_PROFILES, PROFILES, frame_delay_key, frame_key, load_split
 from deepsync.types import StackWindows, SyncWindow
 
 if TYPE_CHECKING:
@@ -128,10 +128,10 @@ def time_by_frame(data: dict[str, np.ndarray], frames: int,
                   progress: bool = True) -> list[tuple[float, float, float]]:
     """(offset, sigma, Cramer-Rao bound) of each example by ``ml_frame`` through the timing stage, as a stack of
     ``frames`` frames hands it the cell: its windows, its bandwidth from the tower database, a
-    pair's fit, and the stack's mean frame (its sample 0 at the coarse code start)."""
+    pair's fit, and the stack's mean frame (its sample 0 at the coarse code start) with its delay."""
     frontend = FrontendConfig()
     templates = SyncTemplates(frontend)
-    means = data[frame_key(frames)]
+    means, delays = data[frame_key(frames)], data[frame_delay_key(frames)]
     out = []
     for i in tqdm(range(len(means)), desc=f"ml_frame, {frames} frames", disable=not progress):
         pair = int(data["cosited_pci"][i]) >= 0
@@ -142,7 +142,8 @@ def time_by_frame(data: dict[str, np.ndarray], frames: int,
             site_coefficients=tuple(map(float, data["site_coefficients"][i])) if pair else None)
         # a stage per example: its cache of known frames would grow by one per PCI and bandwidth
         stage = TimingStage(frontend, TimingConfig(Estimator.ML_FRAME), templates)
-        timed = stage.process(StackWindows(0, 0, frontend.adc_rate_hz, (window,), frame=means[i]))
+        timed = stage.process(StackWindows(0, 0, frontend.adc_rate_hz, (window,), frame=means[i],
+                                           frame_delay=float(delays[i])))
         cell = timed.cells[0] if timed.cells else None
         out.append((math.nan,) * 3 if cell is None else (cell.toa, cell.toa_std, cell.crlb_std))
     return out

@@ -106,6 +106,9 @@ class Stack:
     aligned: bool = True
     flags: tuple[Health, ...] = field(default=())
     drift_ppm: float | None = None  # receiver clock error measured on this stack (None: too weak)
+    # samples by which what repeats sits later in ``mean`` than in row 0: the rows' clock
+    # remainders averaged (a stack of N frames at c ppm: about 0.0096 c (N - 1) / 2 samples)
+    mean_delay: float = 0.0
 
     @property
     def n_frames(self) -> int:
@@ -369,8 +372,8 @@ class FrameStacker:
         starts = np.array([f.start for f in frames], dtype=np.int64)
         shifts = np.array([f.shift for f in frames])
         residual = None
+        placed = np.array([b.placement + m for b, m in zip(self._blocks, moves)])  # each block's content
         if half:  # where the halves' contents sit relative to each other, from the alignment alone
-            placed = np.array([b.placement + m for b, m in zip(self._blocks, moves)])
             offset = placed[len(moved) - half :].mean() - placed[:half].mean()
             residual = measure_drift(first, second, (len(moved) - half) * block, offset)
         exact = starts + shifts
@@ -380,7 +383,8 @@ class FrameStacker:
         if not aligned:
             flags.append(Health(HealthKind.MISALIGNED, f"{residual:+.1f} ppm of clock drift was not compensated"))
         stack = Stack(tuple(f.samples for f in frames), starts, shifts, self.sample_rate,
-                      self._stamp(int(starts[0])), mean, aligned, tuple(flags), drift)
+                      self._stamp(int(starts[0])), mean, aligned, tuple(flags), drift,
+                      float(placed.mean() - shifts[0]))
         for _ in range(self.config.hop):
             self._frames.popleft()
         for _ in range(self.config.hop // block):

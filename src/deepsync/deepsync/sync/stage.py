@@ -126,6 +126,7 @@ class SyncResult:
     clock_drift_ppm: float | None  # receiver clock error measured so far
     searched: bool  # searched for new cells (else only the cells found before were tracked)
     frame: np.ndarray | None = None  # the stack's mean frame, when a reported cell's bandwidth is known
+    frame_delay: float = 0.0  # samples what repeats sits later in ``frame`` than in the first row (StackWindows)
 
     @property
     def pcis(self) -> list[int]:
@@ -140,7 +141,7 @@ class SyncResult:
     def stack_windows(self) -> StackWindows:
         """The confirmed cells with the stack's time base: what ``cell_sync`` publishes."""
         return StackWindows(self.stamp_ns, self.first_sample_index, self.sample_rate, self.windows,
-                            self.clock_drift_ppm, self.frame)
+                            self.clock_drift_ppm, self.frame, self.frame_delay)
 
 
 class SyncStage:
@@ -221,6 +222,7 @@ class SyncStage:
             clock_drift_ppm=self.stacker.measured_drift_ppm,
             searched=discover,
             frame=stack.mean if frame_wanted else None,
+            frame_delay=stack.mean_delay,
         )
 
     def _back_off(self, found_new: bool) -> None:

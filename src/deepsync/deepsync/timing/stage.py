@@ -254,7 +254,8 @@ class TimingStage:
         noise = float(np.mean(timing.stacked_psd))
         return CellTiming(
             pci=window.pci,
-            toa=window.coarse_index + estimate.offset,
+            # the mean frame holds the code frame_delay later than the first frame, the windows' time base
+            toa=window.coarse_index + estimate.offset - stack.frame_delay,
             toa_std=estimate.std,
             # the codes' SNR at the fitted scale, as for the other estimators
             snr_db=max(snr_db(timing.amplitude, codes, noise), SNR_FLOOR_DB),

@@ -33,7 +33,8 @@ whole block). A scene is ``max_frames + 1`` frames long: the first settles the c
 
 ``frame_means`` (F, ...): each example also holds the stacked mean frame of its scene's first
 F frames (``frame_<F>``, the frame a stack of F frames hands the timing stage), turned so the
-window's coarse code start is its sample 0, and a pair its fit's ``site_coefficients``: what
+window's coarse code start is its sample 0, with that stack's ``mean_delay`` (``frame_delay_<F>``),
+and a pair its fit's ``site_coefficients``: what
 ``ml_frame``, the timing stage's default, times a known cell with (the codes and the CRS of the
 whole frame), so that the side by side can score it on the very examples the network is scored
 on. Not for training: one frame is 77 kB an example against the windows' 14 kB.
@@ -164,20 +165,26 @@ class Example:
     other_cells: int
     cosited_pci: int  # the target's co-sited sector, timed with it as a pair; -1: a single cell
     site_coefficients: np.ndarray  # (4,) a pair's fitted model (SyncWindow.site_coefficients); NaN: a single cell
-    # the config's frame_means' mean frames (each (frame samples,), coarse code start at 0)
+    # the config's frame_means' mean frames (each (frame samples,), coarse code start at 0) and
+    # their stacks' mean_delay (samples)
     mean_frames: tuple[np.ndarray, ...] = ()
+    frame_delays: tuple[float, ...] = ()
 
 
-SHARD_KEYS = tuple(f.name for f in fields(Example) if f.name != "mean_frames")
+SHARD_KEYS = tuple(f.name for f in fields(Example) if f.name not in ("mean_frames", "frame_delays"))
 # keys added since shards were first made, and what shards without them held: a shard resumes
 # with its config's missing fields at their defaults (``_check_made_with``), so it loads so too
 ADDED_KEYS = {"cosited_pci": -1, "site_coefficients": np.full(4, np.nan)}  # no pairs before cosited_share existed
-FRAME_KEY = "frame_{}"  # a shard's mean frames of F stacked frames, F in its config's frame_means
 
 
 def frame_key(frames: int) -> str:
     """The key of the mean frames of ``frames`` stacked frames, in a shard and in ``load_split``."""
-    return FRAME_KEY.format(frames)
+    return f"frame_{frames}"
+
+
+def frame_delay_key(frames: int) -> str:
+    """The key of their stacks' ``mean_delay``."""
+    return f"frame_delay_{frames}"
 
 
 # -- one scene ---------------------------------------------------------------------------------
@@ -262,8 +269,8 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
         return []
     stack = stacks[0]
     # as a stack of F frames would hold it: the same stream through a stacker of F frames
-    means = [FrameStacker(rate, replace(stacking, n_frames=f)).push_samples(samples[frame:], frame, rate)[0].mean
-             for f in config.frame_means]
+    shorter = [FrameStacker(rate, replace(stacking, n_frames=f)).push_samples(samples[frame:], frame, rate)[0]
+               for f in config.frame_means]
     first_s = float(simulator.clock.true_time(stack.first_sample_index / rate))
     examples = []
     for k, emitter in enumerate(emitters[: len(pcis)]):  # a co-sited sector is its target's pair
@@ -294,7 +301,8 @@ def simulate_scene(config: DatasetConfig, frontend: FrontendConfig, rng: np.rand
             bandwidth_mhz=bandwidth_k, profile=profile, delay_spread_ns=spread * 1e9,
             re_power_dbm=power_dbm, coarse_error=coarse_error, pci=emitter.cell.pci,
             other_cells=len(pcis) - 1, cosited_pci=cosited, site_coefficients=coefficients,
-            mean_frames=tuple(np.roll(mean, -cut).astype(np.float32) for mean in means)))
+            mean_frames=tuple(np.roll(s.mean, -cut).astype(np.float32) for s in shorter),
+            frame_delays=tuple(s.mean_delay for s in shorter)))
     return examples
 
 
@@ -344,6 +352,7 @@ def make_shard(config: DatasetConfig, split: str, index: int, frontend: Frontend
     arrays["template"] = arrays["template"].astype(np.float32)
     for k, frames in enumerate(config.frame_means):
         arrays[frame_key(frames)] = np.asarray([e.mean_frames[k] for e in examples])
+        arrays[frame_delay_key(frames)] = np.asarray([e.frame_delays[k] for e in examples])
     arrays[CONFIG_KEY] = np.array(_config_json(config))
     return arrays
 
