@@ -554,18 +554,33 @@ def _turned(z: np.ndarray, omega: np.ndarray, lag: float, shifts: np.ndarray | N
     return turned if shifts is None else turned * np.exp(1j * shifts * lag)[:, None]
 
 
+def _folded_derivatives(z: np.ndarray, omega: np.ndarray, lag: float, shifts: np.ndarray) -> tuple[float, float]:
+    """Slope and curvature in the lag of sum Re(z e^{j (omega + shifts[r]) lag}) over rows r and
+    bins: three sums over the bins per row (matrix-vector products), each row then turned by its
+    own shift, instead of a rows x bins array of terms."""
+    phases = _phases(omega, lag)
+    weighted = phases * omega
+    plain, first, second = z @ phases, z @ weighted, z @ (weighted * omega)
+    turn = np.exp(1j * shifts * lag)
+    slope = -float(np.sum((turn * (first + shifts * plain)).imag))
+    curvature = -float(np.sum((turn * (second + 2 * shifts * first + shifts**2 * plain)).real))
+    return slope, curvature
+
+
 def _newton(z: np.ndarray, omega: np.ndarray, lag: float, low: float, high: float, steps: int,
             settle: bool = True, tolerance: float = 1e-9, shifts: np.ndarray | None = None) -> float | None:
     """Newton's method on the correlation's slope from ``lag``, at most ``steps`` steps: the
     point where a step falls below ``tolerance`` samples (else, unless ``settle``, the last one);
     None if a step leaves [low, high] or meets a point where the correlation is not concave.
     ``shifts``: as ``_maximum_near``'s."""
-    frequencies = omega if shifts is None else omega + shifts[:, None]
-    frequencies_sq = frequencies**2
+    omega_sq = omega**2
     for _ in range(steps):
-        phase = _turned(z, omega, lag, shifts)
-        slope = -float(np.vdot(frequencies, phase.imag))  # d/dlag of sum Re(phase); vdot: any shape, flat
-        curvature = -float(np.vdot(frequencies_sq, phase.real))
+        if shifts is None:
+            phase = z * _phases(omega, lag)
+            slope = -float(omega @ phase.imag)  # d/dlag of sum Re(phase)
+            curvature = -float(omega_sq @ phase.real)
+        else:
+            slope, curvature = _folded_derivatives(z, omega, lag, shifts)
         if curvature >= 0:
             return None
         step = -slope / curvature
@@ -721,7 +736,7 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
 
     power = problem.power
     phases = _phases(omega, lag)
-    moved = np.conj(_turned(np.conj(terms), omega, lag, shifts)).sum(axis=0)  # the template with its code at `lag`
+    moved = (np.exp(-1j * shifts * lag) @ terms) * np.conj(phases)  # the template with its code at `lag`
     scale = float(np.sum(np.real(spectrum[inner] * np.conj(moved)))) / float(np.sum(np.abs(moved) ** 2))
     residual = np.abs(spectrum) ** 2
     residual[inner] = np.abs(spectrum[inner] - scale * moved) ** 2
