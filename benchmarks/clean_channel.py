@@ -24,7 +24,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from deepsync.eval.timing import ESTIMATORS, evaluate_timing
+from deepsync.eval.timing import ESTIMATORS, evaluate_timing, threshold_text
 from deepsync.training.dataset import Channel, generate
 from deepsync.training.train import load_run_config
 
@@ -52,14 +52,11 @@ def main() -> None:
         high = headline["high_snr_los_rmse_from_0_db"][name]
         shares = headline["within_1_sigma_range_over_snr_bins"][name]
         verdicts = headline["within_1_sigma_snr_bins"][name]
-        print(f"{name:<14} {_db(threshold['rmse_over_2_crlb']):>20} {_db(threshold['outliers_over_10_percent']):>22} "
+        print(f"{name:<14} {threshold_text(threshold['rmse_over_2_crlb']):>20} "
+              f"{threshold_text(threshold['outliers_over_10_percent']):>22} "
               f"{high:>15.3f} {high / ml_high:>7.2f} "
               f"{shares[0]:.0%}-{shares[1]:.0%}, {verdicts['in_band']}/{verdicts['bins']} in band")
     print(f"written to {OUT.relative_to(REPO)}")
-
-
-def _db(value: float | None) -> str:
-    return "never" if value is None else f"{value:+.0f} dB"
 
 
 if __name__ == "__main__":

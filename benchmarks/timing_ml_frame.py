@@ -22,7 +22,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from deepsync.eval.timing import evaluate_timing
+from deepsync.eval.timing import evaluate_timing, threshold_text
 from deepsync.training.dataset import Channel, generate
 from deepsync.training.train import load_run_config
 
@@ -63,14 +63,11 @@ def main() -> None:
     for name in SHOWN:
         threshold = headline["threshold_snr_db_los"][name]
         verdicts = headline["within_1_sigma_snr_bins"][name]
-        print(f"{name:>10s} {_db(threshold['outliers_over_10_percent']):>28} {_db(threshold['rmse_over_2_crlb']):>20} "
+        print(f"{name:>10s} {threshold_text(threshold['outliers_over_10_percent']):>28} "
+              f"{threshold_text(threshold['rmse_over_2_crlb']):>20} "
               f"{headline['multipath_rmse_-10_to_0_db'][name]:15.2f} "
               f"{headline['high_snr_los_rmse_from_0_db'][name]:19.3f} {verdicts['in_band']:>24d} of {verdicts['bins']}")
     print(f"wrote {out / 'timing.json'}")
-
-
-def _db(value: float | None) -> str:
-    return "never" if value is None else f"{value:+.0f} dB"
 
 
 if __name__ == "__main__":

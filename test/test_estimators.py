@@ -363,6 +363,8 @@ def test_full_frame_ml_refuses_bad_input(whole_frame):
         estimate_ml_frame(spectrum, template, 100, 0)
     with pytest.raises(ValueError, match="template"):
         estimate_ml_frame(spectrum, np.zeros(frame.size), 100, 10)
+    with pytest.raises(ValueError, match="folds"):
+        estimate_ml_frame(spectrum, template, 100, 10, folds=(np.array([-1, 1]), np.zeros((2, 5), dtype=complex)))
     # the template's spectrum, kept by the caller, gives the same estimate
     kept = estimate_ml_frame(spectrum, template, 100, 10, np.fft.rfft(template)).estimate
     fresh = estimate_ml_frame(spectrum, template, 100, 10).estimate

@@ -288,7 +288,7 @@ class StackWindows:
     timing stage finds a known cell's CRS, which is spread over the whole frame. What repeats
     sits ``frame_delay`` samples later in it than in the stack's first frame, whose time base
     the windows and every arrival use: the rows' mean receiver-clock remainder
-    (``Stack.mean_delay``), 0.043 samples per ppm of clock offset for a 10-frame stack.
+    (``Stack.mean_delay``), 0.086 samples per ppm of clock offset for a 10-frame stack.
     """
 
     stamp_ns: int

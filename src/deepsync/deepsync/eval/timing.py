@@ -126,9 +126,10 @@ def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEst
 
 def time_by_frame(data: dict[str, np.ndarray], frames: int,
                   progress: bool = True) -> list[tuple[float, float, float]]:
-    """(offset, sigma, Cramer-Rao bound) of each example by ``ml_frame`` through the timing stage, as a stack of
-    ``frames`` frames hands it the cell: its windows, its bandwidth from the tower database, a
-    pair's fit, and the stack's mean frame (its sample 0 at the coarse code start) with its delay."""
+    """(offset, sigma, Cramer-Rao bound) of each example by ``ml_frame`` through the timing
+    stage, as a stack of ``frames`` frames hands it the cell: its windows, its bandwidth from the
+    tower database, a pair's fit, and the stack's mean frame (its sample 0 at the coarse code
+    start) with its delay."""
     frontend = FrontendConfig()
     templates = SyncTemplates(frontend)
     means, delays = data[frame_key(frames)], data[frame_delay_key(frames)]
@@ -193,6 +194,11 @@ def threshold_snr_db(rows: list[dict], name: str) -> dict[str, float | None]:
     rmse = [row["snr_db"][1] for row in filled if row[name]["rmse"] > 2 * row[bound]]
     outliers = [row["snr_db"][1] for row in filled if row[name]["outliers"] > 0.1]
     return {"rmse_over_2_crlb": max(rmse) if rmse else None, "outliers_over_10_percent": max(outliers) if outliers else None}
+
+
+def threshold_text(value: float | None) -> str:
+    """A ``threshold_snr_db`` value as a table prints it ("never": no SNR bin crosses)."""
+    return "never" if value is None else f"{value:+.0f} dB"
 
 
 def evaluate_timing(data_dir: str | Path, out: str | Path, checkpoint: str | Path | None = None,

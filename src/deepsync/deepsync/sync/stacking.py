@@ -107,7 +107,7 @@ class Stack:
     flags: tuple[Health, ...] = field(default=())
     drift_ppm: float | None = None  # receiver clock error measured on this stack (None: too weak)
     # samples by which what repeats sits later in ``mean`` than in row 0: the rows' clock
-    # remainders averaged (a stack of N frames at c ppm: about 0.0096 c (N - 1) / 2 samples)
+    # remainders averaged (a stack of N frames at c ppm: 0.0192 c (N - 1) / 2 samples)
     mean_delay: float = 0.0
 
     @property

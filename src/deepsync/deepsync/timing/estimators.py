@@ -544,7 +544,8 @@ def _maximum_near(z: np.ndarray, omega: np.ndarray, best: float, low: float, hig
     result = scipy.optimize.minimize_scalar(
         lambda x: -float(np.sum(np.real(_turned(z, omega, x, shifts)))), bounds=(low, high), method="bounded",
         options={"xatol": 1e-6})
-    polished = _newton(z, omega, float(result.x), low, high, 2, settle=False, shifts=shifts)  # Brent stops at its tolerance
+    # Brent stops at its tolerance
+    polished = _newton(z, omega, float(result.x), low, high, 2, settle=False, shifts=shifts)
     return float(result.x) if polished is None else polished
 
 
@@ -683,8 +684,8 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     ``(orders, spectra)`` of what the ADC's sampling folds into it (``SyncTemplates.crs_folds``),
     so that the template at a lag between samples is the one sampled there (the sum of its
     folds, each turned by its own frequency), not the one at a whole sample moved by a phase
-    ramp: up to 0.08 samples apart at 5-20 MHz, where the CRS envelope reaches past Nyquist. Both repeat
-    every frame, so the circular correlation is exact and the template has no edges. The sync
+    ramp: up to 0.08 samples apart at 5-20 MHz, where the CRS envelope reaches past Nyquist.
+    Both repeat every frame, so the circular correlation is exact and the template has no edges. The sync
     codes are 4 of a frame's 140 symbols, the CRS 40 more: at 10 MHz the template carries ~10 dB
     more matched-filter energy than the codes alone (``benchmarks/full_frame_template.py``). Its
     autocorrelation has sidelobes at the CRS comb's period (21.3 samples), beyond the

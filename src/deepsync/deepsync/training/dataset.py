@@ -33,11 +33,10 @@ whole block). A scene is ``max_frames + 1`` frames long: the first settles the c
 
 ``frame_means`` (F, ...): each example also holds the stacked mean frame of its scene's first
 F frames (``frame_<F>``, the frame a stack of F frames hands the timing stage), turned so the
-window's coarse code start is its sample 0, with that stack's ``mean_delay`` (``frame_delay_<F>``),
-and a pair its fit's ``site_coefficients``: what
-``ml_frame``, the timing stage's default, times a known cell with (the codes and the CRS of the
-whole frame), so that the side by side can score it on the very examples the network is scored
-on. Not for training: one frame is 77 kB an example against the windows' 14 kB.
+window's coarse code start is its sample 0, with that stack's ``mean_delay``
+(``frame_delay_<F>``), and a pair its fit's ``site_coefficients``: what ``ml_frame``, the timing
+stage's default, times a known cell with (the codes and the CRS of the whole frame), so that the
+side by side can score it on the very examples the network is scored on. Not for training: one frame is 77 kB an example against the windows' 14 kB.
 
 ``channel: clean`` replaces every TDL channel by the direct path alone (no multipath, no
 fading): not for training, but the reference case in which an estimator can meet its Cramer-Rao
