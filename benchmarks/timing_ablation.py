@@ -146,8 +146,8 @@ def main() -> None:
     path = OUT / f"{args.name}.json"
     summary = json.loads(path.read_text()) if path.exists() else {}
     if (summary.get("steps"), summary.get("test_data")) != (args.steps, test_data):  # ML's row is of that split
-        summary = {"steps": args.steps, "frames": FRAMES, "test_data": test_data, "examples": int(len(data["offset"])),
-                   "variants": {}}
+        summary = {"steps": args.steps, "frames": FRAMES, "test_data": test_data,
+                   "examples": int(len(data["offset"])), "variants": {}}
     if "ml" not in summary:
         summary["ml"] = score(*ml_errors(data), data)
     for name, run in runs.items():

@@ -66,7 +66,8 @@ def main() -> None:
         print(f"{name:>10s} {threshold_text(threshold['outliers_over_10_percent']):>28} "
               f"{threshold_text(threshold['rmse_over_2_crlb']):>20} "
               f"{headline['multipath_rmse_-10_to_0_db'][name]:15.2f} "
-              f"{headline['high_snr_los_rmse_from_0_db'][name]:19.3f} {verdicts['in_band']:>24d} of {verdicts['bins']}")
+              f"{headline['high_snr_los_rmse_from_0_db'][name]:19.3f} "
+              f"{verdicts['in_band']:>24d} of {verdicts['bins']}")
     print(f"wrote {out / 'timing.json'}")
 
 

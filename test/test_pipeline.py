@@ -115,8 +115,8 @@ def test_a_pair_found_together_is_fitted_once_and_each_sector_is_timed_as_alone(
             if window.cosited_pci is None:
                 expected_orders, expected_folds = stage.templates.crs_folds(window.pci, window.bandwidth_mhz)
             else:
-                expected_orders, parts = pair_frame_folds(stage.templates, cosited_pair(window.pci, window.cosited_pci),
-                                                          window.bandwidth_mhz)
+                pair = cosited_pair(window.pci, window.cosited_pci)
+                expected_orders, parts = pair_frame_folds(stage.templates, pair, window.bandwidth_mhz)
                 expected_folds = np.tensordot(pair_coefficients(window.pci, window.cosited_pci,
                                                                 window.site_coefficients), parts, axes=1)
             assert list(orders) == list(expected_orders) == [-1]  # 10 MHz at 1.92 MS/s

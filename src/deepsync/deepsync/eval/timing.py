@@ -141,7 +141,8 @@ def time_by_frame(data: dict[str, np.ndarray], frames: int,
             peak_metric=math.nan, snr_db=float(data["snr_db"][i]), bandwidth_mhz=float(data["bandwidth_mhz"][i]),
             cosited_pci=int(data["cosited_pci"][i]) if pair else None,
             site_coefficients=tuple(map(float, data["site_coefficients"][i])) if pair else None)
-        # a stage per example: its cache of known frames would grow by one per PCI and bandwidth
+        # a stage per example: its cache of known frames (0.5 MB per PCI and bandwidth) would
+        # otherwise hold every example's; the shared templates' CRS caches still grow, by less
         stage = TimingStage(frontend, TimingConfig(Estimator.ML_FRAME), templates)
         timed = stage.process(StackWindows(0, 0, frontend.adc_rate_hz, (window,), frame=means[i],
                                            frame_delay=float(delays[i])))

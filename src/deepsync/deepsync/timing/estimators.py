@@ -685,16 +685,16 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     so that the template at a lag between samples is the one sampled there (the sum of its
     folds, each turned by its own frequency), not the one at a whole sample moved by a phase
     ramp: up to 0.08 samples apart at 5-20 MHz, where the CRS envelope reaches past Nyquist.
-    Both repeat every frame, so the circular correlation is exact and the template has no edges. The sync
-    codes are 4 of a frame's 140 symbols, the CRS 40 more: at 10 MHz the template carries ~10 dB
-    more matched-filter energy than the codes alone (``benchmarks/full_frame_template.py``). Its
-    autocorrelation has sidelobes at the CRS comb's period (21.3 samples), beyond the
-    +-``reach`` searched around a code lock.
+    Both repeat every frame, so the circular correlation is exact and the template has no edges.
+    The sync codes are 4 of a frame's 140 symbols, the CRS 40 more: at 10 MHz the template
+    carries ~10 dB more matched-filter energy than the codes alone
+    (``benchmarks/full_frame_template.py``). Its autocorrelation has sidelobes at the CRS comb's
+    period (21.3 samples), beyond the +-``reach`` searched around a code lock.
 
     White weights (the correlation's maximum, found as ``estimate_ml`` finds it: the best
     integer lag, where every fold is as at lag 0, then Newton's method with the folds, here to
-    1e-6 samples). The noise: one stacked frame has
-    no frame-to-frame fluctuation to measure it from, so it is the periodogram of what the
+    1e-6 samples). The noise: one stacked frame has no frame-to-frame fluctuation to measure it
+    from, so it is the periodogram of what the
     fitted template leaves of the frame, averaged over ``2 FRAME_PSD_HALF_WIDTH + 1`` bins. That
     residual holds everything in the stack that is not this cell: detector noise, the data's
     self-mixing that stacking did not remove, and the other cells' deterministic envelopes.
@@ -726,7 +726,8 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     z = cross[inner]
     orders, folded = (np.zeros(0, dtype=int), np.zeros((0, t_spec.size))) if folds is None else folds
     if np.shape(folded) != (len(orders), t_spec.size):
-        raise ValueError(f"folds ({np.shape(folded)}) are not those of {len(orders)} orders of this template's bins")
+        raise ValueError(f"folds ({np.shape(folded)}) are not those of {len(orders)} orders "
+                         "of this template's bins")
     folded = folded[:, inner]
     # the in-band part, exact at whole-sample lags (where every fold turns by a whole turn),
     # and the folds, each a correlation of its own at its own frequencies

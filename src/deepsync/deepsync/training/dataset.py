@@ -36,7 +36,8 @@ F frames (``frame_<F>``, the frame a stack of F frames hands the timing stage), 
 window's coarse code start is its sample 0, with that stack's ``mean_delay``
 (``frame_delay_<F>``), and a pair its fit's ``site_coefficients``: what ``ml_frame``, the timing
 stage's default, times a known cell with (the codes and the CRS of the whole frame), so that the
-side by side can score it on the very examples the network is scored on. Not for training: one frame is 77 kB an example against the windows' 14 kB.
+side by side can score it on the very examples the network is scored on. Not for training: one
+frame is 77 kB an example against the windows' 14 kB.
 
 ``channel: clean`` replaces every TDL channel by the direct path alone (no multipath, no
 fading): not for training, but the reference case in which an estimator can meet its Cramer-Rao
