@@ -12,6 +12,7 @@ for new cells runs (``SyncConfig.search_every``: the shortest gap, which doubles
 ``max_search_interval_s`` while the searches find nothing new).
 
     python benchmarks/stack_length.py [--route route_dense] [--stacks 10 20 50 100] [--search-every K] [--out NAME]
+    python benchmarks/stack_length.py --route route_drive --towers config/towers/route_dense.yaml --stacks 10 50 50/10
 
 Needs the route bag (scripts/route_bags.sh). Writes docs/results/stack_length.json (or --out).
 """
@@ -83,6 +84,8 @@ def main() -> None:
     parser.add_argument("--out", default="stack_length.json", help="file name under docs/results")
     args = parser.parse_args()
     towers = Path(args.towers).resolve() if args.towers else REPO / "config" / "towers" / f"{args.route}.yaml"
+    if not towers.exists():  # route_drive shares route_dense's sites (its scenario names the database)
+        raise SystemExit(f"tower database {towers} does not exist: name the route's with --towers")
     rows = []
     print(f"{args.route}, true site clocks, whole route, a full search every {args.search_every} stacks")
     print(f"  {'N/hop':>6s} {'sites/stack':>11s} {'>=3 sites':>9s} {'snapshot':>17s} {'tracked m':>14s} "
