@@ -253,3 +253,63 @@ def test_channel_pickles_for_worker_processes():
     twin = _walk_twin(los="los")
     clone = pickle.loads(pickle.dumps(twin.channel))
     np.testing.assert_array_equal(clone.paths(1, 42.0).gains, twin.channel.paths(1, 42.0).gains)
+
+
+def test_without_spatial_consistency_shadowing_and_delay_spread_keep_their_first_draw():
+    twin = _walk_twin(los="nlos")
+    spread0 = twin.channel.paths(0, 0.0).delays_s - twin.geometric_delay_s(0, 0.0)
+    spread1 = twin.channel.paths(0, 200.0).delays_s - twin.geometric_delay_s(0, 200.0)
+    np.testing.assert_allclose(spread1, spread0, rtol=0, atol=1e-15)
+
+
+def test_spatially_consistent_parameters_start_from_the_same_draws_and_change_along_the_route():
+    fixed, moving = _walk_twin(los="nlos"), _walk_twin(los="nlos", spatial_consistency=True)
+    assert fixed.channel.link_parameters(0) == moving.channel.link_parameters(0)
+    for index in range(2):  # where the route starts, the paths are the very same
+        a, b = fixed.channel.paths(index, 0.0), moving.channel.paths(index, 0.0)
+        np.testing.assert_allclose(b.delays_s, a.delays_s, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(b.gains, a.gains, rtol=1e-12)
+    link = moving.channel.link_parameters(0)
+    normalised = np.repeat(np.asarray(TDL_PROFILES["TDL-A"].delays), 16)
+    spreads, shadows = [], []
+    for t in np.arange(0.0, 250.0, 10.0):  # 350 m walked, 7-9 correlation distances
+        paths_fixed, paths_moving = fixed.channel.paths(0, t), moving.channel.paths(0, t)
+        excess = paths_moving.delays_s - moving.geometric_delay_s(0, t)
+        spread = excess[-1] / normalised[-1]  # every tap's delay scaled by one delay spread
+        np.testing.assert_allclose(excess, normalised * spread, rtol=1e-9, atol=1e-15)
+        spreads.append(spread)
+        # the gains differ by the shadowing alone (the same fading, delays aside)
+        ratio_db = 20 * np.log10(np.abs(paths_moving.gains) / np.abs(paths_fixed.gains))
+        np.testing.assert_allclose(ratio_db, ratio_db[0], atol=1e-9)
+        shadows.append(link.shadow_fading_db + ratio_db[0])
+    assert spreads[0] == pytest.approx(link.delay_spread_s)
+    # UMa NLOS: lgDS sigma 0.39 and SF sigma 6 dB; over 350 m both wander by a good part of that
+    assert np.ptp(np.log10(spreads)) > 0.2 and np.ptp(shadows) > 3.0
+    # and they change smoothly: within 1.4 m (one second) by far less than their sigma
+    near = moving.channel.paths(0, 101.0).delays_s - moving.geometric_delay_s(0, 101.0)
+    here = moving.channel.paths(0, 100.0).delays_s - moving.geometric_delay_s(0, 100.0)
+    assert abs(np.log10(near[-1] / here[-1])) < 0.1
+
+
+def test_spatially_consistent_parameters_stay_put_for_a_fixed_receiver():
+    fixed = build_twin(_scenario(los="nlos"))
+    consistent = build_twin(_scenario(los="nlos", spatial_consistency=True))
+    for t in (0.0, 30.0, 300.0):
+        a, b = fixed.channel.paths(0, t), consistent.channel.paths(0, t)
+        np.testing.assert_allclose(b.delays_s, a.delays_s, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(b.gains, a.gains, rtol=1e-12)
+
+
+def test_correlated_normal_along_has_the_exponential_autocorrelation():
+    from deepsync.twin.statistical_channel import ALONG_ROUTE_STEP_M, correlated_normal_along
+
+    rng = np.random.default_rng(3)
+    correlation_m = 30.0
+    runs = np.array([correlated_normal_along(rng, rng.standard_normal(), 150.0, correlation_m)
+                     for _ in range(3000)])
+    assert runs.shape == (3000, int(150.0 / ALONG_ROUTE_STEP_M) + 1)
+    np.testing.assert_allclose(runs.std(axis=0)[[0, 50, 150]], 1.0, atol=0.05)  # stationary
+    for lag_m in (10.0, 30.0, 90.0):
+        lag = int(lag_m / ALONG_ROUTE_STEP_M)
+        rho = np.corrcoef(runs[:, 20], runs[:, 20 + lag])[0, 1]
+        assert rho == pytest.approx(np.exp(-lag_m / correlation_m), abs=0.05)

@@ -114,3 +114,16 @@ def delay_spread_lognormal(model: str, los: bool, carrier_hz: float) -> tuple[fl
     if los:
         return -0.24 * lg_1fc - 7.14, 0.38
     return -0.24 * lg_1fc - 6.83, 0.16 * lg_1fc + 0.28
+
+
+# Correlation distances in the horizontal plane (m), Table 7.5-6 Part 1: (model, los) ->
+# (shadow fading, delay spread). How far a receiver moves before its large-scale parameters
+# towards a site are new draws (38.901 §7.6.3.1: exponential autocorrelation over distance).
+_CORRELATION_DISTANCE_M = {("UMa", True): (37.0, 30.0), ("UMa", False): (50.0, 40.0),
+                           ("UMi", True): (10.0, 7.0), ("UMi", False): (13.0, 10.0)}
+
+
+def correlation_distances_m(model: str, los: bool) -> tuple[float, float]:
+    """(shadow fading, delay spread) correlation distances (m), Table 7.5-6 Part 1."""
+    _check_model(model)
+    return _CORRELATION_DISTANCE_M[(model, bool(los))]

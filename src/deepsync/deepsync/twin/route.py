@@ -58,16 +58,19 @@ class Trajectory:
         """Time to walk one pass (0 for a fixed receiver)."""
         return self.length_m / self.speed_mps if self.speed_mps > 0 else 0.0
 
+    def distance_along(self, t: ArrayLike) -> np.ndarray:
+        """Where on the route the receiver is at time(s) ``t``: metres from the first waypoint
+        along the path, in [0, length_m] (a loop starts over at 0; a fixed receiver is at 0)."""
+        t = np.asarray(t, dtype=np.float64)
+        s = self.speed_mps * np.maximum(t, 0.0)
+        return np.mod(s, self.length_m) if self.loop else np.minimum(s, self.length_m)
+
     def _locate(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(segment index, distance along it, moving?) at times ``t``."""
         t = np.asarray(t, dtype=np.float64)
-        s = self.speed_mps * np.maximum(t, 0.0)
-        if self.loop:
-            s = np.mod(s, self.length_m)
-            moving = t >= 0
-        else:
-            moving = (t >= 0) & (s < self.length_m)
-            s = np.minimum(s, self.length_m)
+        s = self.distance_along(t)
+        walked = self.speed_mps * np.maximum(t, 0.0)
+        moving = (t >= 0) if self.loop else (t >= 0) & (walked < self.length_m)
         index = np.clip(np.searchsorted(self._starts, s, side="right") - 1,
                         0, len(self._segments) - 1)
         return index, s - self._starts[index], moving

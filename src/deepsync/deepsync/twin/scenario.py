@@ -9,7 +9,7 @@ The schema, with defaults for the optional keys::
     origin: {latitude_deg, longitude_deg, height_m}   # map-frame origin, ellipsoidal height
     environment: {model: UMa, los: auto}              # UMa | UMi; auto | los | nlos
     channel: {profile_los: TDL-D, profile_nlos: TDL-A, delay_spread_ns: auto,
-              shadow_fading: true, environment_doppler_hz: 1.0}
+              shadow_fading: true, environment_doppler_hz: 1.0, spatial_consistency: false}
     sites:
       - name: A
         latitude_deg: ..
@@ -138,14 +138,16 @@ class Environment:
 @dataclass(frozen=True)
 class ChannelSettings:
     """Multipath model: TDL profile per LOS state, delay spread (``None`` = drawn from the
-    38.901 log-normal), log-normal shadowing on/off, and a Doppler floor (Hz) for a changing
-    environment around a static receiver."""
+    38.901 log-normal), log-normal shadowing on/off, a Doppler floor (Hz) for a changing
+    environment around a static receiver, and whether a moving receiver's shadowing and drawn
+    delay spread change along its route (38.901 spatial consistency) or keep their first draw."""
 
     profile_los: str = "TDL-D"
     profile_nlos: str = "TDL-A"
     delay_spread_ns: float | None = None
     shadow_fading: bool = True
     environment_doppler_hz: float = 1.0
+    spatial_consistency: bool = False
 
 
 @dataclass(frozen=True)

@@ -32,9 +32,14 @@ Approximations (beyond those of :mod:`deepsync.twin.propagation`):
   length; only the LOS tap's phase follows exp(-j 2 pi f_c d/c); every path of a cell also
   carries that sector's fixed transmit-chain phase, so co-sited sectors share their fading
   but not their phase;
-* large-scale parameters (LOS state, shadowing, delay spread) and the fading realisation are
-  drawn once per site and kept along a route: not spatially consistent (38.901 §7.6.3);
-  only path loss, delays, antenna gain and LOS Doppler follow the geometry;
+* the LOS state and the fading realisation are drawn once per site and kept along a route;
+  so are the shadowing and the delay spread unless ``spatial_consistency`` is set, in which
+  case each follows the receiver's distance along its route as a Gaussian process with the
+  38.901 exponential autocorrelation (Table 7.5-6 correlation distances: UMa 37-50 m for the
+  shadowing, 30-40 m for the delay spread), starting from the draw above. That is 38.901
+  §7.6.3.1 along one path, not over the plane: a route that comes back near where it passed
+  gets new values (a loop's second pass repeats its first). Path loss, delays, antenna gain
+  and LOS Doppler always follow the geometry;
 * f_max uses the route's nominal speed throughout, also while the receiver stands still.
 """
 
@@ -49,6 +54,7 @@ from deepsync.frontend.channel import Paths
 from deepsync.twin.antenna import SectorAntenna
 from deepsync.twin.fading import SumOfSinusoids
 from deepsync.twin.propagation import (
+    correlation_distances_m,
     delay_spread_lognormal,
     los_probability,
     path_loss_db,
@@ -61,6 +67,7 @@ from deepsync.twin.tdl import TDL_PROFILES, TdlProfile
 from deepsync.types import SPEED_OF_LIGHT_M_S
 
 N_SINUSOIDS = 16
+ALONG_ROUTE_STEP_M = 1.0  # grid of the spatially consistent parameters (correlation distances >= 7 m)
 
 
 @dataclass(frozen=True)
@@ -81,7 +88,8 @@ class Transmitter:
 
 @dataclass(frozen=True)
 class LinkParameters:
-    """Large-scale state of one cell's link (ground truth for evaluation)."""
+    """Large-scale state of one cell's link (ground truth for evaluation), where the route
+    starts (with ``spatial_consistency``, shadowing and delay spread change along it)."""
 
     site: str
     los: bool
@@ -101,6 +109,10 @@ class _SiteDraw:
     delay_spread_normal: float  # standard normal draw of lgDS
     profile: TdlProfile
     fading: SumOfSinusoids      # (taps, N) sinusoids
+    # with spatial consistency: the standard normals of the shadowing and of lgDS every
+    # ALONG_ROUTE_STEP_M along the route (the first ones are the draws above)
+    shadow_fading_along: np.ndarray | None = None
+    delay_spread_normal_along: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -115,6 +127,10 @@ class _Link:
     phase: np.ndarray           # (P,) phase at t = 0 (unused for the specular path)
     doppler_hz: np.ndarray      # (P,) Doppler (overwritten per call for the specular path)
     chain_phase: float          # the sector's own transmit-chain phase (rad)
+    # with spatial consistency, along the route every ALONG_ROUTE_STEP_M: shadowing (dB), and
+    # the delay spread (s) that scales the taps' delays (then excess_delay_s is per 1 s of it)
+    shadow_fading_along_db: np.ndarray | None = None
+    delay_spread_along_s: np.ndarray | None = None
 
 
 class StatisticalChannel:
@@ -160,20 +176,34 @@ class StatisticalChannel:
         profile = TDL_PROFILES[self.settings.profile_los if los else self.settings.profile_nlos]
         fading = SumOfSinusoids.draw(site_rng(self._seed, tx.site, "fading"),
                                      (len(profile.delays),), N_SINUSOIDS)
-        return _SiteDraw(tx, los, float(sf_db), float(ds_draw), profile, fading)
+        sf_along = ds_along = None
+        if self.settings.spatial_consistency:
+            along = site_rng(self._seed, tx.site, "along route")  # its own stream: the draws above stay
+            sf_distance, ds_distance = correlation_distances_m(model, los)
+            sf_along = correlated_normal_along(along, sf_draw, self.receiver.length_m, sf_distance)
+            ds_along = correlated_normal_along(along, ds_draw, self.receiver.length_m, ds_distance)
+        return _SiteDraw(tx, los, float(sf_db), float(ds_draw), profile, fading, sf_along, ds_along)
 
     def _make_link(self, tx: Transmitter, site: _SiteDraw, index: int) -> _Link:
         profile, fading = site.profile, site.fading
+        delay_spread_along = shadow_fading_along = None
         if self.settings.delay_spread_ns is not None:
             delay_spread = self.settings.delay_spread_ns * 1e-9
         else:
             mu, sigma = delay_spread_lognormal(self.environment.model, site.los, tx.carrier_hz)
             delay_spread = 10.0 ** (mu + sigma * site.delay_spread_normal)
+            if site.delay_spread_normal_along is not None:
+                delay_spread_along = 10.0 ** (mu + sigma * site.delay_spread_normal_along)
+        if site.shadow_fading_along is not None and self.settings.shadow_fading:
+            shadow_std_db = shadow_fading_std_db(self.environment.model, site.los)
+            shadow_fading_along = shadow_std_db * site.shadow_fading_along
         wavelength = SPEED_OF_LIGHT_M_S / tx.carrier_hz
         max_doppler = self.receiver.speed_mps / wavelength + self.settings.environment_doppler_hz
         scattered, specular = profile.normalized_powers()
         n = fading.n_sinusoids
-        excess = np.repeat(np.asarray(profile.delays) * delay_spread, n)
+        # the taps' delays, or per second of delay spread where it changes along the route (paths scales them)
+        scale = 1.0 if delay_spread_along is not None else delay_spread
+        excess = np.repeat(np.asarray(profile.delays) * scale, n)
         amplitude = np.repeat(np.sqrt(scattered / n), n)
         phase = fading.phase.ravel()
         doppler = fading.doppler_hz(max_doppler).ravel()
@@ -188,7 +218,8 @@ class StatisticalChannel:
         chain = site_rng(self._seed, tx.site, f"chain phase {tx.pci if tx.pci >= 0 else index}").uniform(0, 2 * np.pi)
         parameters = LinkParameters(tx.site, site.los, profile.name, site.shadow_fading_db,
                                     float(delay_spread), float(max_doppler))
-        return _Link(tx, parameters, has_specular, excess, amplitude, phase, doppler, float(chain))
+        return _Link(tx, parameters, has_specular, excess, amplitude, phase, doppler, float(chain),
+                     shadow_fading_along, delay_spread_along)
 
     def link_parameters(self, emitter_index: int) -> LinkParameters:
         """Large-scale state drawn for ``emitter_index`` (LOS, shadowing, delay spread, ...)."""
@@ -209,7 +240,15 @@ class StatisticalChannel:
         d2d = float(np.hypot(offset[0], offset[1]))
         loss_db = path_loss_db(self.environment.model, parameters.los, d2d, d3d, tx.height_m,
                                self.receiver_height_m, tx.carrier_hz)
-        loss_db = loss_db + parameters.shadow_fading_db - tx.antenna.gain_db(offset)
+        excess = link.excess_delay_s
+        shadow_fading_db = parameters.shadow_fading_db
+        if link.shadow_fading_along_db is not None or link.delay_spread_along_s is not None:
+            along = float(self.receiver.distance_along(t)) / ALONG_ROUTE_STEP_M
+            if link.shadow_fading_along_db is not None:
+                shadow_fading_db = _at(link.shadow_fading_along_db, along)
+            if link.delay_spread_along_s is not None:
+                excess = excess * _at(link.delay_spread_along_s, along)
+        loss_db = loss_db + shadow_fading_db - tx.antenna.gain_db(offset)
         scale = 10.0 ** (-loss_db / 20.0)
         phase = link.phase + (2.0 * np.pi * t) * link.doppler_hz
         doppler = link.doppler_hz.copy()  # the Paths must not alias the link's constants
@@ -218,7 +257,31 @@ class StatisticalChannel:
             doppler[0] = -radial_speed * tx.carrier_hz / SPEED_OF_LIGHT_M_S
             phase[0] = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT_M_S
         return Paths(
-            delays_s=d3d / SPEED_OF_LIGHT_M_S + link.excess_delay_s,
+            delays_s=d3d / SPEED_OF_LIGHT_M_S + excess,
             gains=scale * link.amplitude * np.exp(1j * (phase + link.chain_phase)),
             doppler_hz=doppler,
         )
+
+
+def correlated_normal_along(rng: np.random.Generator, start: float, length_m: float,
+                            correlation_m: float) -> np.ndarray:
+    """Standard normal values every ``ALONG_ROUTE_STEP_M`` over ``length_m`` of route, the first
+    ``start``, with the exponential autocorrelation exp(-d / ``correlation_m``) of 38.901
+    §7.6.3.1: the first-order autoregression that has it exactly on the grid."""
+    n = int(np.ceil(length_m / ALONG_ROUTE_STEP_M)) + 1
+    rho = float(np.exp(-ALONG_ROUTE_STEP_M / correlation_m))
+    innovations = np.sqrt(1.0 - rho**2) * rng.standard_normal(n - 1)
+    values = np.empty(n)
+    values[0] = start
+    for k in range(1, n):
+        values[k] = rho * values[k - 1] + innovations[k - 1]
+    return values
+
+
+def _at(values: np.ndarray, position: float) -> float:
+    """``values`` on the along-route grid, linearly interpolated at ``position`` (grid steps)."""
+    if len(values) == 1:
+        return float(values[0])
+    i = min(int(position), len(values) - 2)
+    fraction = position - i
+    return float(values[i] + fraction * (values[i + 1] - values[i]))
