@@ -49,6 +49,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.signal
 
 from deepsync.frontend.channel import Paths
 from deepsync.twin.antenna import SectorAntenna
@@ -271,11 +272,8 @@ def correlated_normal_along(rng: np.random.Generator, start: float, length_m: fl
     n = int(np.ceil(length_m / ALONG_ROUTE_STEP_M)) + 1
     rho = float(np.exp(-ALONG_ROUTE_STEP_M / correlation_m))
     innovations = np.sqrt(1.0 - rho**2) * rng.standard_normal(n - 1)
-    values = np.empty(n)
-    values[0] = start
-    for k in range(1, n):
-        values[k] = rho * values[k - 1] + innovations[k - 1]
-    return values
+    # x[k] = rho x[k-1] + innovation: a one-pole filter of the start followed by the innovations
+    return scipy.signal.lfilter([1.0], [1.0, -rho], np.concatenate(([start], innovations)))
 
 
 def _at(values: np.ndarray, position: float) -> float:
