@@ -156,6 +156,11 @@ def estimator_names(results: dict[str, np.ndarray]) -> tuple[str, ...]:
     return tuple(name for name in ALL_ESTIMATORS if f"{name}_error" in results)
 
 
+def estimators_in(row: dict) -> tuple[str, ...]:
+    """The estimators a summary row (``breakdown``'s) has statistics of, in the same order."""
+    return tuple(name for name in ALL_ESTIMATORS if name in row)
+
+
 def breakdown(data: dict[str, np.ndarray], results: dict[str, np.ndarray], mask: np.ndarray) -> dict:
     """Every estimator's statistics over the examples in ``mask``, and the bound's RMS."""
     out = {name: error_stats(results[f"{name}_error"][mask], results[f"{name}_sigma"][mask])
@@ -267,7 +272,7 @@ def headline(data: dict[str, np.ndarray], summary: dict) -> dict:
                 "sigma_too_small": sum(m["within_1_sigma_ci"][1] < low for m in measured),
                 "sigma_too_large": sum(m["within_1_sigma_ci"][0] > high for m in measured)}
 
-    names = [name for name in ALL_ESTIMATORS if name in rows[0]]
+    names = estimators_in(rows[0])
     return {
         "threshold_snr_db_los": {name: threshold_snr_db(ten["los_by_snr"], name) for name in names},
         "multipath_rmse_-10_to_0_db": {name: pooled_rmse(mid, name) for name in names},
@@ -284,7 +289,7 @@ def plot(summary: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     ten = summary["frames"].get("10") or next(iter(summary["frames"].values()))
-    estimators = [name for name in ALL_ESTIMATORS if name in ten["all"]]
+    estimators = estimators_in(ten["all"])
     figure, axes = plt.subplots(1, 3, figsize=(15, 4.5))
     profiles = list(ten["by_profile"])
     for ax, key, title, los in ((axes[0], "los_by_snr", "LOS", True), (axes[1], "nlos_by_snr", "NLOS", False)):
