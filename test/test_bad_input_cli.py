@@ -58,7 +58,10 @@ def cu8(tmp_path) -> Path:
     (["--seconds", "nan"], "must be a positive number"),
     (["--seconds", "-1"], "must be a positive number"),
     (["--seed", "x"], "invalid int value"),
-], ids=["workers_0", "workers_1000", "workers_word", "seconds_tiny", "seconds_nan", "seconds_negative", "seed_word"])
+    (["--seed=-1"], "--seed must be in [0, 9223372036854775807]"),
+    (["--seed", str(2**64)], "--seed must be in [0, 9223372036854775807]"),
+], ids=["workers_0", "workers_1000", "workers_word", "seconds_tiny", "seconds_nan", "seconds_negative", "seed_word",
+        "seed_negative", "seed_beyond_int64"])
 def test_simulate_flags(tmp_path, capsys, args, message):
     out = tmp_path / "bag"
     fails(["simulate", "--scenario", str(SCENARIO), "--seconds", "0.1", "--out", str(out), "--quiet", *args],
@@ -339,3 +342,20 @@ def test_replay_counts_the_stream_events_per_kind(tmp_path, capsys):
     assert main(replay_args(bag, tmp_path / "out", "--towers", str(TOWERS))) == 0
     health = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  health")]
     assert health and "gap 1" in health[0]
+
+
+def test_replay_into_its_own_input_bag_is_refused_and_the_recording_kept(tmp_path, capsys):
+    """--out naming the input bag (its directory or the directory of its .mcap) would replace
+    the recording being read, --overwrite or not."""
+    bag = tmp_path / "bag"
+    shutil.copytree(BAG, bag)
+    before = sorted((p.name, p.stat().st_size) for p in bag.iterdir())
+    for source in (bag, next(bag.glob("*.mcap"))):
+        fails(replay_args(source, bag, "--overwrite"), capsys, "replaying into it would replace the recording")
+    assert sorted((p.name, p.stat().st_size) for p in bag.iterdir()) == before
+
+
+def test_compare_poses_of_a_topic_without_covariance_says_so(capsys):
+    fails(["compare-poses", "--reference", str(BAG), "--other", str(BAG), "--topic", "/deepsync/truth/pose"],
+          capsys, "/deepsync/truth/pose holds geometry_msgs/msg/PoseStamped, not "
+                  "geometry_msgs/msg/PoseWithCovarianceStamped")

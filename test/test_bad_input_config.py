@@ -341,3 +341,43 @@ def test_yaml_exponents_without_a_dot_are_numbers():
     assert build_dataclass(FrontendConfig, {"detector_nep_w_per_sqrt_hz": "5e-12"}, "f").detector_nep_w_per_sqrt_hz == 5e-12
     with pytest.raises(ConfigError, match="frontend.adc_rate_hz: expected a number, got 'fast'"):
         build_dataclass(FrontendConfig, {"adc_rate_hz": "fast"}, "frontend")
+
+
+def test_an_origin_with_a_null_coordinate_names_it():
+    data = _towers({"pci": 1})
+    data["origin"] = {"latitude_deg": 38.98, "longitude_deg": -76.94, "height_m": None}
+    with pytest.raises(ConfigError, match=r"towers.origin.height_m: required .* got null"):
+        parse_tower_database(data, "towers")
+
+
+def _alias_bomb(levels: int) -> str:
+    """A YAML file of nested aliases: a few hundred bytes that expand to 9^levels values."""
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]" for i in range(1, levels + 1)]
+    return "\n".join(lines) + f"\nname: *a{levels}\nsites: []\n"
+
+
+@pytest.mark.parametrize("text, message", [
+    (b"1: a\nname: x\nsites: []\n", "t.yaml: key 1 is not a string (quote it)"),
+    (b"name: x\nsites:\n  - {name: A, cells: [{pci: 1, 5: 2}]}\n", "t.yaml.sites[0].cells[0]: key 5 is not a string"),
+    (_alias_bomb(8).encode(), "expands to more than 1,000,000 values"),
+    (b"name: " + b"[" * 70 + b"]" * 70 + b"\n", "t.yaml.name" + "[0]" * 63 + ": nested more than 64 levels deep"),
+    (b"name: " + b"[" * 5000 + b"]" * 5000 + b"\n", "t.yaml: nested too deeply to read"),
+    (b"name: \xff\xfe\n", "t.yaml: not UTF-8 text (byte 0xff at offset 6)"),
+], ids=["int-key", "int-key-in-a-cell", "alias-bomb", "deep", "deeper-than-python", "not-utf8"])
+def test_yaml_a_loader_cannot_use_is_refused_in_one_line(tmp_path, text, message):
+    """Keys that are not strings, nesting, alias bombs and binary files: one short ConfigError
+    naming the file and the place, not a TypeError, a RecursionError or a 250 MB message."""
+    path = tmp_path / "t.yaml"
+    path.write_bytes(text)
+    with pytest.raises(ConfigError) as error:
+        load_tower_database(path)
+    assert message in str(error.value)
+    assert len(str(error.value)) < 500
+
+
+def test_ordinary_yaml_anchors_still_load(tmp_path):
+    """Aliases and merge keys that expand to a few values are what YAML users write: they load."""
+    path = tmp_path / "t.yaml"
+    path.write_text("name: t\nsites:\n  - &a {name: A, cells: [{pci: 1}]}\n  - {<<: *a, name: B, cells: [{pci: 2}]}\n")
+    assert [s.name for s in load_tower_database(path).sites] == ["A", "B"]

@@ -162,3 +162,18 @@ def test_replay_writes_what_the_nodes_publish_into_a_bag_ros_can_play(tmp_path) 
         assert np.allclose(enu, [p.x, p.y, p.z], atol=1e-3)  # the same place, in WGS84
         assert fix.position_covariance_type == 3 and np.allclose(np.reshape(fix.position_covariance, (3, 3)),
                                                                   covariance[:3, :3])
+
+
+def test_sites_that_place_nothing_leave_the_evaluation_running(tmp_path) -> None:
+    """Three sites at one mast cannot place the receiver: the snapshot says degenerate geometry,
+    the bound is NaN or huge where rounding leaves it (it once stopped the run on a negative
+    trace: "math domain error"), and the report is written."""
+    data = yaml.safe_load(TOWERS.read_text())
+    first = data["sites"][0]
+    for site in data["sites"][1:]:
+        site["latitude_deg"], site["longitude_deg"] = first["latitude_deg"], first["longitude_deg"]
+    towers = tmp_path / "one_mast.yaml"
+    towers.write_text(yaml.safe_dump(data))
+    summary, written = evaluate_route(BagSource(BAG), load_tower_database(towers), tmp_path / "out", progress=False)
+    assert summary["methods"]["snapshot"]["fix_rate"] == 0
+    assert all(path.exists() for path in written)

@@ -508,3 +508,31 @@ def test_the_live_simulator_streams_what_the_recorded_bag_holds():
 def test_a_scenario_source_refuses_what_it_decides_itself(kwargs, message):
     with pytest.raises(ValueError, match=message):
         open_source(REPO / "config" / "scenarios" / "campus.yaml", **kwargs)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda meta: meta["global"].update({"core:datatype": 5}), "not a readable SigMF recording"),
+    (lambda meta: meta.update({"global": [1]}), "not a readable SigMF recording"),
+    (lambda meta: meta.update({"captures": "x"}), "not a readable SigMF recording"),
+    ("no-data", "no dataset: no .sigmf-data file beside the metadata"),
+    ("not-a-tar", "not a readable SigMF recording: file could not be opened successfully"),
+], ids=["datatype-number", "global-list", "captures-text", "no-dataset", "archive-not-tar"])
+def test_sigmf_metadata_of_another_shape_is_refused_in_one_line(tmp_path, edit, message):
+    """Metadata whose fields have the wrong shape, a missing dataset, an archive that is none:
+    ValueError naming the file (the sigmf package itself raises AttributeError and the like)."""
+    _write_sigmf(tmp_path, "odd", np.zeros(64, np.int8), "ci8")
+    path = tmp_path / "odd.sigmf-meta"
+    if edit == "no-data":
+        (tmp_path / "odd.sigmf-data").unlink()
+    elif edit == "not-a-tar":
+        path = tmp_path / "odd.sigmf"
+        path.write_text("not a tar archive\n")
+    else:
+        meta = json.loads(path.read_text())
+        meta["global"].pop("core:sha512", None)
+        edit(meta)
+        path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError) as error:
+        SigmfSource(path)
+    assert f"{path.name}: " in str(error.value) and message in str(error.value)
+    assert "\n" not in str(error.value)

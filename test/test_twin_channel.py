@@ -1,6 +1,7 @@
 """The statistical channel: geometry, tap structure, fading, Doppler and determinism."""
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -83,6 +84,17 @@ def test_first_path_is_the_geometric_delay(los):
             assert paths.first_delay_s == pytest.approx(geometric, abs=1e-15)
             assert paths.delays_s[0] == paths.first_delay_s
             assert np.all(paths.delays_s >= geometric)
+
+
+def test_a_receiver_at_the_antenna_itself_has_paths():
+    """Zero distance (a receiver at the antenna's own position and height) is no direction to
+    move along: the specular path's Doppler is 0, not a division by zero."""
+    scenario = _scenario(los="los", distance=0.0)
+    twin = build_twin(dataclasses.replace(scenario, receiver=dataclasses.replace(scenario.receiver,
+                                                                                  height_m=SITE_HEIGHT)))
+    paths = twin.channel.paths(0, 0.0)
+    assert paths.first_delay_s == pytest.approx(0.0, abs=1e-12)
+    assert np.all(np.isfinite(paths.gains)) and np.all(np.isfinite(paths.doppler_hz))
 
 
 def test_geometric_delay_is_the_3d_distance():

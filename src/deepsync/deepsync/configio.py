@@ -36,6 +36,9 @@ def load_yaml(path: str | Path, where: str | None = None) -> dict[str, Any]:
         raise ConfigError(f"{where}: file not found") from None
     except OSError as error:
         raise ConfigError(f"{where}: cannot read ({error.strerror})") from None
+    except UnicodeDecodeError as error:
+        raise ConfigError(f"{where}: not UTF-8 text (byte {error.object[error.start]:#04x} at offset "
+                          f"{error.start}): not a YAML file?") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as error:
@@ -43,9 +46,49 @@ def load_yaml(path: str | Path, where: str | None = None) -> dict[str, Any]:
         position = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(error, "problem", None) or str(error)
         raise ConfigError(f"{where}: invalid YAML{position}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: nested too deeply to read (more than Python's recursion limit)") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a mapping at the top level, got {type(data).__name__}")
+    _check_tree(data, where, 0, {})
     return data
+
+
+MAX_DEPTH = 64  # levels of nesting a config may have (ours use 5)
+MAX_VALUES = 1_000_000  # values a config may expand to through YAML aliases (ours hold a few hundred)
+
+
+def _check_tree(value: object, where: str, depth: int, sizes: dict[int, int]) -> int:
+    """How many values ``value`` expands to; ConfigError for a mapping key that is not a string
+    (the loaders look keys up by name), nesting deeper than ``MAX_DEPTH``, or more than
+    ``MAX_VALUES`` values: YAML aliases nested in aliases (a "billion laughs" file) expand
+    exponentially wherever the value is later walked or printed. Each shared node is counted
+    once (``sizes``, by id), so the check itself stays linear in the file."""
+    if not isinstance(value, (dict, list)):
+        return 1
+    if id(value) in sizes:
+        return sizes[id(value)]
+    if depth >= MAX_DEPTH:
+        raise ConfigError(f"{where}: nested more than {MAX_DEPTH} levels deep")
+    if isinstance(value, dict):
+        for key in value:
+            if not isinstance(key, str):
+                raise ConfigError(f"{where}: key {_short(key)} is not a string (quote it)")
+        items = [(f"{where}.{key}", item) for key, item in value.items()]
+    else:
+        items = [(f"{where}[{i}]", item) for i, item in enumerate(value)]
+    total = 1
+    for at, item in items:
+        total += _check_tree(item, at, depth + 1, sizes)
+        if total > MAX_VALUES:
+            raise ConfigError(f"{where}: expands to more than {MAX_VALUES:,} values (aliases nested in aliases?)")
+    sizes[id(value)] = total
+    return total
+
+
+def _short(value: object, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def require_mapping(value: object, where: str) -> Mapping[str, Any]:

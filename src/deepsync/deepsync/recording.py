@@ -31,7 +31,7 @@ from deepsync.frontend.channel import Emitter
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
 from deepsync.twin import Twin, build_twin
-from deepsync.twin.scenario import load_scenario
+from deepsync.twin.scenario import SEED_RANGE, load_scenario
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming, StackArrivals
 
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: receiver clock at sample 0
@@ -179,6 +179,9 @@ def record_scenario(
     scenario_path = Path(scenario_path)
     scenario = load_scenario(scenario_path)
     seed = scenario.seed if seed is None else int(seed)
+    if not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
+        raise ValueError(f"--seed must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}] (bag provenance and ROS "
+                         f"parameters hold it as int64), got {seed}")
     twin = build_twin(scenario)
     simulator = EnvelopeSimulator(twin.emitters, twin.channel, twin.frontend, seed, epoch_ns=EPOCH_NS)
     rate = twin.frontend.adc_rate_hz

@@ -268,6 +268,17 @@ def _check_input(bag: BagReader | SalvageReader, stages: tuple[str, ...]) -> Non
         raise BagError(f"{bag.path}: {topic} carries {carried}, but the {stage} stage reads {wanted} there")
 
 
+def _check_output_apart(bag: str | Path, out_dir: str | Path) -> None:
+    """ValueError where ``out_dir`` is the input bag's own directory: replaying into it, even
+    with ``overwrite``, would replace the recording being read."""
+    source = Path(bag)
+    bag_dir = source if source.is_dir() else source.parent
+    out = Path(out_dir)
+    if out.exists() and bag_dir.exists() and out.resolve() == bag_dir.resolve():
+        raise ValueError(f"{out_dir}: the output is the input bag {bag}; replaying into it would replace the "
+                         "recording: choose another output directory")
+
+
 def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | None = None,
                config: PipelineConfig | None = None, *, stages: Sequence[str] = STAGES, copy_inputs: bool = False,
                overwrite: bool = False, progress: bool = True, say: Callable[[str], None] | None = None,
@@ -282,6 +293,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | Non
     part of the chain, fusion alone without a database that places sites).
     """
     stages = parse_stages(",".join(stages))
+    _check_output_apart(bag, out_dir)
     config = config or PipelineConfig()
     notes: list[str] = []
 

@@ -271,7 +271,11 @@ def _origin(value: object, where: str) -> MapOrigin | None:
     if set(origin) != {"latitude_deg", "longitude_deg", "height_m"}:
         raise ConfigError(f"{where}: expected keys latitude_deg, longitude_deg, height_m, got {sorted(origin)}")
     bounds = {"latitude_deg": (-90, 90), "longitude_deg": (-180, 180), "height_m": (-1000, 9000)}
-    return MapOrigin(**{key: _optional_number(origin, key, where, *bounds[key]) for key in bounds})
+    values = {key: _optional_number(origin, key, where, *bounds[key]) for key in bounds}
+    for key, value in values.items():
+        if value is None:
+            raise ConfigError(f"{where}.{key}: required (a number in [{bounds[key][0]}, {bounds[key][1]}]), got null")
+    return MapOrigin(**values)
 
 
 def _epoch_ns(value: object, where: str) -> int | None:

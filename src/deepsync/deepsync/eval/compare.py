@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from deepsync.bag import POSE_TOPIC, BagReader, position_from_pose_msg, stamp_to_ns
+from deepsync.bag.convert import POSE_WITH_COVARIANCE_STAMPED
 
 DEFAULT_TOLERANCE_M = 0.1
 """Largest position difference still called "the same pose": far above float32 rounding (mm),
@@ -46,6 +47,10 @@ def _poses(bag: str | Path, topic: str) -> dict[int, tuple[np.ndarray, float]]:
     """Header stamp -> (position, horizontal sigma) of every pose on ``topic``."""
     poses = {}
     with BagReader(bag) as reader:
+        kind = reader.topics.get(topic)
+        if kind is not None and kind != POSE_WITH_COVARIANCE_STAMPED:
+            raise ValueError(f"{bag}: {topic} holds {kind}, not {POSE_WITH_COVARIANCE_STAMPED}: "
+                             "only poses with a covariance are compared")
         for item in reader.messages([topic]):
             covariance = np.asarray(item.message.pose.covariance, dtype=np.float64).reshape(6, 6)
             sigma = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0))

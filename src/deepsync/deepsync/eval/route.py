@@ -212,7 +212,10 @@ def _bound(arrivals: StackArrivals, sites: Sequence[SiteArrival], truth_enu: np.
     if not np.all(np.isfinite(sigmas) & (sigmas > 0)):
         return math.nan
     covariance = position_bound(np.array([s.position_enu for s in sites]), sigmas, truth_enu)
-    return float(math.sqrt(np.trace(covariance)))
+    trace = float(np.trace(covariance))
+    # sites that do not place the receiver (co-located, in a line with it) leave an information
+    # matrix whose inverse rounding can drive negative: no bound there
+    return math.sqrt(trace) if math.isfinite(trace) and trace >= 0 else math.nan
 
 
 def add_rssi_fixes(run: RouteRun, config: RssiConfig) -> dict:

@@ -60,7 +60,6 @@ def _dataset_path(path: str) -> str | None:
 def _open(path: str) -> Any:
     """The ``sigmf`` package's SigMFFile for ``path`` (unscaled), or ValueError naming it."""
     import sigmf  # imported here: only SigMF users pay for jsonschema & co
-    from sigmf.error import SigMFError
 
     data = _dataset_path(path)
     size = None if data is None else os.path.getsize(data)
@@ -72,7 +71,7 @@ def _open(path: str) -> Any:
         warnings.simplefilter("always")
         try:
             handle = sigmf.fromfile(path, autoscale=False)
-        except (SigMFError, OSError, ValueError, KeyError, TypeError, IndexError) as error:
+        except Exception as error:  # noqa: BLE001 - a malformed file makes sigmf's parsers raise many kinds
             failure = error
     for warning in caught:  # sigmf only warns of a partial sample, then may fail on it
         text = str(warning.message)
@@ -80,13 +79,16 @@ def _open(path: str) -> Any:
             count = "" if size is None else f" ({size} bytes)"
             raise ValueError(f"{path}: the dataset{count} is not a whole number of samples: a truncated recording?")
     if failure is not None:
-        raise ValueError(f"{path}: not a readable SigMF recording: {failure}")
+        first = (str(failure).strip().splitlines() or [type(failure).__name__])[0].rstrip(":")
+        raise ValueError(f"{path}: not a readable SigMF recording: {first}")
     for warning in caught:
         text = str(warning.message)
         if issubclass(warning.category, UserWarning) and "final annotation" not in text:
             warnings.warn(f"{path}: {text}", stacklevel=3)  # annotations are not our business
     if not isinstance(handle, sigmf.SigMFFile):
         raise ValueError(f"{path}: a SigMF collection, not one recording; open one of its recordings")
+    if handle.data_file is None and getattr(handle, "data_buffer", None) is None:
+        raise ValueError(f"{path}: no dataset: no .sigmf-data file beside the metadata")
     return handle
 
 
@@ -105,6 +107,12 @@ class SigmfSource(FileSource):
         if not is_sigmf_path(name):
             raise ValueError(f"{name}: not a SigMF file name (.sigmf-meta, .sigmf-data or .sigmf archive)")
         handle = _open(name)
+        try:
+            self._read_metadata(name, handle, scale)
+        except (AttributeError, TypeError, KeyError, IndexError) as error:  # a field of another shape than SigMF's
+            raise ValueError(f"{name}: malformed SigMF metadata ({type(error).__name__}: {error})") from None
+
+    def _read_metadata(self, name: str, handle: Any, scale: float | None) -> None:
         glob = handle.get_global_info()
         fmt = SampleFormat.from_sigmf(glob.get("core:datatype"), name)
         channels = glob.get("core:num_channels", 1)

@@ -9,7 +9,9 @@ Approximations, all documented by the standard's own notes:
 * the effective environment height is h_E = 1 m, so the breakpoint uses h' = h - 1 m (exact
   for UMi and for UMa with h_UT < 13 m; for taller UMa receivers 38.901 draws h_E at random);
 * the formulas are applied outside their validity range (10 m <= d2D <= 5 km,
-  1.5 m <= h_UT <= 22.5 m, h_BS = 25 m UMa / 10 m UMi) without clamping.
+  1.5 m <= h_UT <= 22.5 m, h_BS = 25 m UMa / 10 m UMi) without clamping, except that a
+  straight-line distance under ``MIN_DISTANCE_M`` counts as that: closer, in the antenna's
+  near field, they mean nothing and at zero they diverge.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from numpy.typing import ArrayLike
 from deepsync.types import SPEED_OF_LIGHT_M_S
 
 MODELS = ("UMa", "UMi")
+MIN_DISTANCE_M = 1.0  # the shortest straight-line distance the path-loss formulas are evaluated at
 
 # Shadow-fading standard deviation (dB), Table 7.4.1-1: (model, los) -> sigma_SF.
 _SHADOW_STD_DB = {("UMa", True): 4.0, ("UMa", False): 6.0,
@@ -70,7 +73,7 @@ def path_loss_db(model: str, los: bool, d2d: ArrayLike, d3d: ArrayLike, h_bs: fl
                  h_ut: float, carrier_hz: float) -> np.ndarray:
     """Path loss (dB) of a LOS or NLOS link, without shadow fading."""
     loss = path_loss_los_db if los else path_loss_nlos_db
-    return loss(model, d2d, d3d, h_bs, h_ut, carrier_hz)
+    return loss(model, d2d, np.maximum(d3d, MIN_DISTANCE_M), h_bs, h_ut, carrier_hz)
 
 
 def los_probability(model: str, d2d: ArrayLike, h_ut: float) -> np.ndarray:

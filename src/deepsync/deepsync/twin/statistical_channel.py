@@ -254,7 +254,8 @@ class StatisticalChannel:
         phase = link.phase + (2.0 * np.pi * t) * link.doppler_hz
         doppler = link.doppler_hz.copy()  # the Paths must not alias the link's constants
         if link.has_specular:
-            radial_speed = float(np.dot(self.receiver.velocity_enu(t), offset)) / d3d
+            # (at the antenna itself, a receiver has no direction to move along)
+            radial_speed = float(np.dot(self.receiver.velocity_enu(t), offset)) / d3d if d3d > 0 else 0.0
             doppler[0] = -radial_speed * tx.carrier_hz / SPEED_OF_LIGHT_M_S
             phase[0] = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT_M_S
         return Paths(
