@@ -379,5 +379,6 @@ def test_yaml_a_loader_cannot_use_is_refused_in_one_line(tmp_path, text, message
 def test_ordinary_yaml_anchors_still_load(tmp_path):
     """Aliases and merge keys that expand to a few values are what YAML users write: they load."""
     path = tmp_path / "t.yaml"
-    path.write_text("name: t\nsites:\n  - &a {name: A, cells: [{pci: 1}]}\n  - {<<: *a, name: B, cells: [{pci: 2}]}\n")
+    path.write_text("name: t\nsites:\n  - &a {name: A, cells: [{pci: 1}]}\n"
+                    "  - {<<: *a, name: B, cells: [{pci: 2}]}\n")
     assert [s.name for s in load_tower_database(path).sites] == ["A", "B"]
