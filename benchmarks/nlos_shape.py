@@ -93,21 +93,24 @@ def within_a_sample(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v[kept] for k, v in data.items()}
 
 
+def cell_features(data: dict[str, np.ndarray]) -> np.ndarray:
+    """What a timing stage knows of every cell: its bandwidth (one-hot) and SNR."""
+    bandwidth = np.stack([np.isclose(data["bandwidth_mhz"], b) for b in BANDWIDTHS_MHZ], axis=1)
+    return np.hstack([bandwidth, np.clip(data["snr_db"], -30, 15)[:, None] / 10])
+
+
 def features(data: dict[str, np.ndarray]) -> np.ndarray:
-    """The shape, its asymmetry (late minus early), bandwidth (one-hot) and SNR."""
+    """The shape, its asymmetry (late minus early), and the cell's features."""
     shape = data["shape"]
     half = len(LAGS) // 2
     asymmetry = shape[:, half + 1 :] - shape[:, :half][:, ::-1]
-    bandwidth = np.stack([np.isclose(data["bandwidth_mhz"], b) for b in BANDWIDTHS_MHZ], axis=1)
-    return np.hstack([shape, asymmetry, bandwidth, np.clip(data["snr_db"], -30, 15)[:, None] / 10])
+    return np.hstack([shape, asymmetry, cell_features(data)])
 
 
 def oracle_features(data: dict[str, np.ndarray]) -> np.ndarray:
-    """What the shape would have to reveal: the profile (one-hot), delay spread, bandwidth, SNR."""
+    """What the shape would have to reveal, the profile (one-hot) and delay spread, and the cell's features."""
     profile = np.stack([data["profile"] == k for k in range(len(PROFILES))], axis=1)
-    bandwidth = np.stack([np.isclose(data["bandwidth_mhz"], b) for b in BANDWIDTHS_MHZ], axis=1)
-    return np.hstack([profile, data["delay_spread_ns"][:, None] / 100, bandwidth,
-                      np.clip(data["snr_db"], -30, 15)[:, None] / 10])
+    return np.hstack([profile, data["delay_spread_ns"][:, None] / 100, cell_features(data)])
 
 
 def fit_mlp(x: np.ndarray, y: np.ndarray, classify: bool, epochs: int = 300) -> Callable[[np.ndarray], np.ndarray]:

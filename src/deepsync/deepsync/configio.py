@@ -10,6 +10,7 @@ import dataclasses
 import enum
 import math
 import re
+import reprlib
 import types
 import typing
 from collections.abc import Mapping
@@ -73,7 +74,7 @@ def _check_tree(value: object, where: str, depth: int, sizes: dict[int, int]) ->
     if isinstance(value, dict):
         for key in value:
             if not isinstance(key, str):
-                raise ConfigError(f"{where}: key {_short(key)} is not a string (quote it)")
+                raise ConfigError(f"{where}: key {reprlib.repr(key)} is not a string (quote it)")
         items = [(f"{where}.{key}", item) for key, item in value.items()]
     else:
         items = [(f"{where}[{i}]", item) for i, item in enumerate(value)]
@@ -85,10 +86,6 @@ def _check_tree(value: object, where: str, depth: int, sizes: dict[int, int]) ->
     sizes[id(value)] = total
     return total
 
-
-def _short(value: object, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def require_mapping(value: object, where: str) -> Mapping[str, Any]:

@@ -246,9 +246,9 @@ class StatisticalChannel:
         if link.shadow_fading_along_db is not None or link.delay_spread_along_s is not None:
             along = float(self.receiver.distance_along(t)) / ALONG_ROUTE_STEP_M
             if link.shadow_fading_along_db is not None:
-                shadow_fading_db = _at(link.shadow_fading_along_db, along)
+                shadow_fading_db = _interpolated(link.shadow_fading_along_db, along)
             if link.delay_spread_along_s is not None:
-                excess = excess * _at(link.delay_spread_along_s, along)
+                excess = excess * _interpolated(link.delay_spread_along_s, along)
         loss_db = loss_db + shadow_fading_db - tx.antenna.gain_db(offset)
         scale = 10.0 ** (-loss_db / 20.0)
         phase = link.phase + (2.0 * np.pi * t) * link.doppler_hz
@@ -277,10 +277,6 @@ def correlated_normal_along(rng: np.random.Generator, start: float, length_m: fl
     return scipy.signal.lfilter([1.0], [1.0, -rho], np.concatenate(([start], innovations)))
 
 
-def _at(values: np.ndarray, position: float) -> float:
+def _interpolated(values: np.ndarray, position: float) -> float:
     """``values`` on the along-route grid, linearly interpolated at ``position`` (grid steps)."""
-    if len(values) == 1:
-        return float(values[0])
-    i = min(int(position), len(values) - 2)
-    fraction = position - i
-    return float(values[i] + fraction * (values[i + 1] - values[i]))
+    return float(np.interp(position, np.arange(len(values)), values))
