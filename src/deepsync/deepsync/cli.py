@@ -23,9 +23,11 @@ from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import stack_record, summarize
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
+from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
 from deepsync.numeric import one_blas_thread
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, SampleFormat, Source, open_source
+from deepsync.sync.stacking import StackConfig
 from deepsync.timing import network_install_hint
 from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS
@@ -47,14 +49,23 @@ def _workers(text: str) -> int:
     return value
 
 
-def _positive_float(text: str) -> float:
+def _bounded_float(text: str, *, positive: bool) -> float:
+    what = "a positive number" if positive else "a number >= 0"
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+    if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+        raise argparse.ArgumentTypeError(f"{text!r} must be {what}")
     return value
+
+
+def _positive_float(text: str) -> float:
+    return _bounded_float(text, positive=True)
+
+
+def _non_negative_float(text: str) -> float:
+    return _bounded_float(text, positive=False)
 
 
 def _print_recording(summary) -> None:
@@ -284,21 +295,30 @@ def _print_health(health: dict[str, int]) -> None:
 
 def _pipeline_config(args: argparse.Namespace) -> PipelineConfig:
     """The pipeline a replaying command asked for (``_replay_arguments``)."""
-    return PipelineConfig().with_choices(args.frames, args.estimator, args.hop, args.search_every)
+    return PipelineConfig().with_choices(args.frames, args.estimator, args.hop, args.search_every, args.motion)
+
+
+def _stacks_text(config: PipelineConfig, motion: str) -> str:
+    stack = config.sync.stack
+    every = "back to back" if stack.hop == stack.n_frames else f"one every {stack.hop} frames"
+    return f"{stack.n_frames}-frame stacks {every}, motion model {motion}"
 
 
 def _cmd_evaluate_route(args: argparse.Namespace) -> int:
+    from deepsync.eval.aiding import AidingPlan
     from deepsync.eval.route import InitialPose, evaluate_route
 
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
-    print(f"route evaluation of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
     config = _pipeline_config(args)
+    aiding = AidingPlan(args.gnss_interval, args.gnss_std, args.odometry_std)
+    print(f"route evaluation of {source.description}\n  tower database {args.towers}, "
+          f"{_stacks_text(config, args.motion)}; {aiding.describes}")
     initial_pose = None if args.initial_pose_std is None else InitialPose(args.initial_pose_std)
     if initial_pose is not None:
         print(f"  the tracker starts from the true start position off by N(0, {args.initial_pose_std:g} m) per axis")
     summary, paths = evaluate_route(source, towers, Path(args.out), config,
-                                    progress=not args.quiet, initial_pose=initial_pose)
+                                    progress=not args.quiet, initial_pose=initial_pose, aiding=aiding)
     _print_route(summary)
     print("  written: " + ", ".join(str(p) for p in paths))
     return 130 if summary["interrupted"] else 0
@@ -310,8 +330,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
-    print(f"site clock calibration from {source.description}\n  tower database {args.towers}")
     config = _pipeline_config(args)
+    print(f"site clock calibration from {source.description}\n  tower database {args.towers}, "
+          f"{_stacks_text(config, args.motion)}")
     calibration = calibrate_route(source, towers, config, progress=not args.quiet)
     result = calibration.result
     print(f"  {len(result.sites)} sites heard; offsets relative to site {result.reference_site} (the most heard); "
@@ -333,9 +354,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     stages = parse_stages(args.stages)
     towers = None if args.towers is None else load_tower_database(args.towers)
-    print(f"replay of {args.bag} through {', '.join(stages)}; "
-          + (f"tower database {args.towers}" if towers else "no tower database") + f", {args.frames}-frame stacks")
     config = _pipeline_config(args)
+    print(f"replay of {args.bag} through {', '.join(stages)}; "
+          + (f"tower database {args.towers}" if towers else "no tower database") + f", {_stacks_text(config, args.motion)}")
     summary = replay_bag(args.bag, args.out, towers, config, stages=stages,
                          copy_inputs=args.copy_inputs, overwrite=args.overwrite, progress=not args.quiet, say=_say)
     print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
@@ -455,10 +476,14 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
     defaults = PipelineConfig()
     command.add_argument(*bag_options, dest="bag", required=True, help=bag_help)
     command.add_argument("--towers", required=towers_required, help=towers_help)
-    command.add_argument("--frames", type=int, default=defaults.sync.stack.n_frames,
-                         help=f"frames per stack (default {defaults.sync.stack.n_frames})")
-    command.add_argument("--hop", type=int, help="frames from one stack to the next (default: --frames, back to "
-                         "back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz)")
+    command.add_argument("--motion", choices=tuple(MOTION_MODELS), default=DEFAULT_MOTION,
+                         help="how the receiver moves, which sets the stacks and the tracker's motion model "
+                         "(default %(default)s): " + "; ".join(f"{m.name}: {m.summary} ({m.n_frames}-frame stacks "
+                                                               f"every {m.hop_frames})" for m in MOTION_MODELS.values()))
+    command.add_argument("--frames", type=int, help="frames per stack (default: the motion model's)")
+    command.add_argument("--hop", type=int, help="frames from one stack to the next (default: the motion model's; "
+                         "with --frames alone, back to back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for "
+                         "50-frame stacks at 10 Hz)")
     command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
                          f"{defaults.sync.search_every}; between, the cells found are tracked; while none finds a new "
                          f"cell the gap doubles up to {defaults.sync.max_search_interval_s:g} s of stream)")
@@ -496,7 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--scale", type=_positive_float,
                         help="envelope units per ADC code for --input (default: the recording's peak maps to 32766)")
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
-    frames = PipelineConfig().sync.stack.n_frames
+    frames = StackConfig().n_frames  # a cell search shows each stack: short ones, back to back
     detect.add_argument("--frames", type=int, default=frames, help=f"frames per stack (default {frames})")
     detect.set_defaults(run=_cmd_detect)
 
@@ -509,6 +534,14 @@ def build_parser() -> argparse.ArgumentParser:
                        help="start the tracker from an initial position: the true start, off by a draw of "
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
                        "sites are heard to start)")
+    route.add_argument("--gnss-interval", type=_non_negative_float, metavar="S",
+                       help="give the tracker a GNSS fix drawn from the truth every S seconds (0: only at the "
+                       "start), as a receiver that runs its GNSS now and then")
+    route.add_argument("--gnss-std", type=_positive_float, default=5.0, metavar="M",
+                       help="the GNSS fixes' error and claimed 1-sigma per horizontal axis (default %(default)g m)")
+    route.add_argument("--odometry-std", type=_positive_float, metavar="F",
+                       help="give the tracker odometry at 10 Hz: the true velocity in an odometry frame of unknown "
+                       "yaw, with a fractional error F (a scale error and noise) and a slow yaw drift")
     route.set_defaults(run=_cmd_evaluate_route)
 
     replay = commands.add_parser("replay", help="run the chain's stages over a bag and write what the nodes publish "

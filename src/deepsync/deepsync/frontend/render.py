@@ -27,6 +27,7 @@ What is exact and what is approximated:
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,10 @@ from deepsync.types import FRAME_SECONDS
 STATIC_DOPPLER_CYCLES = 1e-4  # below this many cycles per frame, gains are held constant
 SLOT_DOPPLER_CYCLES = 0.01  # below this many cycles per slot (20 Hz), gains change per slot
 ON_SAMPLE = 1e-9  # arrivals this close to a sample instant are on it (float noise, not physics)
+# steering matrices kept for path delays seen before: a static receiver's repeat frame after
+# frame; a moving one's change every frame, and an unbounded cache grew by ~70 MB per second of
+# a six-site walk (14 GB for three minutes)
+STEERING_CACHE = 32
 
 
 def _contiguous_runs(bins: np.ndarray) -> list[tuple[slice, slice]]:
@@ -111,7 +116,7 @@ class GroupRenderer:
         self.slot_times = self.symbol_times.reshape(SLOTS_PER_FRAME, -1).mean(axis=1)
         self._symbols = np.zeros((len(self.useful_start), self.num.fft_size), dtype=np.complex64)
         self._index_maps: dict[int, np.ndarray] = {}
-        self._steering: dict[bytes, np.ndarray] = {}
+        self._steering: OrderedDict[bytes, np.ndarray] = OrderedDict()  # least recently used first
         self._paths: dict[int, list[Paths]] = {}
         self._rotation = None
         if self.residual_hz != 0.0:
@@ -168,8 +173,12 @@ class GroupRenderer:
         # femtosecond rounding: equal delays computed along different float paths stay equal
         relative, tap = np.unique(np.round(paths.delays_s - reference_delay, 15), return_inverse=True)
         key = relative.tobytes()
-        if key not in self._steering:
+        if key in self._steering:
+            self._steering.move_to_end(key)
+        else:
             self._steering[key] = np.exp(-2j * np.pi * np.outer(relative, self.frequencies)).astype(np.complex64)
+            if len(self._steering) > STEERING_CACHE:
+                self._steering.popitem(last=False)
         order = np.argsort(tap, kind="stable")
         first_of_tap = np.searchsorted(tap[order], np.arange(len(relative)))
         doppler = paths.doppler_hz[order]
