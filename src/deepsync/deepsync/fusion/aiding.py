@@ -14,10 +14,9 @@ the tracker's time base (seconds after the fusion stage's reference instant).
 A ``map``-aligned velocity (an INS, a filter in ``map``) is a direct measurement. An odometry
 frame (``odom``) is turned from ``map`` by a yaw ``psi`` nobody states, and wheel odometry has
 a scale error ``s`` (tyre wear, slip): the measured velocity is ``(1 + s) R(-psi) v``, ``v`` the
-map-frame velocity, with ``psi`` and ``s`` tracker states once the track's own velocity says
-where the odometry frame points (:func:`heading_offset`). Before that, a speed (the velocity's
-length, which the yaw does not change) and a standstill (zero velocity in every frame) are
-still measurements.
+map-frame velocity, with ``psi`` and ``s`` tracker states once the track's displacement over a
+stretch of odometry says where the odometry frame points (:func:`heading_offset`). Before that,
+a standstill (zero velocity in every frame) is still a measurement.
 """
 
 from __future__ import annotations
@@ -67,14 +66,14 @@ def odometry_velocity(v_map: np.ndarray, psi: float, scale: float) -> tuple[np.n
     return (1 + scale) * seen, (1 + scale) * turn, (1 + scale) * by_psi, seen
 
 
-def heading_offset(v_map: np.ndarray, velocity_covariance: np.ndarray, measured: np.ndarray,
-                   measured_covariance: np.ndarray) -> tuple[float, np.ndarray, float]:
-    """The odometry frame's yaw from ``map``, from one pair of velocities (the track's ``v_map``
-    and the odometry's ``measured``): ``psi`` (rad, wrapped to +-pi), its gradient by ``v_map``
-    (to carry the track's uncertainty into ``psi`` with its correlations) and the variance the
-    odometry's own noise adds."""
-    psi = math.atan2(v_map[1], v_map[0]) - math.atan2(measured[1], measured[0])
+def heading_offset(in_map: np.ndarray, in_odometry: np.ndarray, odometry_covariance: np.ndarray
+                   ) -> tuple[float, np.ndarray, float]:
+    """The odometry frame's yaw from ``map``, from one vector seen in both (the track's
+    displacement over a stretch, ``in_map``, and the odometry's over the same stretch): ``psi``
+    (rad, wrapped to +-pi), its gradient by ``in_map`` (to carry the track's uncertainty into
+    ``psi`` with its correlations) and the variance the odometry's own noise adds."""
+    psi = math.atan2(in_map[1], in_map[0]) - math.atan2(in_odometry[1], in_odometry[0])
     psi = (psi + math.pi) % (2 * math.pi) - math.pi
-    by_track = np.array([-v_map[1], v_map[0]]) / float(v_map @ v_map)
-    by_odometry = -np.array([-measured[1], measured[0]]) / float(measured @ measured)
-    return psi, by_track, float(by_odometry @ measured_covariance @ by_odometry)
+    by_track = np.array([-in_map[1], in_map[0]]) / float(in_map @ in_map)
+    by_odometry = -np.array([-in_odometry[1], in_odometry[0]]) / float(in_odometry @ in_odometry)
+    return psi, by_track, float(by_odometry @ odometry_covariance @ by_odometry)

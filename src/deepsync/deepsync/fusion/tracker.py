@@ -70,10 +70,17 @@ s)]``, ``D`` = 2 or 3:
   an anchor, a constant velocity error ``dv`` trades against drifts ``r_s = -u_s . dv`` and an EKF
   linearised at its own estimate grows overconfident along it (simulated: 2-D NEES 2-20 over
   two minutes of sites 10-20 ns/s off): off by default.
-* odometry (``psi``, ``s``): appended when an odometry velocity in its own frame is first used
-  with a track whose velocity says where that frame points (``fusion.aiding``); the frame's yaw
-  from ``map`` and the odometry's scale error, random walks of ``heading_drift_rad_per_sqrt_s``
-  and ``odometry_scale_wander_per_sqrt_s``, the scale's prior ``odometry_scale_std``.
+* odometry (``psi``, ``s``): the odometry frame's yaw from ``map`` and the odometry's scale
+  error, random walks of ``heading_drift_rad_per_sqrt_s`` and
+  ``odometry_scale_wander_per_sqrt_s``, the scale's prior ``odometry_scale_std``. Appended once
+  the track says where the odometry frame points: from the first odometry velocity on, the
+  track's position is cloned into the state (stochastic cloning: two states that stay put while
+  the filter keeps their covariance with everything) and the odometry's displacement integrated;
+  when it has read ``ALIGN_MIN_M`` and the track's displacement since the clone points within
+  ``ALIGN_DIRECTION_STD_RAD``, the angle between the two is ``psi`` (``fusion.aiding``), with its
+  covariance to every state, and the clone goes. The track's velocity alone would rarely do: NLOS
+  biases that change over tens of metres make a site's range rate a poor measure of speed. The
+  yaw and scale outlive a restart of the track (they describe the odometry, not the track).
 
 **Aiding** (:meth:`Tracker.add_position`, :meth:`Tracker.add_velocity`): measurements of where
 the receiver is (a GNSS fix, with its covariance) and how it moves (odometry), queued and used
@@ -83,8 +90,8 @@ normalised innovation beyond the chi-square gate, D dof) is refused and said; th
 instead when ``max_position_rejections`` positions in a row are refused and agree with each
 other: the tracker then starts again from the latest. A velocity beyond the gate is refused and
 said. Those older than the filter's time are stale: refused and said. Odometry in its own
-frame before the frame's yaw is known still says the speed (the yaw does not change a length),
-and a standstill (a velocity within its noise of zero) says ``v = 0`` in any frame.
+frame before the frame's yaw is known still says when the receiver stands (a velocity within its
+noise of zero is ``v = 0`` in any frame), and its displacement aligns the frame (above).
 
 **Gating and the robust fallback.** An innovation whose normalised square exceeds the
 chi-square quantile (1 dof, ``gate_probability``) is not used: the site is named in
@@ -133,11 +140,11 @@ import itertools
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from deepsync.fusion.aiding import PositionAid, VelocityAid, heading_offset, odometry_velocity
+from deepsync.fusion.aiding import PositionAid, VelocityAid, heading_offset, odometry_velocity, rotation
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
 from deepsync.fusion.snapshot import SnapshotConfig, chi_square_limit
 from deepsync.fusion.track_start import Start, batch_start
@@ -149,10 +156,15 @@ MAX_CLOCK_RATE = 1e-3  # a clock 1000 ppm off is not a receiver clock but a wron
 # state then keeps e^-5 (under 1 %) of what the arrivals taught it, and a drive past many
 # sites stays small
 FORGET_CORRELATIONS = 5.0
-# odometry is aligned with the track once the track's velocity direction is known this well
-# (rad, 1-sigma) and the odometry reads a speed this many of its own sigmas above zero
+# odometry is aligned with the track once the track's displacement over a stretch the odometry
+# measured too (at least ALIGN_MIN_M long) points this well (rad, 1-sigma); a stretch with a gap
+# in the odometry longer than ODOMETRY_GAP_S starts over
 ALIGN_DIRECTION_STD_RAD = 0.3
-STANDSTILL_SIGMAS = 3.0
+ALIGN_MIN_M = 20.0
+ODOMETRY_GAP_S = 2.0
+STANDSTILL_SIGMAS = 3.0  # an odometry speed within this many of its sigmas of 0 is a standstill
+# odometry velocities refused in a row that say the track's velocity, not the odometry, is wrong
+MAX_VELOCITY_REFUSALS = 3
 _WALKER = MOTION_MODELS[DEFAULT_MOTION]
 
 
@@ -249,6 +261,19 @@ class SiteBias:
     drift_std_mps: float = math.nan
 
 
+@dataclass
+class _Stretch:
+    """An odometry stretch: from ``first_s`` to ``last_s``, the displacement it read in its own
+    frame (m) and that displacement's covariance, and the latest velocity and its covariance."""
+
+    first_s: float = math.nan
+    last_s: float = math.nan
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    velocity_covariance: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+    displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+
+
 class Tracker:
     """Follows the receiver through stacks of 0..N site arrivals, and positions and velocities
     from outside (see the module docstring)."""
@@ -276,6 +301,7 @@ class Tracker:
         self._prior_since: float | None = None  # when the prior was given (None: at the next update)
         self._aids.clear()
         self._forget()
+        self._odometry_known: tuple[np.ndarray, np.ndarray] | None = None  # (psi, s), covariance kept over restarts
 
     def start_from(self, prior: PositionPrior) -> None:
         """Give up the state and start again from ``prior`` at the next update (an operator's
@@ -330,8 +356,14 @@ class Tracker:
         self._held_since: float | None = None  # when the initial position the track rests on was given
         self._rejection_run: list[str] = []
         self._refused_positions: list[PositionAid] = []
+        self._velocity_refusals = 0  # odometry velocities refused in a row
+        if getattr(self, "_odometry", None) is not None:  # the odometry's yaw and scale outlive the track
+            block = slice(self._odometry, self._odometry + 2)
+            self._odometry_known = (self._x[block].copy(), self._P[block, block].copy())
         self._sites: dict[str, _Site] = {}  # in the order of their states
         self._odometry: int | None = None  # index of the odometry frame's yaw (its scale next)
+        self._clone: int | None = None  # index of the position cloned where an odometry stretch began
+        self._stretch = _Stretch()
         self._faded = 0.0  # the site biases' Gauss-Markov exponent summed since the start
         self._width = 3 if c.site_clocks else 1  # states per site: bias (, clock offset, clock drift)
         self._bias = dims + 2  # after the position and the horizontal velocity
@@ -342,7 +374,8 @@ class Tracker:
         Q3 + dt|dt|/2 Q2 + |dt| Q1 (an integrated random walk per pair, exact for any step, back
         in time too), the site biases' Gauss-Markov decay set in by :meth:`_propagated`."""
         c, dims = self.config, self.config.dims
-        n = self._bias + 2 + self._width * len(self._sites) + (0 if self._odometry is None else 2)
+        n = (self._bias + 2 + self._width * len(self._sites) + (0 if self._odometry is None else 2)
+             + (0 if self._clone is None else 2))
         # each pair: a "to" state integrating its "from" state, which random-walks with that PSD
         pairs = [(i, dims + i, c.acceleration_std_mps2**2) for i in range(2)]
         pairs.append((self._bias, self._bias + 1, c.clock_drift_std_mps_per_sqrt_s**2))
@@ -502,13 +535,26 @@ class Tracker:
         if innovation * innovation > self._gate * variance:
             return False
         gain = ph / variance
+        if self._odometry is None:
+            x += gain * innovation
+            P -= np.outer(gain, ph)
+            return True
+        # the velocity and the odometry's yaw and scale are considered, not updated, by the sites
+        # (a Schmidt update): the odometry measures the velocity, and a bias drifting along the
+        # route would pass for a velocity or scale error it then carries on (simulated walk:
+        # scale -0.27 for a true -0.02, the track drifting 0.5 m/s)
+        dims = self.config.dims
+        gain[dims: dims + 2] = 0.0
+        gain[self._odometry: self._odometry + 2] = 0.0
         x += gain * innovation
-        P -= np.outer(gain, ph)
+        self._P = P - np.outer(gain, ph) - np.outer(ph, gain) + variance * np.outer(gain, gain)
         return True
 
-    def _correct_block(self, innovation: np.ndarray, H: np.ndarray, R: np.ndarray, gate: float) -> float | None:
-        """A vector update (Joseph form); the normalised innovation squared where it fails
-        ``gate`` (state untouched), else None."""
+    def _correct_block(self, innovation: np.ndarray, H: np.ndarray, R: np.ndarray, gate: float,
+                       considered: Sequence[int] = ()) -> float | None:
+        """A vector update (Joseph form: right for any gain); the normalised innovation squared
+        where it fails ``gate`` (state untouched), else None. ``considered`` states keep their
+        values (a Schmidt update: their uncertainty counts, they learn nothing from it)."""
         P = self._P
         PH = P @ H.T
         S = H @ PH + R
@@ -516,6 +562,7 @@ class Tracker:
         if not score <= gate:
             return score
         K = np.linalg.solve(S, PH.T).T
+        K[list(considered)] = 0.0
         self._x += K @ innovation
         A = self._eye - K @ H
         self._P = A @ P @ A.T + K @ R @ K.T
@@ -547,67 +594,116 @@ class Tracker:
 
     def _use_velocity(self, aid: VelocityAid) -> None:
         """An odometry velocity: in ``map``, a direct measurement; in an odometry frame, with the
-        frame's yaw and scale once aligned, a speed or a standstill before; refused and said
-        beyond the gate."""
+        frame's yaw and scale once aligned, only a standstill before (and a step of the stretch
+        that aligns it); refused and said beyond the gate."""
         dims = self.config.dims
         velocity = np.arange(dims, dims + 2)
-        n = len(self._x)
-        v, Pv = self._x[velocity], self._P[np.ix_(velocity, velocity)]
+        v = self._x[velocity]
         z, R = aid.velocity, aid.covariance
-        noise = float(np.linalg.eigvalsh(R)[-1])
-        H = np.zeros((2, n))
         speed = float(np.hypot(*z))
-        if aid.in_map_frame or speed <= STANDSTILL_SIGMAS * math.sqrt(noise):
+        if not aid.in_map_frame and self._odometry is None:
+            self._stretch_to(aid)  # may grow the state: size H after
+        H = np.zeros((2, len(self._x)))
+        if aid.in_map_frame or speed <= STANDSTILL_SIGMAS * math.sqrt(float(np.linalg.eigvalsh(R)[-1])):
             # a standstill reads 0 in any frame: what it read is folded into the noise
             H[:, velocity] = np.eye(2)
             if not aid.in_map_frame:
-                z, R = np.zeros(2), np.eye(2) * (speed**2 + noise)
+                z, R = np.zeros(2), np.eye(2) * (speed**2 + float(np.linalg.eigvalsh(R)[-1]))
             self._velocity_outcome(aid, self._correct_block(z - v, H, R, self._gate2), speed)
             return
         if self._odometry is None:
-            if math.sqrt(float(np.linalg.eigvalsh(Pv)[-1])) <= ALIGN_DIRECTION_STD_RAD * float(np.hypot(*v)):
-                self._align_odometry(v, velocity, aid)
-                return
-            if float(np.hypot(*v)) > 2 * math.sqrt(float(np.trace(Pv))):  # a speed, while the yaw is unknown
-                along = z / speed
-                h = np.zeros((1, n))
-                h[0, velocity] = v / float(np.hypot(*v))
-                variance = float(along @ R @ along) + (self.config.odometry_scale_std * speed) ** 2
-                score = self._correct_block(np.array([speed - float(np.hypot(*v))]), h, np.array([[variance]]),
-                                            self._gate)
-                self._velocity_outcome(aid, score, speed)
+            self._align_odometry(aid)
             return
         psi, scale = self._x[self._odometry], self._x[self._odometry + 1]
         seen, by_v, by_psi, by_scale = odometry_velocity(v, psi, scale)
         H[:, velocity] = by_v
         H[:, self._odometry] = by_psi
         H[:, self._odometry + 1] = by_scale
-        self._velocity_outcome(aid, self._correct_block(z - seen, H, R, self._gate2), speed)
+        # the yaw and scale are considered, not updated, here: the odometry alone cannot tell a
+        # turned or scaled velocity from a scaled odometry (z = (1 + s) R(-psi) v), and an EKF
+        # linearised on its own estimate walks along that direction, ever more sure of it
+        # (simulated: the scale from -0.02 to -0.27 in two minutes); positions teach them
+        odometry = (self._odometry, self._odometry + 1)
+        score = self._correct_block(z - seen, H, R, self._gate2, odometry)
+        if score is not None and self._velocity_refusals + 1 >= MAX_VELOCITY_REFUSALS:
+            # the odometry said it again: the track's velocity is what is wrong (a turn the motion
+            # model did not expect); it is given the odometry's word, its own uncertainty widened
+            missed = float(np.sum((rotation(psi) @ z / (1 + scale) - v) ** 2))
+            self._P[velocity, velocity] += missed
+            self._notes.append(f"odometry at {aid.time_s:.1f} s disagreed with the track's velocity "
+                               f"{self._velocity_refusals + 1} times in a row: the track's velocity was wrong "
+                               f"({math.sqrt(missed):.1f} m/s off), taken from the odometry")
+            score = self._correct_block(z - seen, H, R, math.inf, odometry)
+        self._velocity_outcome(aid, score, speed)
 
     def _velocity_outcome(self, aid: VelocityAid, score: float | None, speed: float) -> None:
         if score is None:
             self._last_accepted = aid.time_s
+            self._velocity_refusals = 0
             return
+        self._velocity_refusals += 1
         self._notes.append(f"odometry velocity at {aid.time_s:.1f} s refused: {speed:.1f} m/s read, the track "
                            f"disagrees (normalised innovation {score:.1f})")
 
-    def _align_odometry(self, v: np.ndarray, velocity: np.ndarray, aid: VelocityAid) -> None:
-        """Append the odometry frame's yaw (from this velocity pair, with its correlation to the
-        track's velocity kept) and scale (its prior) to the state: the measurement is spent on it."""
-        psi, by_track, odometry_variance = heading_offset(v, self._P[np.ix_(velocity, velocity)], aid.velocity,
-                                                          aid.covariance)
+    def _stretch_to(self, aid: VelocityAid) -> None:
+        """Integrate the odometry frame's displacement since the stretch began, where the track's
+        position was cloned into the state (its covariance with everything kept as the filter
+        runs on); a gap in the odometry starts a new stretch."""
+        stretch = self._stretch
+        if self._clone is not None and aid.time_s - stretch.last_s > ODOMETRY_GAP_S:
+            self._remove(range(self._clone, self._clone + 2))
+        if self._clone is None:
+            n = len(self._x)
+            P = np.zeros((n + 2, n + 2))
+            P[:n, :n] = self._P
+            P[n:, :n] = self._P[:2, :]
+            P[:n, n:] = self._P[:, :2]
+            P[n:, n:] = self._P[:2, :2]
+            self._x, self._P, self._clone = np.append(self._x, self._x[:2]), P, n
+            self._stretch = _Stretch(aid.time_s, aid.time_s, aid.velocity, aid.covariance)
+            self._model()
+            return
+        dt = aid.time_s - stretch.last_s
+        stretch.displacement = stretch.displacement + 0.5 * (stretch.velocity + aid.velocity) * dt
+        stretch.covariance = stretch.covariance + 0.25 * (stretch.velocity_covariance + aid.covariance) * dt**2
+        stretch.last_s, stretch.velocity, stretch.velocity_covariance = aid.time_s, aid.velocity, aid.covariance
+
+    def _align_odometry(self, aid: VelocityAid) -> None:
+        """Once the odometry's stretch is long enough and the track's displacement over it points
+        well enough, the odometry frame's yaw (the angle between the two, with its covariance to
+        every state kept) and scale (its prior) join the state and the clone goes; the yaw a
+        track before this one learned is taken again at once."""
+        stretch, c = self._stretch, self._clone
+        displacement = self._x[:2] - self._x[c: c + 2]
+        if float(np.hypot(*stretch.displacement)) < ALIGN_MIN_M or not float(np.hypot(*displacement)) > 0:
+            return
+        spread = (self._P[:2, :2] + self._P[c: c + 2, c: c + 2] - self._P[:2, c: c + 2] - self._P[c: c + 2, :2])
+        if float(np.linalg.eigvalsh(spread)[-1]) > (ALIGN_DIRECTION_STD_RAD * float(np.hypot(*displacement))) ** 2:
+            return
+        psi, by_track, odometry_variance = heading_offset(displacement, stretch.displacement, stretch.covariance)
         n = len(self._x)
-        cross = by_track @ self._P[velocity, :]  # (n,): psi's covariance with every state
+        cross = by_track @ (self._P[:2, :] - self._P[c: c + 2, :])  # (n,): psi's covariance with every state
+        wander = self.config.heading_drift_rad_per_sqrt_s**2 * (stretch.last_s - stretch.first_s)
         P = np.zeros((n + 2, n + 2))
         P[:n, :n] = self._P
         P[n, :n] = P[:n, n] = cross
-        P[n, n] = float(by_track @ self._P[np.ix_(velocity, velocity)] @ by_track) + odometry_variance
+        P[n, n] = float(by_track @ spread @ by_track) + odometry_variance + wander
         P[n + 1, n + 1] = self.config.odometry_scale_std**2
-        self._x = np.append(self._x, [psi, 0.0])
-        self._P = P
-        self._odometry = n
-        self._model()
+        self._x, self._P, self._odometry = np.append(self._x, [psi, 0.0]), P, n
+        self._remove(range(c, c + 2))
         self._last_accepted = aid.time_s
+
+    def _remove(self, states: Sequence[int]) -> None:
+        """Marginalise ``states`` out (their rows and columns go), every index moved along."""
+        keep = np.ones(len(self._x), dtype=bool)
+        keep[list(states)] = False
+        moved = np.cumsum(keep) - 1  # each kept state's new index
+        for site in self._sites.values():
+            site.index = int(moved[site.index])
+        self._odometry = None if self._odometry is None or not keep[self._odometry] else int(moved[self._odometry])
+        self._clone = None if self._clone is None or not keep[self._clone] else int(moved[self._clone])
+        self._x, self._P = self._x[keep], self._P[np.ix_(keep, keep)]
+        self._model()
 
     def _stale(self, measurement: SiteArrival | PositionAid | VelocityAid) -> None:
         if isinstance(measurement, SiteArrival):
@@ -665,19 +761,9 @@ class Tracker:
         since they were last heard (marginalised: their rows and columns go); heard again, they
         start afresh."""
         gone = [name for name, site in self._sites.items() if self._faded - site.heard_fade > FORGET_CORRELATIONS]
-        if not gone:
-            return
-        keep = np.ones(len(self._x), dtype=bool)
-        for name in gone:
-            index = self._sites.pop(name).index
-            keep[index: index + self._width] = False
-        moved = np.cumsum(keep) - 1  # each kept state's new index
-        for site in self._sites.values():
-            site.index = int(moved[site.index])
-        if self._odometry is not None:
-            self._odometry = int(moved[self._odometry])
-        self._x, self._P = self._x[keep], self._P[np.ix_(keep, keep)]
-        self._model()
+        if gone:
+            indices = [self._sites.pop(name).index for name in gone]
+            self._remove([i + k for i in indices for k in range(self._width)])
 
     def _position(self, x: np.ndarray) -> np.ndarray:
         if self.config.dims == 2:
@@ -798,6 +884,13 @@ class Tracker:
         latest = {a.site: a for a in arrivals if a.site in start.sites}  # in time order: the last stays
         for name in start.sites:
             self._add_site(latest[name])
+        if self._odometry_known is not None:  # the odometry's yaw and scale, as the last track left them
+            values, covariance = self._odometry_known
+            n = len(self._x)
+            P = np.zeros((n + 2, n + 2))
+            P[:n, :n], P[n:, n:] = self._P, covariance
+            self._x, self._P, self._odometry = np.append(self._x, values), P, n
+            self._model()
 
 
 def _prior_of(aid: PositionAid) -> PositionPrior:
