@@ -15,10 +15,8 @@ import yaml
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.motion import MOTION_MODELS
-from deepsync.fusion.stage import FusionConfig
 from deepsync.pipeline import PipelineConfig
 from deepsync.sources import BagSource
-from deepsync.sync.stage import SyncConfig
 from deepsync.timing.stage import Estimator, TimingConfig
 from deepsync_ros import params
 from deepsync_ros.health import PlaybackConfig
