@@ -28,6 +28,7 @@ from tqdm import tqdm
 import deepsync
 from deepsync.bag import BagWriter
 from deepsync.frontend.channel import Emitter
+from deepsync.frontend.portable import squared_magnitude
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
 from deepsync.twin import Twin, build_twin
@@ -74,7 +75,7 @@ def cell_summaries(twin: Twin) -> list[CellSummary]:
     out = []
     for i, (cell, emitter) in enumerate(zip(twin.cells, twin.emitters)):
         paths = twin.channel.paths(i, 0.0)
-        power_w = emitter.re_power_w * float(np.sum(np.abs(paths.gains) ** 2))
+        power_w = emitter.re_power_w * float(np.sum(squared_magnitude(paths.gains)))
         out.append(
             CellSummary(
                 pci=cell.pci,
