@@ -128,6 +128,7 @@ class GroupRenderer:
         self.symbol_times = (self.useful_start + self.num.fft_size / 2) / self.rate
         self.slot_times = self.symbol_times.reshape(SLOTS_PER_FRAME, -1).mean(axis=1)
         self._spectrum = np.zeros((len(self.useful_start), n), dtype=np.complex64)
+        self._content = np.empty((len(self.useful_start), len(offsets)), dtype=np.complex64)
         self._layouts: dict[bytes, _TapLayout] = {}  # by relative delays
         self._rotations: dict[bytes, np.ndarray] = {}  # path gains' rotation over the frame, by delays and Doppler
         self._turns_per_sample = 0.0
@@ -215,22 +216,22 @@ class GroupRenderer:
         turned = (self.turns_per_sample * start) % 1.0
         ramp = phasor(2 * np.pi * (turned - self.frequencies * (lead / self.rate))).astype(np.complex64)
 
-        n = self.num.fft_size
         for m, generator in enumerate(self.generators):
             response = self._response(m, k, reference_delay, ramp)  # (U, K)
             shared = len(response)  # rows of the grid that share one response
             grid = generator.grid(k).reshape(shared, -1, response.shape[1])
-            rows = self._spectrum.reshape(shared, -1, n)
+            if m == 0:  # rounded to single precision once, the sum of the cells too
+                content = multiply(grid, response[:, None, :], out=self._content.reshape(grid.shape))
+            else:
+                content = multiply(grid, response[:, None, :])
+            content = content.reshape(len(self._spectrum), -1)
             for bins, subcarriers in self._runs:
-                product = multiply(grid[..., subcarriers], response[:, None, subcarriers],
-                                   out=rows[..., bins] if m == 0 else None)
-                if m > 0:
-                    rows[..., bins] += product
+                if m == 0:
+                    self._spectrum[:, bins] = content[:, subcarriers]
+                else:
+                    self._spectrum[:, bins] += content[:, subcarriers]
         symbols = scipy.fft.ifft(self._spectrum, axis=1, norm="forward", workers=1)
-        samples = self._with_prefixes(symbols)[: stop - start]
-        if self.turns_per_sample:
-            multiply(samples, self._rotation[: len(samples)], out=samples)
-        return Frame(start, samples)
+        return Frame(start, self._with_prefixes(symbols)[: stop - start])
 
     @property
     def turns_per_sample(self) -> float:
@@ -244,15 +245,25 @@ class GroupRenderer:
 
     def _with_prefixes(self, symbols: np.ndarray) -> np.ndarray:
         """The frame's samples: each symbol after its cyclic prefix (its own tail), and one
-        sample more that continues the last symbol (for a frame that ends a sample late)."""
+        sample more that continues the last symbol (for a frame that ends a sample late);
+        turned by the group's rotation on the way where it has one."""
         n, first, other = self.num.fft_size, self._cp_first, self._cp_other
         out = np.empty(self.frame_length + 1, dtype=np.complex64)
         by_slot = symbols.reshape(SLOTS_PER_FRAME, SYMBOLS_PER_SLOT, n)
         slots = out[:-1].reshape(SLOTS_PER_FRAME, -1)
-        slots[:, :first] = by_slot[:, 0, n - first:]
-        slots[:, first : first + n] = by_slot[:, 0]
         rest = slots[:, first + n :].reshape(SLOTS_PER_FRAME, SYMBOLS_PER_SLOT - 1, other + n)
-        rest[:, :, :other] = by_slot[:, 1:, n - other:]
-        rest[:, :, other:] = by_slot[:, 1:]
-        out[-1] = symbols[-1, 0]
+        pieces = ((slots[:, :first], by_slot[:, 0, n - first:]), (slots[:, first : first + n], by_slot[:, 0]),
+                  (rest[:, :, :other], by_slot[:, 1:, n - other:]), (rest[:, :, other:], by_slot[:, 1:]))
+        if not self.turns_per_sample:
+            for into, source in pieces:
+                into[...] = source
+            out[-1] = symbols[-1, 0]
+            return out
+        turn = self._rotation
+        turn_slots = turn[:-1].reshape(SLOTS_PER_FRAME, -1)
+        turn_rest = turn_slots[:, first + n :].reshape(SLOTS_PER_FRAME, SYMBOLS_PER_SLOT - 1, other + n)
+        turns = (turn_slots[:, :first], turn_slots[:, first : first + n], turn_rest[:, :, :other], turn_rest[:, :, other:])
+        for (into, source), by in zip(pieces, turns):
+            multiply(source, by, out=into)
+        multiply(symbols[-1, :1], turn[-1:], out=out[-1:])
         return out
