@@ -164,6 +164,7 @@ class StatisticalChannel:
                 raise ValueError(f"cells of site {tx.site!r} must share position and height")
             links.append(self._make_link(tx, sites[tx.site], len(links)))
         self._links: tuple[_Link, ...] = tuple(links)
+        self._fixed: dict[int, tuple] = {}  # a receiver that never moves: each link's geometry, once
 
     def _draw_site(self, tx: Transmitter) -> _SiteDraw:
         rng = site_rng(self._seed, tx.site, "large_scale")
@@ -236,6 +237,22 @@ class StatisticalChannel:
     def paths(self, emitter_index: int, t: float) -> Paths:
         """Paths from emitter ``emitter_index`` to the receiver at true time ``t`` (s)."""
         link = self._links[emitter_index]
+        delays, scale, doppler, specular_phase = self._geometry(emitter_index, t)
+        phase = link.phase + (2.0 * np.pi * t) * link.doppler_hz
+        if link.has_specular:
+            phase[0] = specular_phase
+        return Paths(
+            delays_s=delays.copy(),
+            gains=scale * link.amplitude * phasor(phase + link.chain_phase),
+            doppler_hz=doppler.copy(),  # the Paths must not alias what is kept here
+        )
+
+    def _geometry(self, emitter_index: int, t: float) -> tuple[np.ndarray, float, np.ndarray, float]:
+        """What the receiver's place decides: delays, amplitude scale, Doppler shifts and the
+        specular path's phase; a receiver that never moves has them once."""
+        if emitter_index in self._fixed:
+            return self._fixed[emitter_index]
+        link = self._links[emitter_index]
         tx, parameters = link.transmitter, link.parameters
         offset = self.receiver.position_enu(t) - tx.position_enu
         east, north, up = offset.tolist()
@@ -252,20 +269,17 @@ class StatisticalChannel:
             if link.delay_spread_along_s is not None:
                 excess = excess * _interpolated(link.delay_spread_along_s, along)
         loss_db = float(loss_db) + shadow_fading_db - float(tx.antenna.gain_db(offset))
-        scale = 10.0 ** (-loss_db / 20.0)
-        phase = link.phase + (2.0 * np.pi * t) * link.doppler_hz
-        doppler = link.doppler_hz.copy()  # the Paths must not alias the link's constants
+        doppler, specular_phase = link.doppler_hz.copy(), 0.0
         if link.has_specular:
             # (at the antenna itself, a receiver has no direction to move along)
             velocity = self.receiver.velocity_enu(t).tolist()
             radial_speed = (velocity[0] * east + velocity[1] * north + velocity[2] * up) / d3d if d3d > 0 else 0.0
             doppler[0] = -radial_speed * tx.carrier_hz / SPEED_OF_LIGHT_M_S
-            phase[0] = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT_M_S
-        return Paths(
-            delays_s=d3d / SPEED_OF_LIGHT_M_S + excess,
-            gains=scale * link.amplitude * phasor(phase + link.chain_phase),
-            doppler_hz=doppler,
-        )
+            specular_phase = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT_M_S
+        geometry = d3d / SPEED_OF_LIGHT_M_S + excess, 10.0 ** (-loss_db / 20.0), doppler, specular_phase
+        if self.receiver.speed_mps == 0:
+            self._fixed[emitter_index] = geometry
+        return geometry
 
 
 def correlated_normal_along(rng: np.random.Generator, start: float, length_m: float,
