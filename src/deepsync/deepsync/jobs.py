@@ -9,9 +9,9 @@ and a rerun makes what is missing.
 Ray is an optional extra (``pip install 'deepsync[ray]'``). ``ray`` is what ``ray.init`` takes
 as its address: ``auto`` joins the cluster this machine is part of (``ray start --head`` on
 one node, ``ray start --address=HEAD:6379`` on the others), ``ray://HEAD:10001`` reaches a
-remote cluster through Ray Client (``pip install 'ray[client]'``), and ``local`` starts a Ray instance on this machine alone.
-Every node needs this version of deepsync installed and the output directory on storage every
-node sees (a shared filesystem).
+remote cluster through Ray Client (``pip install 'ray[client]'``), and ``local`` starts a Ray
+instance on this machine alone. Every node needs this version of deepsync installed and the
+output directory on storage every node sees (a shared filesystem).
 """
 
 from __future__ import annotations
