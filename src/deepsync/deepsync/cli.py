@@ -23,6 +23,7 @@ from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import stack_record, summarize
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
+from deepsync.jobs import JobRunner
 from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
 from deepsync.numeric import one_blas_thread
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
@@ -66,6 +67,44 @@ def _positive_float(text: str) -> float:
 
 def _non_negative_float(text: str) -> float:
     return _bounded_float(text, positive=False)
+
+
+def _seeds(text: str) -> list[int]:
+    """``1-12`` or ``3,5,9`` (or both, comma-separated) as a list of seeds."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            low, _, high = part.partition("-")
+            seeds += range(int(low), int(high or low) + 1)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give seeds as 1-12 or 3,5,9") from None
+    if not seeds or min(seeds) < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: give at least one seed, none negative")
+    return seeds
+
+
+def _aiding_arguments(command: argparse.ArgumentParser) -> None:
+    """What a route evaluation may give the tracker besides the sites, drawn from the truth."""
+    command.add_argument("--gnss-interval", type=_non_negative_float, metavar="S",
+                         help="give the tracker a GNSS fix drawn from the truth every S seconds (0: only at the "
+                         "start), as a receiver that runs its GNSS now and then")
+    command.add_argument("--gnss-std", type=_positive_float, default=5.0, metavar="M",
+                         help="the GNSS fixes' error and claimed 1-sigma per horizontal axis (default %(default)g m)")
+    command.add_argument("--odometry-std", type=_positive_float, metavar="F",
+                         help="give the tracker odometry at 10 Hz: the true velocity in an odometry frame of unknown "
+                         "yaw, with a fractional error F (a scale error and noise) and a slow yaw drift")
+
+
+def _aiding_plan(args: argparse.Namespace):
+    from deepsync.eval.aiding import AidingPlan
+
+    return AidingPlan(args.gnss_interval, args.gnss_std, args.odometry_std)
+
+
+def _job_arguments(command: argparse.ArgumentParser, workers: int) -> None:
+    command.add_argument("--workers", type=_workers, default=workers, help=f"local processes (default {workers})")
+    command.add_argument("--ray", metavar="ADDRESS", help="run the jobs on a Ray cluster instead: auto (the cluster "
+                         "this machine belongs to), local, or ray://HOST:10001 (needs deepsync[ray])")
 
 
 def _print_recording(summary) -> None:
@@ -121,6 +160,46 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         overwrite=args.overwrite, progress=not args.quiet,
     )
     _print_recording(summary)
+    return 0
+
+
+def _cmd_simulate_set(args: argparse.Namespace) -> int:
+    from deepsync.recording import record_route_set
+
+    runner = JobRunner(args.workers, args.ray)
+    print(f"route set: {len(args.scenario)} scenario(s) x {len(args.seeds)} seed(s) of {args.seconds:g} s into "
+          f"{args.out}, on {runner.description}")
+    for summary in record_route_set(args.scenario, args.seeds, args.seconds, args.out, runner, overwrite=args.overwrite):
+        print(f"  {summary.out}: {summary.seconds:.1f} s simulated in {summary.wall_seconds:.1f} s")
+    return 0
+
+
+def _cmd_make_dataset(args: argparse.Namespace) -> int:
+    try:
+        from deepsync.training.train import load_run_config
+    except ModuleNotFoundError as error:
+        raise ValueError(f"the run config needs {error.name}: {network_install_hint(error.name)}") from None
+    from deepsync.training.dataset import generate
+
+    run = load_run_config(args.config)
+    cfg = run.training
+    runner = JobRunner(args.workers, args.ray)
+    print(f"timing examples of {args.config} into {cfg.data_dir}, on {runner.description}")
+    made = generate(Path(cfg.data_dir), {"train": cfg.train_shards, "val": cfg.val_shards, "test": cfg.test_shards},
+                    run.dataset, workers=args.workers, ray=args.ray)
+    print(f"  {made} examples made; `deepsync train --config {args.config}` uses them")
+    return 0
+
+
+def _cmd_evaluate_routes(args: argparse.Namespace) -> int:
+    from deepsync.eval.route_set import evaluate_route_set, write_table
+
+    runner = JobRunner(args.workers, args.ray)
+    aiding = _aiding_plan(args)
+    print(f"route evaluation of {len(args.bag)} bag(s) with {args.towers}, on {runner.description}; {aiding.describes}")
+    for bag, summary in evaluate_route_set(args.bag, args.towers, args.out, runner, _pipeline_config(args), aiding):
+        print(f"  {bag}: {summary['stacks']} stacks, heard {', '.join(summary['sites_heard']) or 'no site'}")
+    print(f"  written: {write_table(args.out, args.bag)}")
     return 0
 
 
@@ -305,13 +384,12 @@ def _stacks_text(config: PipelineConfig, motion: str) -> str:
 
 
 def _cmd_evaluate_route(args: argparse.Namespace) -> int:
-    from deepsync.eval.aiding import AidingPlan
     from deepsync.eval.route import InitialPose, evaluate_route
 
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
     config = _pipeline_config(args)
-    aiding = AidingPlan(args.gnss_interval, args.gnss_std, args.odometry_std)
+    aiding = _aiding_plan(args)
     print(f"route evaluation of {source.description}\n  tower database {args.towers}, "
           f"{_stacks_text(config, args.motion)}; {aiding.describes}")
     initial_pose = None if args.initial_pose_std is None else InitialPose(args.initial_pose_std)
@@ -471,10 +549,12 @@ def _print_route(summary: dict) -> None:
 
 
 def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_help: str, *,
-                      bag_options: Sequence[str] = ("--bag",), towers_required: bool = True) -> None:
+                      bag_options: Sequence[str] = ("--bag",), towers_required: bool = True,
+                      many_bags: bool = False) -> None:
     """What every command that replays a bag through the whole chain takes."""
     defaults = PipelineConfig()
-    command.add_argument(*bag_options, dest="bag", required=True, help=bag_help)
+    many = {"action": "extend", "nargs": "+"} if many_bags else {}
+    command.add_argument(*bag_options, dest="bag", required=True, help=bag_help, **many)
     command.add_argument("--towers", required=towers_required, help=towers_help)
     command.add_argument("--motion", choices=tuple(MOTION_MODELS), default=DEFAULT_MOTION,
                          help="how the receiver moves, which sets the stacks and the tracker's motion model "
@@ -509,6 +589,16 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--quiet", action="store_true", help="no progress bar")
     sim.set_defaults(run=_cmd_simulate)
 
+    route_set = commands.add_parser("simulate-set", help="a bag for every scenario and seed (a route set), in "
+                                    "local processes or on a Ray cluster")
+    route_set.add_argument("--scenario", required=True, action="append", help="scenario YAML (repeat for more)")
+    route_set.add_argument("--seeds", required=True, type=_seeds, help="seeds, e.g. 1-12 or 3,5,9")
+    route_set.add_argument("--seconds", required=True, type=_positive_float, help="length of each recording")
+    route_set.add_argument("--out", required=True, help="directory of the bags (<scenario>_seed<seed>)")
+    route_set.add_argument("--overwrite", action="store_true", help="replace bags already there (default: keep them)")
+    _job_arguments(route_set, workers)
+    route_set.set_defaults(run=_cmd_simulate_set)
+
     detect = commands.add_parser("detect", help="cell search and timing over a recording (bag, I/Q or envelope file)")
     detect.add_argument("--bag", help="rosbag2 bag (directory or .mcap) with /deepsync/envelope")
     detect.add_argument("--input", metavar="FILE",
@@ -534,15 +624,17 @@ def build_parser() -> argparse.ArgumentParser:
                        help="start the tracker from an initial position: the true start, off by a draw of "
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
                        "sites are heard to start)")
-    route.add_argument("--gnss-interval", type=_non_negative_float, metavar="S",
-                       help="give the tracker a GNSS fix drawn from the truth every S seconds (0: only at the "
-                       "start), as a receiver that runs its GNSS now and then")
-    route.add_argument("--gnss-std", type=_positive_float, default=5.0, metavar="M",
-                       help="the GNSS fixes' error and claimed 1-sigma per horizontal axis (default %(default)g m)")
-    route.add_argument("--odometry-std", type=_positive_float, metavar="F",
-                       help="give the tracker odometry at 10 Hz: the true velocity in an odometry frame of unknown "
-                       "yaw, with a fractional error F (a scale error and noise) and a slow yaw drift")
+    _aiding_arguments(route)
     route.set_defaults(run=_cmd_evaluate_route)
+
+    routes = commands.add_parser("evaluate-routes", help="evaluate-route on many bags, in local processes or on a "
+                                 "Ray cluster: a report per bag and route_set.json")
+    _replay_arguments(routes, "bags with /deepsync/envelope and /deepsync/truth/pose (e.g. --bag bags/set/*)",
+                      "tower database YAML with origin, positions and timing", many_bags=True)
+    routes.add_argument("--out", required=True, help="where the reports (one directory per bag) go")
+    _aiding_arguments(routes)
+    _job_arguments(routes, workers)
+    routes.set_defaults(run=_cmd_evaluate_routes)
 
     replay = commands.add_parser("replay", help="run the chain's stages over a bag and write what the nodes publish "
                                  "(sync windows, cell timing, pose with covariance, NavSatFix) into a new bag")
@@ -578,6 +670,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "if missing; resumes an interrupted run)")
     training.add_argument("--config", required=True, help="run YAML (config/timing/timing_net.yaml)")
     training.set_defaults(run=_cmd_train)
+
+    dataset = commands.add_parser("make-dataset", help="make a run config's missing timing examples, in local "
+                                  "processes or on a Ray cluster (deepsync train then uses them)")
+    dataset.add_argument("--config", required=True, help="run YAML (config/timing/timing_net.yaml)")
+    _job_arguments(dataset, workers)
+    dataset.set_defaults(run=_cmd_make_dataset)
 
     evaluate = commands.add_parser("evaluate-timing", help="network, ML, FFT-upsampled and parabolic timing side "
                                    "by side against the true first path and the CRLB: JSON and a figure")
