@@ -235,9 +235,11 @@ def test_an_interrupted_replay_leaves_nothing(tmp_path) -> None:
 
 
 def test_the_demo_replays_the_bundled_walk_into_a_bag_a_map_a_cdf_and_a_table(tmp_path, capsys) -> None:
-    """``deepsync demo``: the walk (bags/campus_route, 5.5 s, 3 LOS sites) through every stage.
-    Measured: 53 poses of 55 stacks, published (tracked) median 4.2 m, p90 6.3 m; the bounds
-    leave room for the snapshot taking over a few stacks (18 m median), not for a broken tracker."""
+    """``deepsync demo``: the walk (bags/campus_route, 5.5 s, 3 LOS sites) through every stage
+    with the default, a pedestrian's 100-frame stacks every 20 frames. Measured: 21 poses of 23
+    stacks (the first two before the cells are confirmed), published median 5.5 m, p90 8.0 m;
+    the bounds leave room for the snapshot taking over a few stacks (9 m median), not for a
+    broken tracker."""
     import json
 
     assert main(["demo", "--out", str(tmp_path), "--quiet"]) == 0
@@ -246,9 +248,9 @@ def test_the_demo_replays_the_bundled_walk_into_a_bag_a_map_a_cdf_and_a_table(tm
     assert "published" in printed and "x real time" in printed
     summary = json.loads((tmp_path / "route.json").read_text())["summary"]
     tracked = summary["methods"]["tracked"]
-    assert summary["stacks"] == 55 and tracked["fix_rate"] > 0.85 and tracked["median_m"] < 8.0
+    assert summary["stacks"] == 23 and tracked["fix_rate"] > 0.8 and tracked["median_m"] < 8.0
     for name in ("route_map.png", "route_cdf.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with BagReader(tmp_path / "replay") as reader:
         counts = reader.message_counts
-    assert counts[POSE_TOPIC] == counts[NAV_SAT_FIX_TOPIC] >= 45 and counts[TRUTH_POSE_TOPIC] == 55
+    assert counts[POSE_TOPIC] == counts[NAV_SAT_FIX_TOPIC] >= 19 and counts[TRUTH_POSE_TOPIC] == 55
