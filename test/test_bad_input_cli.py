@@ -57,11 +57,13 @@ def cu8(tmp_path) -> Path:
     (["--seconds", "1e-9"], "at least one 10 ms frame"),
     (["--seconds", "nan"], "must be a positive number"),
     (["--seconds", "-1"], "must be a positive number"),
-    (["--seed", "x"], "invalid int value"),
-    (["--seed=-1"], "--seed must be in [0, 9223372036854775807]"),
-    (["--seed", str(2**64)], "--seed must be in [0, 9223372036854775807]"),
-], ids=["workers_0", "workers_1000", "workers_word", "seconds_tiny", "seconds_nan", "seconds_negative", "seed_word",
-        "seed_negative", "seed_beyond_int64"])
+    (["--seconds", "1e308"], "argument --seconds: '1e308' s is more than a day"),  # OverflowError on main
+    (["--seed", "x"], "argument --seed: 'x' is not a whole number"),
+    (["--seed=-1"], "argument --seed: must be in [0, 9223372036854775807]"),
+    (["--seed", str(2**64)], "argument --seed: must be in [0, 9223372036854775807]"),
+    (["--seed", str(10**308)], "], got 100000000000000000...0000000000000000000"),  # on main: all 309 digits
+], ids=["workers_0", "workers_1000", "workers_word", "seconds_tiny", "seconds_nan", "seconds_negative",
+        "seconds_1e308", "seed_word", "seed_negative", "seed_beyond_int64", "seed_309_digits"])
 def test_simulate_flags(tmp_path, capsys, args, message):
     out = tmp_path / "bag"
     fails(["simulate", "--scenario", str(SCENARIO), "--seconds", "0.1", "--out", str(out), "--quiet", *args],
@@ -359,3 +361,12 @@ def test_compare_poses_of_a_topic_without_covariance_says_so(capsys):
     fails(["compare-poses", "--reference", str(BAG), "--other", str(BAG), "--topic", "/deepsync/truth/pose"],
           capsys, "/deepsync/truth/pose holds geometry_msgs/msg/PoseStamped, not "
                   "geometry_msgs/msg/PoseWithCovarianceStamped")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["demo", "--simulate", "1e308"], "argument --simulate: '1e308' s is more than a day"),  # OverflowError on main
+    (["evaluate-timing", "--frames", "abc"], "argument --frames: 'abc' is not a comma-separated list"),
+    (["evaluate-timing", "--frames", "5,0"], "argument --frames: '5,0': frame counts must be 1..1000"),
+], ids=["demo_simulate_1e308", "evaluate_timing_frames_word", "evaluate_timing_frames_0"])
+def test_flags_out_of_range_are_refused_naming_the_flag(capsys, args, message):
+    fails(args, capsys, message)

@@ -382,3 +382,82 @@ def test_ordinary_yaml_anchors_still_load(tmp_path):
     path.write_text("name: t\nsites:\n  - &a {name: A, cells: [{pci: 1}]}\n"
                     "  - {<<: *a, name: B, cells: [{pci: 2}]}\n")
     assert [s.name for s in load_tower_database(path).sites] == ["A", "B"]
+
+
+# -- the timing network's training run (config/timing/*.yaml) ------------------------------------
+
+TRAINING_YAML = CONFIG / "timing" / "timing_net.yaml"
+
+
+def _run_yaml(tmp_path, section: str, key: str, value: object) -> Path:
+    data = yaml.safe_load(TRAINING_YAML.read_text())
+    data[section][key] = value
+    path = tmp_path / "run.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.mark.parametrize(("section", "key", "value", "message"), [
+    pytest.param("training", "steps", 1e308, "steps must be within [1, 1e+07] steps", id="steps-1e308"),
+    pytest.param("training", "huber_delta", 0, "huber_delta must be within [0.001, 1000] samples", id="huber-0"),
+    pytest.param("training", "huber_delta", -1, "huber_delta must be within", id="huber-negative"),
+    pytest.param("training", "threads", -1, "threads must be within [0, 1024] threads", id="threads-negative"),
+    pytest.param("training", "learning_rate", 1e308, "learning_rate must be within [1e-09, 1]", id="lr-1e308"),
+    pytest.param("training", "batch_size", 100_000_000, "batch_size must be within [1, 65536]", id="batch-1e8"),
+    pytest.param("training", "batch_size", 20_000, "a batch would take about", id="batch-beyond-memory"),
+    pytest.param("training", "train_shards", 90_000, "in memory, beyond the 16 GiB bound", id="dataset-beyond-memory"),
+    pytest.param("training", "seed", 2**64, "seed must be within", id="seed-beyond-int64"),
+    pytest.param("training", "workers", 0, "workers must be within [1, 64]", id="workers-0"),
+    pytest.param("model", "hidden", [2e6, 32], "hidden must be within [1, 65536]", id="hidden-2e6"),
+    pytest.param("model", "hidden", [60000, 32], "weights, more than the 16,000,000 allowed", id="hidden-params"),
+    pytest.param("model", "channels", [8, 16, 2048], "channels must be within [1, 1024]", id="channels-2048"),
+    pytest.param("dataset", "examples_per_shard", 10**9, "examples_per_shard must be within", id="examples-1e9"),
+    pytest.param("dataset", "carrier_hz", 1e15, "carrier_hz must be within", id="carrier-1PHz"),
+    pytest.param("dataset", "re_power_dbm", [-110, 1e300], "re_power_dbm must be within", id="power-1e300"),
+])
+def test_a_training_run_that_cannot_work_is_refused_when_read(tmp_path, section, key, value, message):
+    """On main these trained for minutes (steps 1e308: 137 s), then ended in a traceback, or
+    allocated 10 GB first (batch_size 1e8): every number of the run now has its range."""
+    from deepsync.training.train import load_run_config
+
+    with pytest.raises(ConfigError) as error:
+        load_run_config(_run_yaml(tmp_path, section, key, value))
+    assert message in str(error.value) and str(tmp_path / "run.yaml") in str(error.value)
+
+
+def test_the_shipped_training_run_is_inside_every_range():
+    from deepsync.training.train import load_run_config
+
+    assert load_run_config(TRAINING_YAML).training.steps == 8000
+
+
+@pytest.mark.parametrize("module, cls, ranges", [
+    ("deepsync.training.train", "TrainConfig", "TRAIN_RANGES"),
+    ("deepsync.training.dataset", "DatasetConfig", "DATASET_RANGES"),
+    ("deepsync.timing.model", "TimingNetConfig", "NET_RANGES"),
+])
+def test_every_number_of_a_training_run_has_a_range(module, cls, ranges):
+    import importlib
+
+    loaded = importlib.import_module(module)
+    hints = typing.get_type_hints(getattr(loaded, cls))
+    numbers = {name for name, hint in hints.items()
+               if {int, float} & {hint, *typing.get_args(hint), *(a for arg in typing.get_args(hint)
+                                                                  for a in typing.get_args(arg))}}
+    numbers -= {"frame_means"}  # counts checked against max_frames instead
+    assert numbers == set(getattr(loaded, ranges))
+
+
+def test_a_network_config_counts_its_weights_without_building_them():
+    """The bound on a network's size is judged before it is built: the count must be the
+    network's own, for every fusion and head."""
+    torch = pytest.importorskip("torch")
+    from deepsync.timing.model import Fusion, Head, TimingNet, TimingNetConfig
+
+    for fusion in Fusion:
+        for head in Head:
+            for config in (TimingNetConfig(fusion=fusion, head=head),
+                           TimingNetConfig(fusion=fusion, head=head, channels=(4, 8, 16), heads=2, pool=3,
+                                           window_length=300, template_length=250, hidden=(10, 7))):
+                assert config.parameter_count == sum(p.numel() for p in TimingNet(config).parameters())
+    del torch

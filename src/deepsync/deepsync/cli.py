@@ -10,6 +10,7 @@ import argparse
 import json
 import math
 import os
+import reprlib
 import signal
 import sys
 import threading
@@ -55,6 +56,41 @@ def _positive_float(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
     return value
+
+
+def _seconds(text: str) -> float:
+    """A length of signal to simulate: positive, and at most a day (a bag that large already
+    takes 250 GB; 1e308 s overflowed)."""
+    from deepsync.recording import MAX_SECONDS
+
+    value = _positive_float(text)
+    if value > MAX_SECONDS:
+        raise argparse.ArgumentTypeError(f"{text!r} s is more than a day ({MAX_SECONDS:g} s): record less")
+    return value
+
+
+def _seed(text: str) -> int:
+    """A seed for the simulator's draws: an int64, as bag provenance and ROS parameters hold it."""
+    from deepsync.twin.scenario import SEED_RANGE
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} is not a whole number") from None
+    if not SEED_RANGE[0] <= value <= SEED_RANGE[1]:
+        raise argparse.ArgumentTypeError(f"must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}], got {reprlib.repr(value)}")
+    return value
+
+
+def _frame_counts(text: str) -> tuple[int, ...]:
+    """Comma-separated frame counts (``5,10,12``)."""
+    try:
+        counts = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of whole numbers") from None
+    if not all(1 <= count <= 1000 for count in counts):
+        raise argparse.ArgumentTypeError(f"{text!r}: frame counts must be 1..1000")
+    return counts
 
 
 def _print_recording(summary) -> None:
@@ -367,7 +403,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_evaluate_timing(args: argparse.Namespace) -> int:
     from deepsync.eval.timing import evaluate_timing
 
-    frames = tuple(int(f) for f in args.frames.split(","))
+    frames = args.frames
     if args.bag:
         from deepsync.eval.timing import evaluate_timing_bag
 
@@ -476,9 +512,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = commands.add_parser("simulate", help="simulate a scenario into an MCAP bag")
     sim.add_argument("--scenario", required=True, help="scenario YAML (see config/scenarios)")
-    sim.add_argument("--seconds", required=True, type=_positive_float, help="length of the recording")
+    sim.add_argument("--seconds", required=True, type=_seconds, help="length of the recording")
     sim.add_argument("--out", required=True, help="bag directory to create")
-    sim.add_argument("--seed", type=int, help="override the scenario's seed")
+    sim.add_argument("--seed", type=_seed, help="override the scenario's seed")
     sim.add_argument("--workers", type=_workers, default=workers, help=f"processes (default {workers})")
     sim.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     sim.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -551,7 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--data", default="data/timing", help="timing data directory (deepsync train makes it)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test"))
     evaluate.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
-    evaluate.add_argument("--frames", default="5,10,12", help="stacked frames to evaluate, comma-separated "
+    evaluate.add_argument("--frames", type=_frame_counts, default="5,10,12", help="stacked frames to evaluate, comma-separated "
                           "(with --bag: the first)")
     evaluate.add_argument("--bag", help="instead of the test set: a simulated bag with ground truth")
     evaluate.add_argument("--towers", help="with --bag: tower database YAML (known-PCI cell search)")
@@ -572,7 +608,7 @@ def build_parser() -> argparse.ArgumentParser:
                                "every stage into an MCAP bag, a route map, an error CDF and a table")
     demo.add_argument("--out", default=str(REPO / "out" / "demo"), help="where the demo writes")
     demo.add_argument("--verbose", action="store_true", help="print every stack: cells, sites, fix errors")
-    demo.add_argument("--simulate", type=_positive_float, metavar="SECONDS",
+    demo.add_argument("--simulate", type=_seconds, metavar="SECONDS",
                       help="simulate a fresh recording of the demo's scenario this long and use it instead")
     demo.add_argument("--workers", type=_workers, default=workers)
     demo.add_argument("--quiet", action="store_true", help="no progress bar")

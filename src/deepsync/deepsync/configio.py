@@ -88,6 +88,28 @@ def _check_tree(value: object, where: str, depth: int, sizes: dict[int, int]) ->
 
 
 
+Ranges = Mapping[str, tuple[float, float, str]]
+"""Field name -> (lowest, highest, unit): the inclusive physical or practical range of a
+config's number (a tuple field: of each of its values)."""
+
+
+def check_ranges(config: object, ranges: Ranges) -> None:
+    """ValueError naming the first field of ``config`` outside its range in ``ranges`` (a
+    number, or every value of a tuple of numbers), or a number that is not finite. Run from a
+    frozen config's ``__post_init__``, so that no value that cannot work gets past its door."""
+    for name, (low, high, unit) in ranges.items():
+        value = getattr(config, name)
+        values = value if isinstance(value, tuple) else (value,)
+        for item in values:
+            if item is None:
+                continue
+            if isinstance(item, bool) or not isinstance(item, (int, float)):
+                raise ValueError(f"{name} must be a number, got {value!r}")
+            if not (math.isfinite(item) and low <= item <= high):
+                allowed = f"[{low:g}, {high:g}] {unit}".rstrip()
+                raise ValueError(f"{name} must be within {allowed}, got {reprlib.repr(value)}")
+
+
 def require_mapping(value: object, where: str) -> Mapping[str, Any]:
     if not isinstance(value, Mapping):
         raise ConfigError(f"{where}: expected a mapping, got {type(value).__name__}")

@@ -16,6 +16,7 @@ import json
 import math
 import os
 import platform
+import reprlib
 import shutil
 import time
 from collections.abc import Iterator
@@ -36,6 +37,7 @@ from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming, StackA
 
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: receiver clock at sample 0
 POSE_PERIOD_SECONDS = 0.1
+MAX_SECONDS = 86_400.0  # a day of signal (about 250 GB of bag at 1.92 MS/s), the scenario's longest route
 TRUTH_ESTIMATOR = "truth"
 
 
@@ -174,14 +176,15 @@ def record_scenario(
     progress: bool = True,
 ) -> RecordingSummary:
     """Simulate ``seconds`` of a scenario into the bag ``out_dir`` (written atomically)."""
-    if not (math.isfinite(seconds) and seconds >= FRAME_SECONDS):
-        raise ValueError(f"--seconds must be at least one 10 ms frame, got {seconds!r}")
+    if not (math.isfinite(seconds) and FRAME_SECONDS <= seconds <= MAX_SECONDS):
+        raise ValueError(f"--seconds must be at least one 10 ms frame and at most a day ({MAX_SECONDS:g} s), "
+                         f"got {seconds!r}")
     scenario_path = Path(scenario_path)
     scenario = load_scenario(scenario_path)
     seed = scenario.seed if seed is None else int(seed)
     if not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
         raise ValueError(f"--seed must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}] (bag provenance and ROS "
-                         f"parameters hold it as int64), got {seed}")
+                         f"parameters hold it as int64), got {reprlib.repr(seed)}")
     twin = build_twin(scenario)
     simulator = EnvelopeSimulator(twin.emitters, twin.channel, twin.frontend, seed, epoch_ns=EPOCH_NS)
     rate = twin.frontend.adc_rate_hz

@@ -45,13 +45,45 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepsync.configio import ConfigError, build_dataclass, choice_name, load_yaml, require_mapping
+from deepsync.configio import ConfigError, build_dataclass, check_ranges, choice_name, load_yaml, require_mapping
 from deepsync.frontend.config import FrontendConfig
 from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_checkpoint
 from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND
 from deepsync.timing.inputs import Normalisation, network_inputs, noise_normalised
 from deepsync.timing.model import TimingNet, TimingNetConfig
 from deepsync.training.dataset import DatasetConfig, generate, load_split
+
+
+# The range of every number of the training section (inclusive): a value outside is a typo or
+# a unit slip; left through, it trains for hours and then fails (steps 1e308), or fails at the
+# first step (huber_delta 0, threads -1), or makes every weight NaN (learning_rate 1e308).
+TRAIN_RANGES: dict[str, tuple[float, float, str]] = {
+    "train_shards": (1, 100_000, "shards"),
+    "val_shards": (1, 10_000, "shards"),
+    "test_shards": (0, 10_000, "shards"),
+    "steps": (1, 10_000_000, "steps"),  # the shipped network took 8000
+    "batch_size": (1, 65_536, "examples"),  # and within MAX_BATCH_BYTES (RunConfig)
+    "learning_rate": (1e-9, 1.0, ""),  # Adam's steps are about this size: beyond 1 every weight diverges
+    "final_learning_rate": (1e-12, 1.0, ""),
+    "warmup_steps": (0, 10_000_000, "steps"),
+    "min_frames": (2, 100, "frames"),
+    "max_frames": (2, 100, "frames"),
+    "huber_delta": (1e-3, 1000.0, "samples"),  # 0 is no loss at all (torch refuses it)
+    "nll_weight": (0.0, 1000.0, ""),
+    "huber_min_stacked_snr_db": (-100.0, 100.0, "dB"),
+    "eval_every": (1, 10_000_000, "steps"),
+    "calibration_steps": (0, 10_000_000, "steps"),
+    "calibration_learning_rate": (1e-12, 1.0, ""),
+    "seed": (0, 2**63 - 1, ""),
+    "threads": (0, 1024, "threads"),  # 0: torch's default
+    "workers": (1, 64, "processes"),
+}
+MAX_BATCH_BYTES = 8 * 2**30
+"""Memory a training batch may take (``TimingNetConfig.activation_bytes`` of its examples at
+``max_frames``): the shipped run's batches take about 0.7 GB."""
+MAX_DATASET_BYTES = 16 * 2**30
+"""Memory the training and validation examples may take, held in memory as float32 windows,
+templates and mean frames: the shipped run's take about 0.3 GB."""
 
 
 @dataclass(frozen=True)
@@ -83,16 +115,10 @@ class TrainConfig:
     workers: int = 2  # processes making missing shards
 
     def __post_init__(self) -> None:
-        for name in ("train_shards", "val_shards", "steps", "batch_size", "eval_every", "min_frames"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}: {getattr(self, name)!r} must be a positive integer")
+        check_ranges(self, TRAIN_RANGES)
         if not 2 <= self.min_frames <= self.max_frames:
             raise ValueError(f"min_frames {self.min_frames} and max_frames {self.max_frames}: 2 <= min <= max "
                              "(the windows are normalised by their frame-to-frame noise)")
-        if self.calibration_steps < 0:
-            raise ValueError(f"calibration_steps: {self.calibration_steps!r} must be 0 or more")
-        if not self.calibration_learning_rate > 0:
-            raise ValueError(f"calibration_learning_rate: {self.calibration_learning_rate!r} must be positive")
         if not 0 < self.final_learning_rate <= self.learning_rate:
             raise ValueError(f"learning rates: 0 < final_learning_rate {self.final_learning_rate!r} <= "
                              f"learning_rate {self.learning_rate!r}")
@@ -112,6 +138,19 @@ class RunConfig:
         if window != self.model.window_length:
             raise ValueError(f"model.window_length {self.model.window_length} must be the examples' "
                              f"template + 2 x dataset.window_margin = {window}")
+        # sizes checked against their bounds before anything is allocated
+        batch = self.training.batch_size * self.model.activation_bytes(self.training.max_frames)
+        if batch > MAX_BATCH_BYTES:
+            most = MAX_BATCH_BYTES // self.model.activation_bytes(self.training.max_frames)
+            raise ValueError(f"training.batch_size {self.training.batch_size}: a batch would take about "
+                             f"{batch / 2**30:.3g} GiB, beyond the {MAX_BATCH_BYTES / 2**30:g} GiB bound "
+                             f"(at most {most} examples of {self.training.max_frames} frames with this model)")
+        shards = self.training.train_shards + self.training.val_shards
+        held = shards * self.dataset.examples_per_shard * self.dataset.example_bytes(self.model.template_length)
+        if held > MAX_DATASET_BYTES:
+            raise ValueError(f"{self.training.train_shards} + {self.training.val_shards} shards of "
+                             f"{self.dataset.examples_per_shard} examples would hold about {held / 2**30:.3g} GiB "
+                             f"in memory, beyond the {MAX_DATASET_BYTES / 2**30:g} GiB bound")
 
 
 def load_run_config(path: str | Path) -> RunConfig:
