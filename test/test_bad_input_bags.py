@@ -371,11 +371,19 @@ def test_topics_metadata_yaml_lists_wrongly_are_reported(tmp_path, good):
 
 @pytest.mark.parametrize(
     ("content", "why"),
-    [(None, "missing"), ("rosbag2_bagfile_information: [unclosed\n", "not YAML"),
+    [(None, "missing"), ("rosbag2_bagfile_information: [unclosed\n", "unusable (invalid YAML"),
      ("hello: world\n", "no rosbag2_bagfile_information mapping"),
      ("rosbag2_bagfile_information: {version: 9}\n", "storage_identifier is missing"),
-     (b"\xff\xfe binary", "unreadable")],
-    ids=["missing", "not-yaml", "not-rosbag2", "keys-missing", "not-text"],
+     (b"\xff\xfe binary", "unusable (not UTF-8 text"),
+     # what the guarded loader refuses in our own configs, refused here too (on main: a message
+     # hundreds of MB long from the alias bomb, a TypeError from the key, a RecursionError)
+     ("rosbag2_bagfile_information: {custom_data: " + "[" * 5000 + "]" * 5000 + "}\n",
+      "unusable (nested too deeply to read"),
+     ("rosbag2_bagfile_information: {1: 2}\n", "unusable (metadata.yaml.rosbag2_bagfile_information: key 1 is not a string"),
+     ("a0: &a0 [x, x, x, x, x, x, x, x, x]\n"
+      + "".join(f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]\n" for i in range(1, 9))
+      + "rosbag2_bagfile_information: {custom_data: {provenance: *a8}}\n", "unusable (metadata.yaml.a6: expands to more than")],
+    ids=["missing", "not-yaml", "not-rosbag2", "keys-missing", "not-text", "deep", "int-key", "alias-bomb"],
 )
 def test_unusable_metadata_yaml_is_reported_and_the_mcap_read(tmp_path, good, content, why):
     want = snapshot(good)

@@ -370,3 +370,31 @@ def test_compare_poses_of_a_topic_without_covariance_says_so(capsys):
 ], ids=["demo_simulate_1e308", "evaluate_timing_frames_word", "evaluate_timing_frames_0"])
 def test_flags_out_of_range_are_refused_naming_the_flag(capsys, args, message):
     fails(args, capsys, message)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+def test_simulate_reads_its_scenario_once_so_a_fifo_works(tmp_path):
+    """On main the scenario was read, then opened again to hash it for the provenance: on a FIFO
+    the second open waited forever (a process substitution recorded the hash of nothing)."""
+    import hashlib
+    import json
+    import threading
+
+    from deepsync.bag import BagReader
+
+    fifo = tmp_path / "scenario.yaml"
+    os.mkfifo(fifo)
+    text = SCENARIO.read_bytes()
+
+    def write_once() -> None:
+        with open(fifo, "wb") as handle:
+            handle.write(text)
+
+    writer = threading.Thread(target=write_once, daemon=True)
+    writer.start()
+    run = subprocess.run([str(DEEPSYNC), "simulate", "--scenario", str(fifo), "--seconds", "0.05", "--out",
+                          str(tmp_path / "bag"), "--quiet", "--workers", "1"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    with BagReader(tmp_path / "bag") as bag:
+        provenance = json.loads(bag.provenance)
+    assert provenance["scenario_sha256"] == hashlib.sha256(text).hexdigest()

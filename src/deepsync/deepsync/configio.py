@@ -27,19 +27,49 @@ class ConfigError(ValueError):
     """A configuration value is missing, malformed or out of range; the message names it."""
 
 
-def load_yaml(path: str | Path, where: str | None = None) -> dict[str, Any]:
-    """Load a YAML mapping with ``yaml.safe_load``; raise :class:`ConfigError` on any problem."""
-    path = Path(path)
+MAX_CONFIG_BYTES = 16 * 2**20  # a config file larger than this is no config (ours are a few kB)
+
+
+def read_config_bytes(path: str | Path, where: str | None = None) -> bytes:
+    """The bytes of a config file, read once (a FIFO or a process substitution cannot be read
+    twice: whatever else needs them, a hash for the provenance, takes these), at most
+    :data:`MAX_CONFIG_BYTES`; ConfigError naming the file on any problem."""
     where = where or str(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_CONFIG_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{where}: file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{where}: a directory, not a file") from None
     except OSError as error:
-        raise ConfigError(f"{where}: cannot read ({error.strerror})") from None
-    except UnicodeDecodeError as error:
-        raise ConfigError(f"{where}: not UTF-8 text (byte {error.object[error.start]:#04x} at offset "
-                          f"{error.start}): not a YAML file?") from None
+        raise ConfigError(f"{where}: cannot read ({error.strerror or error})") from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{where}: larger than {MAX_CONFIG_BYTES // 2**20} MiB: not a config file")
+    return data
+
+
+def load_yaml(path: str | Path, where: str | None = None) -> dict[str, Any]:
+    """Load a YAML mapping with ``yaml.safe_load``; raise :class:`ConfigError` on any problem."""
+    where = where or str(path)
+    return parse_yaml(read_config_bytes(path, where), where)
+
+
+def parse_yaml(data: bytes | str, where: str) -> dict[str, Any]:
+    """A YAML mapping from a config's bytes or text (what :func:`load_yaml` reads), through every
+    guard: ``safe_load``, UTF-8, a mapping at the top, string keys, bounded nesting and alias
+    expansion (:func:`check_tree`). The one way the project parses YAML: ConfigError naming
+    ``where`` on any problem."""
+    if isinstance(data, bytes):
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as error:
+            raise ConfigError(f"{where}: not UTF-8 text (byte {error.object[error.start]:#04x} at offset "
+                              f"{error.start}): not a YAML file?") from None
+    else:
+        text = data
+    if len(text) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{where}: larger than {MAX_CONFIG_BYTES // 2**20} MiB: not a config file")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as error:
@@ -51,12 +81,19 @@ def load_yaml(path: str | Path, where: str | None = None) -> dict[str, Any]:
         raise ConfigError(f"{where}: nested too deeply to read (more than Python's recursion limit)") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a mapping at the top level, got {type(data).__name__}")
-    _check_tree(data, where, 0, {})
+    check_tree(data, where)
     return data
 
 
 MAX_DEPTH = 64  # levels of nesting a config may have (ours use 5)
 MAX_VALUES = 1_000_000  # values a config may expand to through YAML aliases (ours hold a few hundred)
+
+
+def check_tree(value: object, where: str) -> int:
+    """How many values a parsed document (YAML, JSON) expands to; ConfigError naming ``where``
+    and the place for a key that is not a string, nesting deeper than ``MAX_DEPTH`` or more
+    than ``MAX_VALUES`` values (see :func:`_check_tree`)."""
+    return _check_tree(value, where, 0, {})
 
 
 def _check_tree(value: object, where: str, depth: int, sizes: dict[int, int]) -> int:

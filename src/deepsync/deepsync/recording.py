@@ -28,11 +28,12 @@ from tqdm import tqdm
 
 import deepsync
 from deepsync.bag import BagWriter
+from deepsync.configio import parse_yaml, read_config_bytes
 from deepsync.frontend.channel import Emitter
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
 from deepsync.twin import Twin, build_twin
-from deepsync.twin.scenario import SEED_RANGE, load_scenario
+from deepsync.twin.scenario import SEED_RANGE, parse_scenario
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming, StackArrivals
 
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: receiver clock at sample 0
@@ -128,12 +129,12 @@ def _size(n_bytes: float) -> str:
     return f"{n_bytes / 1e9:.1f} GB" if n_bytes >= 1e9 else f"{n_bytes / 1e6:.1f} MB"
 
 
-def _provenance(scenario_path: Path, seed: int, seconds: float, twin: Twin) -> str:
+def _provenance(scenario_path: Path, scenario_bytes: bytes, seed: int, seconds: float, twin: Twin) -> str:
     return json.dumps(
         {
             "generator": f"deepsync {deepsync.__version__} simulate",
             "scenario": str(scenario_path),
-            "scenario_sha256": hashlib.sha256(scenario_path.read_bytes()).hexdigest(),
+            "scenario_sha256": hashlib.sha256(scenario_bytes).hexdigest(),
             "seed": seed,
             "seconds": seconds,
             "frontend": asdict(twin.frontend),
@@ -180,7 +181,8 @@ def record_scenario(
         raise ValueError(f"--seconds must be at least one 10 ms frame and at most a day ({MAX_SECONDS:g} s), "
                          f"got {seconds!r}")
     scenario_path = Path(scenario_path)
-    scenario = load_scenario(scenario_path)
+    scenario_bytes = read_config_bytes(scenario_path)  # once: a FIFO cannot be read again for the hash
+    scenario = parse_scenario(parse_yaml(scenario_bytes, str(scenario_path)))
     seed = scenario.seed if seed is None else int(seed)
     if not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
         raise ValueError(f"--seed must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}] (bag provenance and ROS "
@@ -198,7 +200,7 @@ def record_scenario(
     stats = SimulationStats()
     started = time.perf_counter()
     chunks = truth_messages = 0
-    with BagWriter(out_dir, overwrite=overwrite, provenance=_provenance(scenario_path, seed, seconds, twin)) as bag:
+    with BagWriter(out_dir, overwrite=overwrite, provenance=_provenance(scenario_path, scenario_bytes, seed, seconds, twin)) as bag:
         bar = tqdm(total=n_samples, unit="S", unit_scale=True, disable=not progress, desc="simulate")
         for envelope in simulator.stream(seconds, chunk_samples=chunk, workers=workers, stats=stats):
             first, end = envelope.first_sample_index, envelope.end_sample_index

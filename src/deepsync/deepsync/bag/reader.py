@@ -30,7 +30,6 @@ from pathlib import Path, PurePath
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-import yaml
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
@@ -40,6 +39,7 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import TypesysError, get_types_from_msg
 from rosbags.typesys.store import Typestore
 
+from ..configio import ConfigError, load_yaml, parse_yaml
 from ..types import EnvelopeChunk
 from . import mcapfile
 from .convert import ENVELOPE_SAMPLES, envelope_from_msg
@@ -159,13 +159,12 @@ def _metadata_problem(info: Any) -> str | None:
 
 
 def _load_metadata(path: Path) -> tuple[dict[str, Any] | None, str | None]:
-    """(parsed metadata.yaml, None) or (None, why it is unusable)."""
+    """(parsed metadata.yaml, None) or (None, why it is unusable), through the project's
+    guarded YAML loader (no alias bombs, bounded nesting and size)."""
     try:
-        info = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError) as error:
-        return None, f"unreadable: {error}"
-    except yaml.YAMLError as error:
-        return None, f"not YAML: {' '.join(str(error).split())}"
+        info = load_yaml(path, path.name)
+    except ConfigError as error:
+        return None, f"unusable ({str(error).removeprefix(f'{path.name}: ')})"
     problem = _metadata_problem(info)
     return (info, None) if problem is None else (None, problem)
 
@@ -351,8 +350,10 @@ class BagReader:
             serialized = found.get(mcapfile.ROSBAG2_RECORD, {}).get("serialized_metadata")
             if serialized:
                 try:
-                    data = yaml.safe_load(serialized)
-                except yaml.YAMLError:
+                    data = parse_yaml(serialized, f"{f}: its {mcapfile.ROSBAG2_RECORD} metadata record")
+                except ConfigError as error:
+                    notes.append(BagInconsistency(f"{f.name}: metadata record {mcapfile.ROSBAG2_RECORD!r}", None, None,
+                                                  note=f"left aside: {error}"))
                     data = None
                 custom = data.get("custom_data") if isinstance(data, dict) else None
                 if isinstance(custom, dict):

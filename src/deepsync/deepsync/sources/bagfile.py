@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from deepsync.bag import (
     ENVELOPE_TOPIC,
@@ -28,6 +27,7 @@ from deepsync.bag import (
     cell_timing_array_from_msg,
     read_envelope,
 )
+from deepsync.configio import ConfigError, load_yaml
 from deepsync.frontend.config import FrontendConfig
 from deepsync.towers import MapOrigin
 from deepsync.types import EnvelopeChunk
@@ -54,9 +54,8 @@ def bag_dir(path: str | os.PathLike) -> Path:
     metadata = p.parent / "metadata.yaml"
     if metadata.is_file():
         try:
-            info = yaml.safe_load(metadata.read_text()) or {}
-            files = info["rosbag2_bagfile_information"]["relative_file_paths"]
-        except (yaml.YAMLError, OSError, KeyError, TypeError, UnicodeDecodeError):
+            files = load_yaml(metadata)["rosbag2_bagfile_information"]["relative_file_paths"]
+        except (ConfigError, KeyError, TypeError):
             return p
         if isinstance(files, list) and p.name in files:
             return p.parent
