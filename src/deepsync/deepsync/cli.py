@@ -447,7 +447,9 @@ def _cmd_compare_poses(args: argparse.Namespace) -> int:
     result = compare_poses(args.reference, args.other, args.topic)
     print(f"{args.topic}: {result.matched} poses at the same stamps, {result.only_reference} only in "
           f"{args.reference}, {result.only_other} only in {args.other}")
-    if result.matched:
+    if result.not_finite:
+        print(f"  {result.not_finite} of them hold NaN or inf (position, orientation or covariance) on either side")
+    if result.matched > result.not_finite:
         print(f"  position difference: median {result.median_difference_m:.3g} m, largest "
               f"{result.max_difference_m:.3g} m; horizontal sigmas within a factor {result.max_sigma_ratio:.4g}")
     same = result.same(args.tolerance)
