@@ -398,3 +398,26 @@ def test_simulate_reads_its_scenario_once_so_a_fifo_works(tmp_path):
     with BagReader(tmp_path / "bag") as bag:
         provenance = json.loads(bag.provenance)
     assert provenance["scenario_sha256"] == hashlib.sha256(text).hexdigest()
+
+
+@pytest.mark.parametrize("command", ["evaluate-route", "calibrate", "replay"])
+def test_a_tower_database_in_another_frame_than_the_bag_is_refused(tmp_path, capsys, command):
+    """A database whose origin lies 50 km from the bag's (simulated) one: on main evaluate-route
+    reported a 49,971 m median error for fixes 7 m off, and calibrate wrote site offsets of -2.9
+    and -3.7 us into a database, exit 0. Both frames are "map"; only their origins tell them apart."""
+    moved = tmp_path / "moved.yaml"
+    text = TOWERS.read_text()
+    assert "latitude_deg: 38.98690, longitude_deg: -76.94260" in text
+    moved.write_text(text.replace("latitude_deg: 38.98690, longitude_deg: -76.94260",
+                                  "latitude_deg: 39.43690, longitude_deg: -76.94260", 1))
+    out = tmp_path / ("out.yaml" if command == "calibrate" else "out")
+    bag_flag = "--in" if command == "replay" else "--bag"
+    fails([command, bag_flag, str(BAG), "--towers", str(moved), "--out", str(out), "--quiet"], capsys,
+          "m apart: the ground truth and the fixes would be compared in two frames")
+    assert not out.exists()
+    # the same origin, written otherwise, is the same frame
+    moved.write_text(text.replace("height_m: 10.0}", "height_m: 10.000001}", 1))
+    from deepsync.sources import BagSource
+    from deepsync.towers import load_tower_database
+
+    BagSource(BAG).check_frame(load_tower_database(moved))

@@ -60,7 +60,7 @@ from deepsync.bag.convert import CELL_TIMING_ARRAY, ENVELOPE_SAMPLES, SYNC_WINDO
 from deepsync.frontend.config import FrontendConfig
 from deepsync.fusion.stage import FusionResult
 from deepsync.pipeline import Pipeline, PipelineConfig, TimedStack, places_sites
-from deepsync.sources.bagfile import bag_dir, recorded_frontend
+from deepsync.sources.bagfile import bag_dir, check_same_frame, recorded_frontend
 from deepsync.towers import TowerDatabase
 from deepsync.types import FRAME_SECONDS, Fix, Health, StackArrivals
 
@@ -316,6 +316,8 @@ def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | Non
                 raise ValueError(f"fusion alone, but {why}: there is nothing to replay")
             stages = stages[:-1]
             note(f"fusion skipped: {why}; no pose is published")
+        if "fusion" in stages:  # the poses beside the copied truth, both in "map": one frame
+            check_same_frame(source.provenance, bag, towers)
         if stages[0] == "sync" and towers is None:
             note("no tower database: the cell search runs blind (all 504 PCIs)")
         produced = {topic for stage in stages for topic in STAGE_OUTPUT[stage]}

@@ -120,6 +120,7 @@ def replay(source: BagSource, towers: TowerDatabase, config: PipelineConfig | No
     replayed so far is kept, marked ``interrupted``. ValueError if the bag has no ground truth
     or the database places no site."""
     truth = read_truth_track(source.path)
+    source.check_frame(towers)
     if not places_sites(towers):
         raise ValueError(f"tower database {towers.name!r} places no site (it needs an origin and sites with "
                          "position and timing offset)")

@@ -29,7 +29,8 @@ from deepsync.bag import (
 )
 from deepsync.configio import ConfigError, load_yaml
 from deepsync.frontend.config import FrontendConfig
-from deepsync.towers import MapOrigin
+from deepsync.geo import LocalFrame
+from deepsync.towers import MapOrigin, TowerDatabase
 from deepsync.types import EnvelopeChunk
 
 
@@ -214,3 +215,42 @@ class BagSource:
         """The simulated scenario's map-frame origin. Raises a ValueError
         (:class:`~deepsync.bag.BagError`) naming the bag if it holds no such truth."""
         return _truth_fields(MapOrigin, self._truth("origin"), f"{self.path}: provenance origin")
+
+    def check_frame(self, towers: TowerDatabase) -> None:
+        """:func:`check_same_frame` of this bag and ``towers``."""
+        check_same_frame(self._provenance_text, self.path, towers)
+
+
+def check_same_frame(provenance: str | None, where: str | os.PathLike, towers: TowerDatabase | None) -> None:
+    """ValueError when a bag says where its ``map`` frame lies (a simulation's origin, in its
+    ``provenance``) and ``towers`` puts its origin elsewhere: the ground truth (in the bag's
+    frame) and the fixes (in the database's) would be compared, or written side by side, as if
+    they shared one, every position off by the distance between the origins. A bag that does
+    not say (a real recording) or a database without an origin has nothing to compare."""
+    if towers is None or towers.origin is None or not provenance:
+        return
+    try:
+        info = json.loads(provenance)
+    except (ValueError, RecursionError):
+        return  # unreadable provenance is judged where the front end is read from it
+    if not isinstance(info, dict) or "origin" not in info:
+        return
+    recorded = _truth_fields(MapOrigin, info["origin"], f"{where}: provenance origin")
+    origin = towers.origin
+    frame = LocalFrame(origin.latitude_deg, origin.longitude_deg, origin.height_m)
+    apart = float(np.linalg.norm(frame.geodetic_to_enu(recorded.latitude_deg, recorded.longitude_deg,
+                                                       recorded.height_m)))
+    if apart > FRAME_TOLERANCE_M:
+        raise ValueError(
+            f"{where}: its map frame has its origin at {_where(recorded)} (the simulation's), tower database "
+            f"{towers.name!r} at {_where(origin)}, {apart:,.2f} m apart: the ground truth and the fixes would "
+            "be compared in two frames; give the database the bag's origin")
+
+
+FRAME_TOLERANCE_M = 0.01
+"""How far two map frames' origins may lie apart and still be one frame: far below any error
+the evaluation reports (metres), far above the rounding of a coordinate written with 9 decimals."""
+
+
+def _where(origin: MapOrigin) -> str:
+    return f"({origin.latitude_deg:.7f}, {origin.longitude_deg:.7f}, {origin.height_m:g} m)"
