@@ -40,6 +40,7 @@ from deepsync.bag import (
     typestore,
 )
 from deepsync.bag.convert import ENVELOPE_SAMPLES
+from deepsync.bag.reader import SalvageReader
 from deepsync.frontend.config import FrontendConfig
 from deepsync.sources import BagSource, bag_frontend, open_source
 from deepsync.types import EnvelopeChunk
@@ -629,3 +630,78 @@ def test_a_bag_at_3_84_mhz_opened_by_its_mcap_alone_is_searched_at_its_own_rate(
     results = list(pipeline.run(source.chunks()))
     assert len(results) == 4 and not any(r.health for r in results)
     assert {56, 301} <= set(results[-1].sync.pcis)
+
+
+# -- sizes bounded before anything is allocated --------------------------------------------------
+
+
+def test_a_chunk_that_would_decompress_beyond_its_bound_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    """A 2.8 MB bag whose one zstd chunk held a 200-million-sample message took 5.35 GB on main
+    and was replayed as "105 s of signal". The chunk's size is judged from its header, against
+    ``MAX_CHUNK_BYTES`` (here lowered to 1 MiB, so that the test writes no 400 MB message)."""
+    from deepsync.bag import mcapfile
+
+    bag = write_bag(tmp_path / "big", make_chunks(2, 300_000))  # 600 kB messages: a chunk of 1.2 MB
+    monkeypatch.setattr(mcapfile, "MAX_CHUNK_BYTES", 2**20)
+    with pytest.raises(BagError, match=r"big.mcap: chunk 1 of 2 .* decompresses to 1,2\d\d,\d\d\d bytes, beyond "
+                                       r"the 1 MiB a chunk may take in memory; not read"):
+        BagReader(bag).open()
+    salvage = SalvageReader(bag)  # what replay falls back on reads up to it, and no further
+    assert not list(salvage.messages()) and "beyond the 1 MiB a chunk may take" in salvage.damage
+
+
+def test_an_envelope_chunk_beyond_its_bound_cannot_exist():
+    from deepsync.types import MAX_CHUNK_SAMPLES
+
+    with pytest.raises(ValueError, match=f"EnvelopeChunk of {MAX_CHUNK_SAMPLES + 1:,} samples: at most"):
+        EnvelopeChunk(T0, FS, 0, 12, 2 / 4096, np.zeros(MAX_CHUNK_SAMPLES + 1, np.int16))
+
+
+def write_with_a_raw_message(out: Path, raw: bytes, at: int = 3) -> Path:
+    """The test chunks with one envelope message of ``raw`` bytes (not a valid CDR: empty, or
+    too long) written before chunk ``at``."""
+    with BagWriter(out, provenance=PROVENANCE) as bag:
+        for k, chunk in enumerate(CHUNKS):
+            if k == at:
+                bag._writer.write(bag._connection(ENVELOPE_TOPIC, ENVELOPE_SAMPLES, None), chunk.stamp_ns - 1, raw)
+            bag.write_envelope(chunk)
+    return out
+
+
+@pytest.mark.parametrize("raw, cause", [(b"", "cannot decode"), (b"\0\1\0\0" + bytes(600_000), "beyond the 0.5 MiB")],
+                         ids=["zero_length", "beyond_the_message_bound"])
+def test_a_message_that_cannot_be_had_is_skipped_by_replay_and_the_rest_kept(tmp_path, monkeypatch, capsys, raw, cause):
+    """On main one zero-length envelope message stopped a replay ("the input is damaged") and
+    everything after it was lost, though the chunk around it was intact."""
+    from deepsync.bag import mcapfile
+    from deepsync.cli import main
+
+    if "beyond" in cause:
+        monkeypatch.setattr(mcapfile, "MAX_MESSAGE_BYTES", 2**19)
+    bag = write_with_a_raw_message(tmp_path / "odd", raw)
+    with BagReader(bag) as reader:  # plain reading still refuses: a bag is a file, not a stream
+        with pytest.raises(BagError, match=cause):
+            list(reader.messages([ENVELOPE_TOPIC]))
+        skipped: list[str] = []
+        assert len(list(reader.messages([ENVELOPE_TOPIC], skipped=skipped.append))) == N_CHUNKS
+    assert len(skipped) == 1 and cause in skipped[0] and f"at {T0 + round(3 * SAMPLES / FS * 1e9) - 1} ns" in skipped[0]
+    out = tmp_path / "out"
+    assert main(["replay", "--in", str(bag), "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert f"{N_CHUNKS} input messages" in printed and "skipped a message no stage can take" in printed
+
+
+def test_a_chunk_index_that_points_nowhere_reads_the_chunks_in_file_order(tmp_path, plain):
+    """Zeroed chunk-index offsets in a bag without a summary CRC: on main every message was lost
+    ("Unknown frame descriptor") though the chunks were intact."""
+    want = snapshot(plain)
+    bag = copy_bag(plain, tmp_path / "zeroed")
+    data = bytearray(mcap_of(bag).read_bytes())
+    for at, op, _ in summary_records(mcap_of(bag)):
+        if op == 0x08:  # a chunk index: message start and end time, then chunk_start_offset
+            struct.pack_into("<Q", data, at + 9 + 16, 0)
+    mcap_of(bag).write_bytes(bytes(data))
+    assert snapshot(bag) == want
+    with BagReader(bag) as reader:
+        assert any("chunk index: 2 of its 2 entries point where no chunk lies (the file has 2 chunks)" in str(note)
+                   for note in reader.inconsistencies)

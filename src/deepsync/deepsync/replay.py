@@ -329,7 +329,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | Non
             total = source.message_counts.get(input_topic) if isinstance(source, BagReader) else None
             bar = tqdm(total=total, unit="msg", disable=not progress, desc="replay")
             damage = None
-            messages = source.messages(sorted(copied | {input_topic}))
+            messages = source.messages(sorted(copied | {input_topic}), skipped=replayer.invalid.append)
             try:
                 while True:
                     try:
