@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from deepsync.sources import BagSource, SigmfSource, open_source
+from deepsync.sync.stacking import SERVED_RATES_HZ
 from deepsync.types import HealthKind
 
 REPO = Path(__file__).resolve().parents[1]
@@ -200,3 +201,62 @@ def test_an_archive_that_is_none_or_cut_short_says_so(tmp_path, content, message
     content(path)
     with pytest.raises(ValueError, match=message):
         list(open_source(path).chunks())
+
+
+# -- sample rates: every rate accepted is served --------------------------------------------------
+
+SCENARIO = REPO / "config" / "scenarios" / "campus.yaml"
+
+
+def scenario_at(tmp_path: Path, rate: float) -> Path:
+    text = SCENARIO.read_text()
+    assert "\nfrontend: {rf_gain_db: 10.0}\n" in text
+    path = tmp_path / f"campus_{rate:.0f}.yaml"
+    path.write_text(text.replace("\nfrontend: {rf_gain_db: 10.0}\n",
+                                 f"\nfrontend: {{rf_gain_db: 10.0, adc_rate_hz: {rate!r}}}\n"))
+    return path
+
+
+@pytest.mark.parametrize("rate", SERVED_RATES_HZ, ids=lambda rate: f"{rate / 1e6:g}MSps")
+def test_every_served_rate_finds_and_times_the_campus_cells(tmp_path, rate):
+    """The whole accepted set, simulated and searched: on main 30.72 / 9 MS/s was accepted and
+    died mid-stream in the search (shapes (17068,) and (17067,)), 30.72 / 7 MS/s found none of
+    the four cells and exited 0."""
+    from deepsync.pipeline import Pipeline, PipelineConfig
+    from deepsync.recording import record_scenario
+    from deepsync.sync.stage import SyncConfig
+    from deepsync.towers import load_tower_database
+
+    bag = tmp_path / "bag"
+    record_scenario(scenario_at(tmp_path, rate), 0.2, bag, workers=1, progress=False)
+    source = BagSource(bag)
+    assert source.frontend.adc_rate_hz == rate
+    truth = source.truth_arrivals()
+    pipeline = Pipeline(source.frontend, PipelineConfig(sync=SyncConfig(confirm_stacks=1)), load_tower_database(TOWERS))
+    timed = {}
+    for chunk in source.chunks():
+        for result in pipeline.process(chunk):
+            for cell in result.arrivals.cells:
+                timed[cell.pci] = min(abs(truth[cell.pci] - cell.toa)) if cell.pci in truth else np.inf
+    assert len(set(timed) & {56, 120, 121, 301}) >= 3, timed
+    assert all(error < 0.5 for error in timed.values()), timed
+
+
+@pytest.mark.parametrize("divisor", [7, 9, 24, 32])
+def test_a_rate_the_templates_take_but_the_search_cannot_serve_is_refused_at_the_door(tmp_path, divisor, capsys):
+    """Rates dividing 30.72 MHz that split a half frame (7, 9) or alias the PSS envelope (24, 32:
+    1.28 and 0.96 MS/s): simulate, a raw recording and the stages refuse them before any work."""
+    from deepsync.cli import main
+    from deepsync.frontend.config import FrontendConfig
+    from deepsync.sync.stage import SyncStage
+
+    rate = 30.72e6 / divisor
+    assert main(["simulate", "--scenario", str(scenario_at(tmp_path, rate)), "--seconds", "0.1", "--out",
+                 str(tmp_path / "bag"), "--quiet"]) == 2
+    assert "the cell search serves 1.92, 2.048" in capsys.readouterr().err and not (tmp_path / "bag").exists()
+    raw = tmp_path / "noise.cu8"
+    raw.write_bytes(bytes(range(256)) * 100)
+    assert main(["detect", "--input", str(raw), "--rate", repr(rate)]) == 2
+    assert f"{raw}: sample rate {rate:g} Hz: the cell search serves" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="the cell search serves"):
+        SyncStage(FrontendConfig(adc_rate_hz=rate, video_cutoff_hz=min(0.9e6, rate / 3)))

@@ -186,7 +186,10 @@ class _Replayer:
         if self.pipeline is None:
             frontend = None if self.stages[0] == "fusion" else recorded_frontend(
                 self.bag.provenance, sample_rate, self.bag.path)
-            self.pipeline = Pipeline(frontend, self.config, self.towers)
+            try:
+                self.pipeline = Pipeline(frontend, self.config, self.towers)
+            except ValueError as error:  # a rate the stages cannot serve: the whole replay stops, naming the bag
+                raise ValueError(f"{self.bag.path}: {error}") from None
             self.out.set_provenance(_provenance(self.bag.provenance, self.bag.path, self.stages, self.towers,
                                                 frontend))
         return self.pipeline

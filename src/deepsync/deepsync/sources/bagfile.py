@@ -32,6 +32,7 @@ from deepsync.frontend.config import FrontendConfig
 from deepsync.geo import LocalFrame
 from deepsync.towers import MapOrigin, TowerDatabase
 from deepsync.types import EnvelopeChunk
+from .base import check_rate
 
 
 def is_bag_path(path: str | os.PathLike) -> bool:
@@ -159,6 +160,7 @@ class BagSource:
         self._provenance = bool(provenance)
         self._provenance_text = provenance
         self.frontend = _frontend(self.path, provenance)
+        check_rate(self.frontend.adc_rate_hz, f"{self.path} (recorded at)")
         self.center_hz: float | None = None  # an envelope detector sees every carrier in its RF band
 
     @property

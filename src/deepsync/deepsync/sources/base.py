@@ -18,7 +18,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.templates import check_template_rate
+from deepsync.sync.stacking import check_stack_rate
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 from .envelope import (
     NonFiniteSample,
@@ -61,7 +61,8 @@ def stamp_at(stamp_ns: int, index: int, sample_rate: float) -> int:
 
 
 def check_rate(sample_rate: object, where: str) -> float:
-    """``sample_rate`` as a float, or ValueError naming ``where`` (missing, or no templates)."""
+    """``sample_rate`` as a float, or ValueError naming ``where`` (missing, or not one the cell
+    search serves: ``sync.stacking.check_stack_rate``)."""
     if sample_rate is None:
         raise ValueError(f"{where}: the sample rate must be given (the file does not say it)")
     try:
@@ -69,7 +70,7 @@ def check_rate(sample_rate: object, where: str) -> float:
     except (TypeError, ValueError):
         raise ValueError(f"{where}: sample rate {sample_rate!r} is not a number") from None
     try:
-        return check_template_rate(rate)
+        return check_stack_rate(rate)
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None
 
