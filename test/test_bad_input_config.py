@@ -306,6 +306,44 @@ BAD_TOWERS = [
 ]
 
 
+CAMPUS_A = {"latitude_deg": 38.985851, "longitude_deg": -76.947617}  # a campus site, 0.5 km from its origin
+CAMPUS_ORIGIN = {"latitude_deg": 38.9869, "longitude_deg": -76.9426, "height_m": 10.0}
+
+
+def _placed(*sites: dict, origin: dict | None = None, **top: object) -> dict:
+    """A database of ``sites`` (name, position, cells) around the campus origin."""
+    return {"name": "bad-input", "origin": origin or CAMPUS_ORIGIN, **top,
+            "sites": [{"timing_offset_us": 100.0, **site} for site in sites]}
+
+
+# on main each of these was accepted, and fusion then said only "too_few_sites" or
+# "degenerate_geometry", with no word about the site or the cause
+BAD_TOWERS += [
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120, "earfcn": 2000}]},
+                         {"name": "B", "latitude_deg": 38.99, "longitude_deg": -76.94,
+                          "cells": [{"pci": 120, "earfcn": 2000}]}),
+                 "towers.sites[1].cells[0].pci", "PCI 120 on EARFCN 2000 is also on site 'A' (towers.sites[0].cells[0])",
+                 id="pci-reused-on-another-site"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}, {"pci": 121}]},
+                         {"name": "A-copy", **CAMPUS_A, "cells": [{"pci": 120}, {"pci": 121}]}),
+                 "towers.sites[1].cells[0].pci", "PCI 120 is also on site 'A'", id="site-duplicated"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}]},
+                         {"name": "far", "latitude_deg": 47.9869, "longitude_deg": -76.9426, "cells": [{"pci": 7}]}),
+                 "towers.sites[1]", "site 'far' is 999 km from the origin, beyond the 100 km a cell reaches",
+                 id="site-1000km-away"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}]},
+                         {"name": "B", "latitude_deg": -76.947617, "longitude_deg": 38.985851, "cells": [{"pci": 7}]}),
+                 "towers.sites[1]", "(with latitude and longitude swapped it would lie within reach: swapped?)",
+                 id="latitude-longitude-swapped"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}]},
+                         {"name": "B", "latitude_deg": 38.99, "longitude_deg": -76.94, "cells": [{"pci": 7}]},
+                         origin={"latitude_deg": -38.9869, "longitude_deg": 103.0574, "height_m": 10.0}),
+                 "towers.origin", "every site lies 12,7", id="origin-at-the-antipode"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}]}, timing_epoch_utc="9999-01-01T00:00:00Z"),
+                 "towers.timing_epoch_utc", "lies outside 1980-01-06..2100-01-01", id="epoch-year-9999"),
+]
+
+
 @pytest.mark.parametrize(("data", "field", "expected"), BAD_TOWERS)
 def test_bad_tower_database_names_the_field(data, field, expected):
     with pytest.raises(ConfigError) as error:
@@ -322,6 +360,12 @@ def test_bad_tower_database_names_the_field(data, field, expected):
                  id="same-pci-on-two-carriers"),
     pytest.param(_towers({"pci": 1}, latitude_deg=-90, longitude_deg=180, height_m=0,
                          timing_offset_us=0), [], id="position-edges"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120, "earfcn": 2000}]},
+                         {"name": "B", "latitude_deg": 38.99, "longitude_deg": -76.94,
+                          "cells": [{"pci": 120, "earfcn": 2300}]},
+                         {"name": "C", "latitude_deg": 38.0869, "longitude_deg": -76.9426, "cells": [{"pci": 9}]},
+                         timing_epoch_utc="2099-12-31T23:59:59Z"),
+                 [], id="pci-on-two-carriers-a-site-99km-away-epoch-2099"),
 ])
 def test_valid_tower_databases_pass(data, pairs):
     assert parse_tower_database(data).cosited_pairs() == pairs

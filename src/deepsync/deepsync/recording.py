@@ -32,7 +32,7 @@ from deepsync.configio import parse_yaml, read_config_bytes
 from deepsync.frontend.channel import Emitter
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
-from deepsync.sources.base import check_rate
+from deepsync.sync.stacking import check_stack_rate
 from deepsync.twin import Twin, build_twin
 from deepsync.twin.scenario import SEED_RANGE, parse_scenario
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming, StackArrivals
@@ -189,7 +189,10 @@ def record_scenario(
         raise ValueError(f"--seed must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}] (bag provenance and ROS "
                          f"parameters hold it as int64), got {reprlib.repr(seed)}")
     twin = build_twin(scenario)
-    check_rate(twin.frontend.adc_rate_hz, f"{scenario_path}: frontend.adc_rate_hz")  # a bag the cell search can read
+    try:  # a bag the cell search can read, or none
+        check_stack_rate(twin.frontend.adc_rate_hz)
+    except ValueError as error:
+        raise ValueError(f"{scenario_path}: frontend.adc_rate_hz: {error}") from None
     simulator = EnvelopeSimulator(twin.emitters, twin.channel, twin.frontend, seed, epoch_ns=EPOCH_NS)
     rate = twin.frontend.adc_rate_hz
     n_samples = int(round(seconds * rate))

@@ -22,7 +22,12 @@ is confirmed (``deepsync.sync.bandwidths``); until then, the codes alone.
 Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
 by carrier: a cell without one would silently drop out of the pair search), a PCI appears at
 most once per carrier (two such sectors cannot be told apart), and the position is given
-whole (latitude and longitude) or not at all.
+whole (latitude and longitude) or not at all. Across the database a PCI appears on one site per
+carrier (a cell heard with it could not be placed: a copied site, or a reused PCI whose carriers
+are not given), every placed site lies within a cell's reach (``MAX_CELL_RANGE_M``, 100 km) of
+the origin (a site 1000 km off, with latitude and longitude swapped, or an origin at the
+antipode, would only show later as "too few sites" or "degenerate geometry"), and the epoch
+lies in the GPS era (1980..2100).
 
 ```yaml
 name: campus
@@ -50,12 +55,19 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from deepsync.configio import ConfigError, load_yaml, require_list, require_mapping
+from deepsync.geo import geodetic_to_ecef
 from deepsync.lte.cell import check_pci
 from deepsync.lte.earfcn import downlink_frequency_hz
 from deepsync.lte.numerology import check_bandwidth
+from deepsync.types import MAX_CELL_RANGE_M
+
+
+EPOCH_RANGE = (datetime.datetime(1980, 1, 6, tzinfo=datetime.timezone.utc),  # the GPS epoch
+               datetime.datetime(2100, 1, 1, tzinfo=datetime.timezone.utc))
 
 
 @dataclass(frozen=True)
@@ -256,12 +268,61 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
     name = top.get("name", "")
     if not isinstance(name, str):
         raise ConfigError(f"{where}.name: expected a string, got {name!r}")
+    _check_reused_pcis(sites, where)
+    origin = _origin(top.get("origin"), f"{where}.origin")
+    _check_reach(sites, origin, where)
     epoch_ns = _epoch_ns(top.get("timing_epoch_utc"), f"{where}.timing_epoch_utc")
     drifting = [site.name for site in sites if site.timing_drift_ns_per_s]
     if drifting and epoch_ns is None:
         raise ConfigError(f"{where}.timing_epoch_utc: sites {', '.join(drifting)} give a timing drift, which "
                           "needs the instant their offsets hold")
-    return TowerDatabase(name, tuple(sites), _origin(top.get("origin"), f"{where}.origin"), epoch_ns)
+    return TowerDatabase(name, tuple(sites), origin, epoch_ns)
+
+
+def _check_reused_pcis(sites: list[TowerSite], where: str) -> None:
+    """ConfigError when two sites carry one PCI on one carrier (or either without a carrier):
+    the fusion stage could not tell which site a cell heard with it is."""
+    seen: dict[int, list[tuple[int, int, TowerCell]]] = {}
+    for i, site in enumerate(sites):
+        for j, cell in enumerate(site.cells):
+            for k, l, other in seen.get(cell.pci, []):
+                if k != i and (cell.earfcn is None or other.earfcn is None or cell.earfcn == other.earfcn):
+                    carrier = "" if cell.earfcn is None or other.earfcn is None else f" on EARFCN {cell.earfcn}"
+                    raise ConfigError(
+                        f"{where}.sites[{i}].cells[{j}].pci: PCI {cell.pci}{carrier} is also on site {other.site!r} "
+                        f"({where}.sites[{k}].cells[{l}]): a cell heard with it could not be placed (a copied site? "
+                        "a reused PCI needs the carriers that tell its sites apart)")
+            seen.setdefault(cell.pci, []).append((i, j, cell))
+
+
+def _check_reach(sites: list[TowerSite], origin: MapOrigin | None, where: str) -> None:
+    """ConfigError when a placed site lies beyond a cell's reach of the origin, naming it, with
+    latitude and longitude swapped when that would place it, or the origin when every site is
+    far from it (a misplaced origin)."""
+    placed = [(i, site) for i, site in enumerate(sites) if site.has_position]
+    if origin is None or not placed:
+        return
+    centre = geodetic_to_ecef(origin.latitude_deg, origin.longitude_deg, origin.height_m)
+
+    def distance(latitude: float, longitude: float, site: TowerSite) -> float:
+        point = geodetic_to_ecef(latitude, longitude, origin.height_m + (site.height_m or 0.0))
+        return float(np.linalg.norm(point - centre))
+
+    away = [(i, site, distance(site.latitude_deg, site.longitude_deg, site)) for i, site in placed]
+    far = [(i, site, d) for i, site, d in away if d > MAX_CELL_RANGE_M]
+    if not far:
+        return
+    if len(far) == len(away) > 1:
+        nearest = min(d for _, _, d in far)
+        raise ConfigError(f"{where}.origin: every site lies {nearest / 1e3:,.0f} km or more from it, beyond the "
+                          f"{MAX_CELL_RANGE_M / 1e3:g} km a cell reaches: is the origin ({origin.latitude_deg}, "
+                          f"{origin.longitude_deg}) misplaced?")
+    i, site, d = far[0]
+    hint = ""
+    if -90 <= site.longitude_deg <= 90 and distance(site.longitude_deg, site.latitude_deg, site) <= MAX_CELL_RANGE_M:
+        hint = " (with latitude and longitude swapped it would lie within reach: swapped?)"
+    raise ConfigError(f"{where}.sites[{i}]: site {site.name!r} is {d / 1e3:,.0f} km from the origin, beyond the "
+                      f"{MAX_CELL_RANGE_M / 1e3:g} km a cell reaches{hint}")
 
 
 def _origin(value: object, where: str) -> MapOrigin | None:
@@ -293,6 +354,9 @@ def _epoch_ns(value: object, where: str) -> int | None:
         raise ConfigError(f"{where}: expected an ISO 8601 time string, got {value!r}")
     if instant.tzinfo is None:
         raise ConfigError(f"{where}: {value!r} has no time zone (end it with Z for UTC)")
+    if not EPOCH_RANGE[0] <= instant <= EPOCH_RANGE[1]:
+        raise ConfigError(f"{where}: {value!r} lies outside {EPOCH_RANGE[0]:%Y-%m-%d}..{EPOCH_RANGE[1]:%Y-%m-%d} "
+                          "(LTE site clocks are set from GPS time)")
     delta = instant - datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc)
     return (delta.days * 86_400 + delta.seconds) * 10**9 + delta.microseconds * 1000
 
