@@ -395,7 +395,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     run = load_run_config(args.config)
     print(f"training the timing network from {args.config}: {run.training.steps} steps of "
           f"{run.training.batch_size}, run directory {run.training.run_dir}")
-    path = train(run, args.config)
+    try:
+        path = train(run, args.config)
+    except KeyboardInterrupt:
+        print(f"deepsync train: interrupted; {run.training.run_dir} keeps the run so far (the same command resumes "
+              f"it), {run.training.model_path} is as it was", file=sys.stderr)
+        return 130
     print(f"  best checkpoint: {path}")
     return 0
 

@@ -50,8 +50,6 @@ sites:
 from __future__ import annotations
 
 import datetime
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +61,7 @@ from deepsync.geo import geodetic_to_ecef
 from deepsync.lte.cell import check_pci
 from deepsync.lte.earfcn import downlink_frequency_hz
 from deepsync.lte.numerology import check_bandwidth
+from deepsync.outputs import replacing
 from deepsync.types import MAX_CELL_RANGE_M
 
 
@@ -401,20 +400,8 @@ def _epoch_utc(epoch_ns: int) -> str:
 
 
 def write_tower_database(db: TowerDatabase, path: str | Path) -> None:
-    """Write ``db`` as YAML, atomically: into a temporary file beside ``path``, then renamed over
-    it, so a reader (or a crash) never meets half a database. An existing file's permissions are
-    kept."""
-    path = Path(path)
+    """Write ``db`` as YAML, atomically (:func:`deepsync.outputs.replacing`): a reader, or a crash,
+    never meets half a database, and an existing file's permissions are kept."""
     text = yaml.safe_dump(tower_database_to_dict(db), sort_keys=False)
-    mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as file:
-            file.write(text)
-            file.flush()
-            os.fsync(file.fileno())
-        os.chmod(temporary, mode)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    with replacing(path) as temporary:
+        temporary.write_text(text, encoding="utf-8")

@@ -62,8 +62,6 @@ import enum
 import json
 import math
 import multiprocessing
-import os
-import tempfile
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -72,6 +70,7 @@ import numpy as np
 from tqdm import tqdm
 
 from deepsync.configio import check_ranges, choice_name
+from deepsync.outputs import replacing
 from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
@@ -385,15 +384,9 @@ def _write_shard(job: tuple[DatasetConfig, Path, str, int]) -> int:
     config, root, split, index = job
     path = shard_path(root, split, index)
     arrays = make_shard(config, split, index)
-    path.parent.mkdir(parents=True, exist_ok=True)
     # atomic: an interrupted write leaves no shard, so a rerun makes it again
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
-        try:
-            np.savez(handle, **arrays)
-        except BaseException:
-            Path(handle.name).unlink(missing_ok=True)
-            raise
-    os.replace(handle.name, path)
+    with replacing(path) as temporary, temporary.open("wb") as handle:
+        np.savez(handle, **arrays)
     return len(arrays["offset"])
 
 

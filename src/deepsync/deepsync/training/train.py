@@ -22,9 +22,10 @@ Interrupt at any time: ``<run_dir>/last.pt`` (saved every ``eval_every`` steps, 
 optimiser) is where a rerun resumes, and every batch is drawn from ``(seed, step, rank)``, so a
 resumed run takes the same path as an uninterrupted one. The checkpoint with the lowest
 validation RMSE over the examples with a code to find (at least ``huber_min_stacked_snr_db``
-after stacking 10 frames) is written to ``model_path`` (no optimiser: the file to ship), and
+after stacking 10 frames) is kept as ``<run_dir>/best.pt`` (no optimiser: the file to ship), and
 again with its sigma calibrated; the curve to ``<run_dir>/training_curve.png`` and
-``history.json``.
+``history.json``, each replaced whole. Only a finished run copies ``best.pt`` to ``model_path``:
+an interrupted one leaves the file there (with the shipped config, the shipped network) as it was.
 
 Devices: a GPU when there is one, else the CPU. Under ``torchrun`` every rank trains on its own
 batches and DistributedDataParallel averages the gradients; rank 0 evaluates and writes, and
@@ -36,6 +37,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -47,6 +49,7 @@ from tqdm import tqdm
 
 from deepsync.configio import ConfigError, build_dataclass, check_ranges, choice_name, load_yaml, require_mapping
 from deepsync.frontend.config import FrontendConfig
+from deepsync.outputs import check_writable, replacing, write_text
 from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_checkpoint
 from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND
 from deepsync.timing.inputs import Normalisation, network_inputs, noise_normalised
@@ -270,6 +273,8 @@ def evaluate(model: TimingNet, examples: Examples, normalisation: Normalisation,
 def train(run: RunConfig, config_path: str = "") -> Path:
     """Train (or resume) as ``run`` says; returns the path of the best checkpoint."""
     cfg = run.training
+    check_writable(cfg.model_path, "trained network")  # at the door, not after an hour of training
+    check_writable(Path(cfg.run_dir) / "last.pt", "run's checkpoints")
     distributed = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1
     rank = int(os.environ.get("RANK", 0))
     if distributed:
@@ -308,7 +313,7 @@ def train(run: RunConfig, config_path: str = "") -> Path:
         if calibrating_since is not None and cfg.steps > calibrating_since:
             raise ValueError(f"{last} is calibrating its sigma since step {calibrating_since}: more training steps "
                              f"({cfg.steps}) would train a calibrated network; remove {run_dir} to train anew")
-        history = json.loads((run_dir / "history.json").read_text()) if (run_dir / "history.json").exists() else []
+        history = read_history(run_dir / "history.json")
         if rank == 0:
             print(f"resuming {last} at step {step}")
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
@@ -345,22 +350,50 @@ def train(run: RunConfig, config_path: str = "") -> Path:
                 bar.set_postfix(val_rmse=f"{scores['rmse']:.3f}", val_med=f"{scores['median_abs_error']:.3f}")
                 if scores["rmse_with_code"] < best:
                     best = scores["rmse_with_code"]
-                    save_checkpoint(cfg.model_path, model, trained_on, normalisation, step=step, meta=meta)
+                    save_checkpoint(run_dir / BEST, model, trained_on, normalisation, step=step, meta=meta)
                 save_checkpoint(last, model, trained_on, normalisation, step=step,
                                 optimiser=optimiser.state_dict(), meta=meta)
-                run_dir.mkdir(parents=True, exist_ok=True)
-                (run_dir / "history.json").write_text(json.dumps(history, indent=1))
-                plot_history(history, run_dir / "training_curve.png")
+                write_history(history, run_dir)
     if distributed:
         torch.distributed.destroy_process_group()
     since = step if calibrating_since is None else calibrating_since
     if rank == 0 and step < since + cfg.calibration_steps:
         if calibrating_since is None:  # its start: the best checkpoint, a fresh optimiser
-            model.load_state_dict(load_checkpoint(cfg.model_path).model.state_dict())
+            model.load_state_dict(load_checkpoint(run_dir / BEST).model.state_dict())
             optimiser = torch.optim.Adam(model.parameters(), lr=cfg.calibration_learning_rate)
         calibrate_sigma(model, optimiser, step, since, train_set, val_set, normalisation, trained_on, meta, history,
                         device, cfg)
+    if rank == 0:  # the run is done: only now is the file to ship replaced
+        with replacing(cfg.model_path) as temporary:
+            shutil.copyfile(run_dir / BEST, temporary)
     return Path(cfg.model_path)
+
+
+BEST = "best.pt"
+"""The run's best checkpoint so far, in its run directory: ``model_path`` (the shipped network,
+with the shipped config) is replaced by it only when the run ends, so an interrupted run leaves
+it as it was."""
+
+
+def read_history(path: Path) -> list[dict]:
+    """A run's history (``history.json``; empty when there is none), or ValueError naming the file."""
+    if not path.exists():
+        return []
+    try:
+        history = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise ValueError(f"{path}: unreadable ({error}); it records the run's scores: remove it (the run then "
+                         "resumes keeping its best checkpoint by score from here on) or the run directory") from None
+    if not isinstance(history, list) or not all(isinstance(h, dict) for h in history):
+        raise ValueError(f"{path}: not a run history (a list of records)")
+    return history
+
+
+def write_history(history: list[dict], run_dir: Path) -> None:
+    """The history and its figure, each replaced whole (a cut file broke resuming)."""
+    write_text(run_dir / "history.json", json.dumps(history, indent=1))
+    with replacing(run_dir / "training_curve.png") as temporary:
+        plot_history(history, temporary)
 
 
 def calibrate_sigma(model: TimingNet, optimiser: torch.optim.Optimizer, step: int, since: int, train_set: Examples,
@@ -400,11 +433,10 @@ def calibrate_sigma(model: TimingNet, optimiser: torch.optim.Optimizer, step: in
                                 **{f"val_{k}": v for k, v in scores.items()}})
                 bar.set_postfix(val_within_1_sigma=f"{scores['within_1_sigma']:.3f}")
                 if step == end:
-                    save_checkpoint(cfg.model_path, model, trained_on, normalisation, step=step, meta=meta)
+                    save_checkpoint(run_dir / BEST, model, trained_on, normalisation, step=step, meta=meta)
                 save_checkpoint(run_dir / "last.pt", model, trained_on, normalisation, step=step,
                                 optimiser=optimiser.state_dict(), meta=resumable)
-                (run_dir / "history.json").write_text(json.dumps(history, indent=1))
-                plot_history(history, run_dir / "training_curve.png")
+                write_history(history, run_dir)
 
 
 def plot_history(history: list[dict], path: Path) -> None:
@@ -437,5 +469,5 @@ def plot_history(history: list[dict], path: Path) -> None:
     right.legend()
     right.grid(True, alpha=0.3)
     figure.tight_layout()
-    figure.savefig(path, dpi=120)
+    figure.savefig(path, dpi=120, format="png")
     plt.close(figure)
