@@ -422,3 +422,38 @@ def test_a_tower_database_in_another_frame_than_the_bag_is_refused(tmp_path, cap
     from deepsync.towers import load_tower_database
 
     BagSource(BAG).check_frame(load_tower_database(moved))
+
+
+@pytest.mark.parametrize("command", [["export-onnx"], ["calibrate", "--bag", str(BAG), "--towers", str(TOWERS)]],
+                         ids=["export-onnx", "calibrate"])
+def test_an_output_that_cannot_be_written_is_refused_before_the_work(capsys, command):
+    """On main export-onnx failed after 50 s naming a torch temporary file, and calibrate after
+    the whole replay: the folder is tried first (a file made there and removed)."""
+    started = time.monotonic()
+    fails([*command, "--out", "/proc/deepsync_test/out.yaml"], capsys,
+          "/proc/deepsync_test/out.yaml: cannot write the")
+    assert time.monotonic() - started < 30
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads worker processes from /proc")
+def test_what_a_killed_simulate_left_is_removed_by_the_next_write_of_that_bag(tmp_path):
+    """SIGKILL (no handler runs) left a hidden .NAME.*.partial folder that nobody removed; the
+    next writer of the bag removes those of writers that no longer run, and only those."""
+    out = tmp_path / "bag"
+    process = subprocess.Popen([str(DEEPSYNC), "simulate", "--scenario", str(SCENARIO), "--seconds", "60", "--out",
+                                str(out), "--workers", "1", "--quiet"], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(tmp_path.glob(".bag.*.partial")) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(1.0)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait(timeout=30)
+    (left,) = tmp_path.glob(".bag.*.partial")
+    alive = tmp_path / f".bag.{os.getpid()}.someone-writing.partial"  # a live writer's (this process)
+    alive.mkdir()
+    assert main(["simulate", "--scenario", str(SCENARIO), "--seconds", "0.05", "--out", str(out), "--quiet",
+                 "--workers", "1"]) == 0
+    assert not left.exists() and alive.exists() and (out / "metadata.yaml").is_file()

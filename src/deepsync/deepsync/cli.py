@@ -82,6 +82,17 @@ def _seed(text: str) -> int:
     return value
 
 
+def _output_file(text: str) -> str:
+    """A file to write at the end of a long run: its folder is tried at the door."""
+    from deepsync.outputs import check_writable
+
+    try:
+        check_writable(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
 def _frame_counts(text: str) -> tuple[int, ...]:
     """Comma-separated frame counts (``5,10,12``)."""
     try:
@@ -572,7 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "from a recording with ground truth; write the updated tower database")
     _replay_arguments(calibrate, "bag with /deepsync/envelope and /deepsync/truth/pose",
                       "tower database YAML to start from")
-    calibrate.add_argument("--out", required=True, help="calibrated tower database YAML to write")
+    calibrate.add_argument("--out", required=True, type=_output_file, help="calibrated tower database YAML to write")
     calibrate.set_defaults(run=_cmd_calibrate)
 
     compare = commands.add_parser("compare-poses", help="do two bags hold the same poses (matched by stamp)? "
@@ -604,7 +615,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     onnx = commands.add_parser("export-onnx", help="write the timing network as ONNX and check it against torch")
     onnx.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
-    onnx.add_argument("--out", required=True, help="the .onnx file to write")
+    onnx.add_argument("--out", required=True, type=_output_file, help="the .onnx file to write")
     onnx.set_defaults(run=_cmd_export_onnx)
 
     info = commands.add_parser("info", help="describe a bag")

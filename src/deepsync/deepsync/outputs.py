@@ -5,7 +5,9 @@ half-written file, and the error names the file the user asked for, not a tempor
 
 from __future__ import annotations
 
+import glob
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -18,9 +20,49 @@ def check_writable(path: str | os.PathLike, what: str = "output") -> Path:
     (calibrate, export, training), so that it does not fail at the end."""
     path = Path(path)
     existing = next(p for p in (path.parent, *path.parent.parents) if p.exists())
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        raise ValueError(f"{path}: cannot write the {what} there ({existing} is not a writable directory)")
+    try:  # a file made and removed: the one test that holds for root, read-only mounts and /proc alike
+        if not existing.is_dir():
+            raise NotADirectoryError(f"{existing} is not a directory")
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as error:
+        raise ValueError(f"{path}: cannot write the {what} there ({existing}: "
+                         f"{error.strerror or error})") from None
     return path
+
+
+def partial_prefix(path: Path) -> str:
+    """How the partial files and directories being written for ``path`` are named (hidden,
+    beside it, with the writing process's id): ``.NAME.PID.`` ... ``.partial``."""
+    return f".{path.name}.{os.getpid()}."
+
+
+def remove_abandoned(path: str | os.PathLike) -> list[Path]:
+    """Remove what writers of ``path`` that are gone (killed: SIGKILL, a power cut) left beside it,
+    the ``.NAME.PID.*.partial`` of a process that no longer runs; what live writers are writing
+    stays. Returns what was removed."""
+    path = Path(path)
+    removed = []
+    for partial in path.parent.glob(f".{glob.escape(path.name)}.*.partial"):
+        pid = partial.name[len(path.name) + 2 :].split(".", 1)[0]
+        if not pid.isdigit() or _alive(int(pid)):
+            continue
+        if partial.is_dir() and not partial.is_symlink():
+            shutil.rmtree(partial, ignore_errors=True)
+        else:
+            partial.unlink(missing_ok=True)
+        removed.append(partial)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 @contextmanager
@@ -38,7 +80,8 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     temporary: Path | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+        remove_abandoned(path)
+        handle, name = tempfile.mkstemp(prefix=partial_prefix(path), suffix=".partial", dir=path.parent)
         os.close(handle)
         temporary = Path(name)
         yield temporary

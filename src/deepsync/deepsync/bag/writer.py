@@ -24,6 +24,7 @@ from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys.store import Typestore
 
+from ..outputs import partial_prefix, remove_abandoned
 from ..types import EnvelopeChunk, StackArrivals
 from .convert import (
     cell_timing_array_to_msg,
@@ -134,9 +135,8 @@ class BagWriter:
         self._check_target()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._tmp = Path(
-                tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
-            )
+            remove_abandoned(self.path)  # what a killed writer of this bag left
+            self._tmp = Path(tempfile.mkdtemp(prefix=partial_prefix(self.path), suffix=".partial", dir=self.path.parent))
         except OSError as error:
             raise BagError(f"{self.path}: cannot write a bag there ({error.strerror})") from None
         try:
@@ -233,7 +233,10 @@ class BagWriter:
             raise BagError(
                 f"{self.path}: cannot serialise {msgtype} for {topic}: {error}"
             ) from error
-        self._writer.write(conn, log_time_ns, data)
+        try:
+            self._writer.write(conn, log_time_ns, data)
+        except OSError as error:  # a full disk: the bag the user named, not rosbags' file inside the partial one
+            raise OSError(error.errno, error.strerror or str(error), str(self.path)) from None
 
     def write_envelope(self, chunk: EnvelopeChunk, *, topic: str = ENVELOPE_TOPIC) -> None:
         """Write one ADC chunk as ``deepsync_msgs/msg/EnvelopeSamples``."""
