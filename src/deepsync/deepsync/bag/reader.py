@@ -259,7 +259,7 @@ class BagReader:
         else:
             names = info["rosbag2_bagfile_information"]["relative_file_paths"]
             files = [target / PurePath(name).name for name in names]
-            files = [f for f in files if f.suffix.lower() == ".mcap" and f.is_file()]
+            files = list(dict.fromkeys(f for f in files if f.suffix.lower() == ".mcap" and f.is_file()))
         records: list[mcapfile.MetadataRecords] = []
         chunks: dict[Path, list[int]] = {}
         for f in files:  # footer, summary CRC, chunk sizes and metadata records, before rosbags parses them
@@ -295,6 +295,29 @@ class BagReader:
         except BaseException:
             self.close()
             raise
+
+    def _in_time_order(self, storages: list[Any], notes: list[BagInconsistency]) -> list[Any]:
+        """A split bag's files, each once, in the order of their messages' times (what a
+        recorder wrote them in), whatever order ``metadata.yaml`` lists them in; BagError for
+        files whose times overlap (two recordings in one bag, not one split in parts)."""
+        unique: dict[Path, Any] = {}
+        for one in storages:
+            unique.setdefault(Path(one.path).resolve(), one)
+        if len(unique) < len(storages):
+            notes.append(BagInconsistency("metadata.yaml relative_file_paths", None, None, used="file",
+                                          note="lists a file more than once; each is read once"))
+        ordered = sorted(unique.values(), key=lambda one: (one.metadata.message_count == 0, one.metadata.start_time))
+        if [id(one) for one in ordered] != [id(one) for one in unique.values()]:
+            notes.append(BagInconsistency("metadata.yaml relative_file_paths", None, None, used="file",
+                                          note="lists the files out of the order of their times; they are read "
+                                               f"in time order: {', '.join(Path(one.path).name for one in ordered)}"))
+        filled = [one for one in ordered if one.metadata.message_count]
+        for before, after in zip(filled, filled[1:]):
+            if after.metadata.start_time < before.metadata.end_time:
+                raise self._fail(f"{Path(before.path).name} ({before.metadata.start_time}..{before.metadata.end_time - 1} "
+                                 f"ns) and {Path(after.path).name} (from {after.metadata.start_time} ns) overlap in "
+                                 "time: two recordings in one bag, not one recording split in parts; open each alone")
+        return ordered
 
     def _check_chunk_index(self, chunks: dict[Path, list[int]], notes: list[BagInconsistency]) -> None:
         """Where a file's chunk index (its summary) points elsewhere than at its chunks (zeroed or
@@ -334,7 +357,7 @@ class BagReader:
     ) -> None:
         """Topics, counts and custom data from the file; where metadata.yaml disagrees."""
         storage = reader.storage
-        self._storages = list(getattr(storage, "storages", [storage]))
+        self._storages = self._in_time_order(list(getattr(storage, "storages", [storage])), notes)
         self._message_compressed = getattr(storage, "metadata", None) is not None and (
             storage.metadata.compression_mode == "message"
         )
