@@ -177,18 +177,35 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
           f"found in {config.sync.confirm_stacks} stacks in a row; timing: {config.timing.estimator.value}")
     stacks, samples = [], 0
+    alike: list[dict] = []  # stacks not printed: like the last printed one, with no cell and no event
+    printed: list | None = None  # the flags of the last stack printed
     for chunk in source.chunks():
         samples += len(chunk.samples)
         for result in pipeline.process(chunk):
             stacks.append(stack_record(result, truth, source.frontend.adc_rate_hz))
-            if verbose:
-                _print_stack(result, stacks[-1], truth)
+            if not verbose:
+                continue
+            kinds = [flag.kind for flag in result.sync.flags]
+            if not (stacks[-1]["cells"] or stacks[-1]["events"] or result.sync.tentative) and kinds == printed:
+                alike.append(stacks[-1])  # a silent file's 56,000 identical lines, said once
+                continue
+            _print_alike(alike)
+            _print_stack(result, stacks[-1], truth)
+            printed = None if (stacks[-1]["cells"] or stacks[-1]["events"] or result.sync.tentative) else kinds
+    _print_alike(alike)
     if not stacks:
         frame = round(source.frontend.adc_rate_hz * FRAME_SECONDS)
         reason = (f"it holds {samples} samples ({samples / frame:.1f} frames), less than one {frames}-frame stack"
                   if samples < frames * frame else "no stretch of it was clean for a whole stack (see the events)")
         raise ValueError(f"no stack to search in {source.description}: {reason}")
     return stacks
+
+
+def _print_alike(alike: list[dict]) -> None:
+    """One line for the run of stacks like the last one printed (and the run emptied)."""
+    if alike:
+        print(f"  ... {len(alike)} more stack(s) like it, to {alike[-1]['time_s']:.3f} s")
+        alike.clear()
 
 
 def _print_stack(result: StackResult, record: dict, truth: dict[int, np.ndarray]) -> None:
