@@ -11,6 +11,7 @@ pass. Later work (fusion, the timing network, the ROS nodes) adds its own files 
 """
 
 import copy
+import re
 import typing
 from pathlib import Path
 
@@ -19,6 +20,10 @@ import yaml
 
 from deepsync.configio import ConfigError
 from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
+from deepsync.sync.search import SearchConfig
+from deepsync.sync.stacking import StackConfig
+from deepsync.sync.stage import SyncConfig
+from deepsync.timing.stage import TimingConfig
 from deepsync.towers import load_tower_database, parse_tower_database
 from deepsync.twin.scenario import Scenario, load_scenario, parse_scenario
 
@@ -505,3 +510,21 @@ def test_a_network_config_counts_its_weights_without_building_them():
                                            window_length=300, template_length=250, hidden=(10, 7))):
                 assert config.parameter_count == sum(p.numel() for p in TimingNet(config).parameters())
     del torch
+
+
+# -- the stages' own configs: every number bounded ------------------------------------------------
+
+
+@pytest.mark.parametrize("cls, values, message", [
+    (SearchConfig, {"refine_lags": 10**9}, "refine_lags must be within [1, 64] samples"),
+    (SearchConfig, {"max_examined": 0}, "max_examined must be within [1, 1024] peaks"),
+    (SyncConfig, {"confirm_tolerance": float("nan")}, "confirm_tolerance must be within [0, 1000] samples, got nan"),
+    (SyncConfig, {"search_every": 10**30}, "search_every must be within [1, 100000] stacks"),
+    (StackConfig, {"clip_fraction": 2.0}, "clip_fraction must be a fraction in [0, 1]"),
+    (TimingConfig, {"weak_std_samples": 1e300}, "weak_std_samples must be a positive number up to 1e6"),
+], ids=["refine-lags-1e9", "max-examined-0", "confirm-tolerance-nan", "search-every-1e30", "clip-fraction-2",
+        "weak-std-1e300"])
+def test_a_stage_config_number_outside_its_range_names_it(cls, values, message):
+    """On main these were taken (a billion lags sized the search's arrays; NaN compared false)."""
+    with pytest.raises(ValueError, match=re.escape(message)):
+        cls(**values)

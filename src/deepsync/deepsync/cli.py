@@ -83,7 +83,8 @@ def _seed(text: str) -> int:
 
 
 def _output_file(text: str) -> str:
-    """A file to write at the end of a long run: its folder is tried at the door."""
+    """A file (or folder of files) to write at the end of a long run: where it goes is tried at
+    the door."""
     from deepsync.outputs import check_writable
 
     try:
@@ -575,7 +576,8 @@ def build_parser() -> argparse.ArgumentParser:
                                 "(snapshot, tracked, RSSI, the position bound): table, JSON and figures")
     _replay_arguments(route, "bag with /deepsync/envelope and /deepsync/truth/pose",
                       "tower database YAML with origin, positions and timing")
-    route.add_argument("--out", default=str(REPO / "out" / "route"), help="where route.json and the PNGs go")
+    route.add_argument("--out", default=str(REPO / "out" / "route"), type=_output_file,
+                       help="where route.json and the PNGs go")
     route.add_argument("--initial-pose-std", type=_positive_float, metavar="M",
                        help="start the tracker from an initial position: the true start, off by a draw of "
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
@@ -626,7 +628,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "(with --bag: the first)")
     evaluate.add_argument("--bag", help="instead of the test set: a simulated bag with ground truth")
     evaluate.add_argument("--towers", help="with --bag: tower database YAML (known-PCI cell search)")
-    evaluate.add_argument("--out", default=str(REPO / "out" / "timing"), help="where timing.json and timing.png go")
+    evaluate.add_argument("--out", default=str(REPO / "out" / "timing"), type=_output_file,
+                          help="where timing.json and timing.png go")
     evaluate.add_argument("--quiet", action="store_true", help="no progress bar")
     evaluate.set_defaults(run=_cmd_evaluate_timing)
 

@@ -22,9 +22,9 @@ is confirmed (``deepsync.sync.bandwidths``); until then, the codes alone.
 Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
 by carrier: a cell without one would silently drop out of the pair search), a PCI appears at
 most once per carrier (two such sectors cannot be told apart), and the position is given
-whole (latitude and longitude) or not at all. Across the database a PCI appears on one site per
-carrier (a cell heard with it could not be placed: a copied site, or a reused PCI whose carriers
-are not given), every placed site lies within a cell's reach (``MAX_CELL_RANGE_M``, 100 km) of
+whole (latitude and longitude) or not at all. Across the database a PCI appears on one placed site
+per carrier (a cell heard with it could not be placed: a copied site, or a reused PCI whose
+carriers are not given), every placed site lies within a cell's reach (``MAX_CELL_RANGE_M``, 100 km) of
 the origin (a site 1000 km off, with latitude and longitude swapped, or an origin at the
 antipode, would only show later as "too few sites" or "degenerate geometry"), and the epoch
 lies in the GPS era (1980..2100).
@@ -279,10 +279,13 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
 
 
 def _check_reused_pcis(sites: list[TowerSite], where: str) -> None:
-    """ConfigError when two sites carry one PCI on one carrier (or either without a carrier):
-    the fusion stage could not tell which site a cell heard with it is."""
+    """ConfigError when two placed sites carry one PCI on one carrier (or either without a
+    carrier): the fusion stage could not tell which site a cell heard with it is. (Sites without
+    a position only name cells for the search, where a reused PCI is one more to look for.)"""
     seen: dict[int, list[tuple[int, int, TowerCell]]] = {}
     for i, site in enumerate(sites):
+        if not site.has_position:
+            continue
         for j, cell in enumerate(site.cells):
             for k, l, other in seen.get(cell.pci, []):
                 if k != i and (cell.earfcn is None or other.earfcn is None or cell.earfcn == other.earfcn):

@@ -115,8 +115,10 @@ class StackConfig:
             raise ValueError(f"hop_frames must be 1..n_frames ({self.n_frames}), got {self.hop_frames!r}")
         if not math.isfinite(self.clock_ppm) or abs(self.clock_ppm) > 1000:
             raise ValueError(f"clock_ppm must be a finite number within +-1000, got {self.clock_ppm!r}")
-        if not self.max_drift_samples > 0:
-            raise ValueError(f"max_drift_samples must be > 0, got {self.max_drift_samples!r}")
+        if not 0 < self.max_drift_samples <= 1000:
+            raise ValueError(f"max_drift_samples must be in (0, 1000], got {self.max_drift_samples!r}")
+        if not 0 <= self.clip_fraction <= 1:
+            raise ValueError(f"clip_fraction must be a fraction in [0, 1], got {self.clip_fraction!r}")
 
     @property
     def hop(self) -> int:
