@@ -744,3 +744,36 @@ def test_two_recordings_in_one_bag_are_refused(tmp_path):
     with pytest.raises(BagError, match=r"a.mcap \(\d+..\d+ ns\) and b.mcap \(from \d+ ns\) overlap in time: two "
                                        "recordings in one bag"):
         BagReader(bag).open()
+
+
+@pytest.mark.parametrize("provenance, why", [
+    ("[]", "a JSON list, not a mapping"), ("null", "a JSON NoneType, not a mapping"),
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"), ('{"a": ' * 70 + "1" + "}" * 70, "nested more than 64 levels deep"),
+], ids=["list", "null", "deeper-than-python", "deeper-than-the-loader"])
+def test_a_provenance_that_is_no_mapping_is_said_in_one_line(tmp_path, capsys, provenance, why):
+    """Found by the fuzzing pass: `info` raised AttributeError on a provenance of another shape,
+    and every command a RecursionError on a deeply nested one."""
+    from deepsync.cli import main
+
+    bag = write_bag(tmp_path / "odd", CHUNKS[:2], provenance=provenance)
+    assert main(["info", "--bag", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert f"  provenance: {bag}: " in out and why in out
+    assert main(["detect", "--bag", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert why in err and "Traceback" not in err and len(err.splitlines()) == 1
+
+
+def test_a_chunk_whose_compressed_bytes_are_damaged_stops_salvage_where_it_lies(tmp_path, good):
+    """Found by the fuzzing pass: bytes inserted into a chunk made the mcap library's zstandard
+    raise an error replay did not know, a traceback instead of "replayed up to the damage"."""
+    from deepsync.cli import main
+
+    bag = copy_bag(good, tmp_path / "inserted")
+    data = bytearray(mcap_of(bag).read_bytes())
+    start, end = compressed_span(chunk_indexes(mcap_of(good))[1])
+    data[(start + end) // 2:(start + end) // 2] = b"\x13" * 7
+    mcap_of(bag).write_bytes(bytes(data))
+    salvage = SalvageReader(bag)
+    assert len(list(salvage.messages([ENVELOPE_TOPIC]))) >= 1 and "damaged" in salvage.damage
+    assert main(["replay", "--in", str(bag), "--out", str(tmp_path / "out"), "--quiet"]) == 1

@@ -528,3 +528,15 @@ def test_a_stage_config_number_outside_its_range_names_it(cls, values, message):
     """On main these were taken (a billion lags sized the search's arrays; NaN compared false)."""
     with pytest.raises(ValueError, match=re.escape(message)):
         cls(**values)
+
+
+def test_a_huge_value_is_quoted_short_in_the_error(tmp_path):
+    """Found by the fuzzing pass: a 10,000-character value was quoted whole in the one-line error."""
+    data = _towers({"pci": 1}, latitude_deg="x" * 10_000, longitude_deg=0)
+    with pytest.raises(ConfigError) as error:
+        parse_tower_database(data)
+    assert "towers.sites[0].latitude_deg: expected a number in [-90, 90], got 'xxxxxx" in str(error.value)
+    assert len(str(error.value)) < 200
+    with pytest.raises(ConfigError) as error:
+        parse_scenario(_scenario((("receiver", "position", "longitude_deg"), "y" * 10_000)))
+    assert len(str(error.value)) < 200

@@ -7,7 +7,6 @@ over a source (``deepsync.sources``), and reported by ``deepsync.eval``."""
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import reprlib
@@ -19,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deepsync.bag import POSE_TOPIC, TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg
+from deepsync.bag import (POSE_TOPIC, TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg,
+                          provenance_document)
 from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import stack_record, summarize
@@ -138,10 +138,10 @@ def describe_bag(path: Path) -> None:
         provenance = bag.custom_data.get(PROVENANCE_KEY)
         if provenance:
             try:
-                info = json.loads(provenance)
+                info = provenance_document(provenance, path)
                 print(f"  made by {info.get('generator')} from {info.get('scenario')} (seed {info.get('seed')})")
-            except json.JSONDecodeError:
-                print(f"  provenance: {provenance}")
+            except BagError as error:
+                print(f"  provenance: {_one_line(error)}")
         if TRUTH_CELL_TIMING_TOPIC in bag.topics:
             codes: dict[int, int] = {}
             for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
@@ -654,6 +654,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+MAX_ERROR_CHARACTERS = 1000
+
+
+def _one_line(error: object) -> str:
+    """An error as the one line the command promises: whitespace runs (a library's multi-line
+    message) made single spaces, and a message past ``MAX_ERROR_CHARACTERS`` (a value quoted
+    whole) cut with how much was left out."""
+    text = " ".join(str(error).split())
+    if len(text) > MAX_ERROR_CHARACTERS:
+        text = f"{text[:MAX_ERROR_CHARACTERS]}... ({len(text) - MAX_ERROR_CHARACTERS} characters more)"
+    return text
+
+
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt  # SIGTERM takes Ctrl-C's path: what was being written is removed
 
@@ -666,7 +679,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with one_blas_thread():
             return args.run(args)
     except (ConfigError, BagError, ValueError) as error:
-        print(f"deepsync {args.command}: error: {error}", file=sys.stderr)
+        print(f"deepsync {args.command}: error: {_one_line(error)}", file=sys.stderr)
         return 2
     except BrokenPipeError:
         # the reader went away (`deepsync info | head`): stop quietly, and keep Python from
@@ -676,7 +689,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except OSError as error:
         where = f"{error.filename}: " if error.filename else ""
-        print(f"deepsync {args.command}: error: {where}{error.strerror or error}", file=sys.stderr)
+        print(f"deepsync {args.command}: error: {_one_line(f'{where}{error.strerror or error}')}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"deepsync {args.command}: interrupted; nothing was written", file=sys.stderr)

@@ -141,7 +141,7 @@ def check_ranges(config: object, ranges: Ranges) -> None:
             if item is None:
                 continue
             if isinstance(item, bool) or not isinstance(item, (int, float)):
-                raise ValueError(f"{name} must be a number, got {value!r}")
+                raise ValueError(f"{name} must be a number, got {reprlib.repr(value)}")
             if not (math.isfinite(item) and low <= item <= high):
                 allowed = f"[{low:g}, {high:g}] {unit}".rstrip()
                 raise ValueError(f"{name} must be within {allowed}, got {reprlib.repr(value)}")
@@ -174,7 +174,7 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
                 return _coerce(value, option, where)
             except ConfigError as error:
                 errors.append(str(error))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{where}: {value!r} has the wrong type")
+        raise ConfigError(errors[0] if len(errors) == 1 else f"{where}: {reprlib.repr(value)} has the wrong type")
     if origin is tuple:
         items = typing.get_args(annotation)
         if not isinstance(value, (list, tuple)):
@@ -186,25 +186,25 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
         return tuple(_coerce(v, t, f"{where}[{i}]") for i, (v, t) in enumerate(zip(value, items)))
     if annotation is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+            raise ConfigError(f"{where}: expected true or false, got {reprlib.repr(value)}")
         return value
     if annotation is int:
         if isinstance(value, bool) or not isinstance(value, int):
             if isinstance(value, float) and value.is_integer():
                 return int(value)
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+            raise ConfigError(f"{where}: expected an integer, got {reprlib.repr(value)}")
         return value
     if annotation is float:
         if isinstance(value, str) and _YAML11_EXPONENT.fullmatch(value.strip()):
             value = float(value)  # PyYAML (YAML 1.1) reads 3.84e6, without a dot or sign, as text
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
+            raise ConfigError(f"{where}: expected a number, got {reprlib.repr(value)}")
         if not math.isfinite(value):
-            raise ConfigError(f"{where}: must be a finite number, got {value!r}")
+            raise ConfigError(f"{where}: must be a finite number, got {reprlib.repr(value)}")
         return float(value)
     if annotation is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
+            raise ConfigError(f"{where}: expected a string, got {reprlib.repr(value)}")
         return value
     return value
 

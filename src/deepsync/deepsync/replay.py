@@ -53,6 +53,7 @@ from deepsync.bag import (
     envelope_from_msg,
     fix_to_navsat_msg,
     fix_to_pose_msg,
+    provenance_document,
     sync_window_array_from_msg,
     sync_window_array_to_msg,
 )
@@ -143,10 +144,9 @@ def _provenance(recorded: str | None, path: Path, stages: Sequence[str], towers:
     """The input's provenance (its truth: sites, origin) with what this replay did added, so
     the output bag can be replayed again and scored like the input."""
     try:
-        document = json.loads(recorded) if recorded else {}
-    except ValueError:
+        document = dict(provenance_document(recorded, path))
+    except BagError:  # the input's own, unreadable: this replay's provenance alone
         document = {}
-    document = dict(document) if isinstance(document, dict) else {}
     document["replay"] = {"input": str(path), "input_generator": document.get("generator"), "stages": list(stages),
                           "towers": None if towers is None else towers.name}
     document["generator"] = f"deepsync {deepsync.__version__} replay"

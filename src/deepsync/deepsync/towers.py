@@ -50,6 +50,7 @@ sites:
 from __future__ import annotations
 
 import datetime
+import reprlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -172,7 +173,7 @@ def _optional_number(site: dict, key: str, where: str, low: float, high: float) 
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
-        raise ConfigError(f"{where}.{key}: expected a number in [{low:g}, {high:g}], got {value!r}")
+        raise ConfigError(f"{where}.{key}: expected a number in [{low:g}, {high:g}], got {reprlib.repr(value)}")
     return float(value)
 
 
@@ -221,7 +222,7 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
             raise ConfigError(f"{at}: unknown key {', '.join(unknown)} (known: {', '.join(sorted(_SITE_KEYS))})")
         name = site.get("name")
         if not isinstance(name, str) or not name or name in names:
-            raise ConfigError(f"{at}.name: a unique, non-empty site name is required, got {name!r}")
+            raise ConfigError(f"{at}.name: a unique, non-empty site name is required, got {reprlib.repr(name)}")
         names.add(name)
         cells = []
         for j, raw_cell in enumerate(require_list(site.get("cells"), f"{at}.cells")):
@@ -240,7 +241,7 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
             bandwidth = cell.get("bandwidth_mhz")
             if bandwidth is not None:
                 if isinstance(bandwidth, bool) or not isinstance(bandwidth, (int, float)):
-                    raise ConfigError(f"{cell_at}.bandwidth_mhz: expected a number of MHz, got {bandwidth!r}")
+                    raise ConfigError(f"{cell_at}.bandwidth_mhz: expected a number of MHz, got {reprlib.repr(bandwidth)}")
                 try:
                     bandwidth = check_bandwidth(bandwidth)
                 except ValueError as error:
@@ -266,7 +267,7 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
         raise ConfigError(f"{where}.sites: the database lists no sites")
     name = top.get("name", "")
     if not isinstance(name, str):
-        raise ConfigError(f"{where}.name: expected a string, got {name!r}")
+        raise ConfigError(f"{where}.name: expected a string, got {reprlib.repr(name)}")
     _check_reused_pcis(sites, where)
     origin = _origin(top.get("origin"), f"{where}.origin")
     _check_reach(sites, origin, where)
@@ -351,13 +352,13 @@ def _epoch_ns(value: object, where: str) -> int | None:
         try:
             instant = datetime.datetime.fromisoformat(value.replace("Z", "+00:00"))
         except ValueError:
-            raise ConfigError(f"{where}: {value!r} is not an ISO 8601 time (e.g. 2026-01-01T00:00:00Z)") from None
+            raise ConfigError(f"{where}: {reprlib.repr(value)} is not an ISO 8601 time (e.g. 2026-01-01T00:00:00Z)") from None
     else:
-        raise ConfigError(f"{where}: expected an ISO 8601 time string, got {value!r}")
+        raise ConfigError(f"{where}: expected an ISO 8601 time string, got {reprlib.repr(value)}")
     if instant.tzinfo is None:
-        raise ConfigError(f"{where}: {value!r} has no time zone (end it with Z for UTC)")
+        raise ConfigError(f"{where}: {reprlib.repr(value)} has no time zone (end it with Z for UTC)")
     if not EPOCH_RANGE[0] <= instant <= EPOCH_RANGE[1]:
-        raise ConfigError(f"{where}: {value!r} lies outside {EPOCH_RANGE[0]:%Y-%m-%d}..{EPOCH_RANGE[1]:%Y-%m-%d} "
+        raise ConfigError(f"{where}: {reprlib.repr(value)} lies outside {EPOCH_RANGE[0]:%Y-%m-%d}..{EPOCH_RANGE[1]:%Y-%m-%d} "
                           "(LTE site clocks are set from GPS time)")
     delta = instant - datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc)
     return (delta.days * 86_400 + delta.seconds) * 10**9 + delta.microseconds * 1000

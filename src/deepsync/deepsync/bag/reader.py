@@ -30,6 +30,7 @@ from pathlib import Path, PurePath
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+import zstandard  # what the mcap library decompresses chunks with
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -764,7 +765,7 @@ class SalvageReader:
                             self._types[record.id] = record.name
                             self._definitions[record.name] = record.data.decode("utf-8", "replace")
                         yield record
-            except (McapError, *_READ_ERRORS) as error:
+            except (McapError, zstandard.ZstdError, *_READ_ERRORS) as error:
                 # the stream reader's EndOfFile, or a struct.error on a partial record: the file
                 # ends inside a record; anything else is bytes that do not make the record they should
                 cut = isinstance(error, (EndOfFile, struct.error))

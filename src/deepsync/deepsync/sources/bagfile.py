@@ -9,7 +9,6 @@ default envelope-detector chain at the rate of its own first envelope message.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Iterator
@@ -25,6 +24,7 @@ from deepsync.bag import (
     BagError,
     BagReader,
     cell_timing_array_from_msg,
+    provenance_document,
     read_envelope,
 )
 from deepsync.configio import ConfigError, load_yaml
@@ -91,8 +91,9 @@ def recorded_frontend(provenance: str | None, sample_rate: float | None, where: 
     """The front end a bag's provenance names, else the default chain at ``sample_rate`` (the
     stream's, from its first message); BagError naming the bag when neither works."""
     if provenance:
+        document = provenance_document(provenance, where)
         try:
-            return FrontendConfig(**json.loads(provenance)["frontend"])
+            return FrontendConfig(**document["frontend"])
         except (ValueError, KeyError, TypeError) as error:
             raise BagError(f"{where}: unreadable front-end provenance ({error})") from None
     try:
@@ -194,11 +195,8 @@ class BagSource:
         the bag where there is none: a real recording, or a bag from before that key."""
         if not self._provenance_text:
             raise BagError(f"{self.path}: no simulation provenance, so no true {key} (a real recording?)")
-        try:
-            info = json.loads(self._provenance_text)
-        except ValueError as error:
-            raise BagError(f"{self.path}: unreadable provenance ({error})") from None
-        if not isinstance(info, dict) or key not in info:
+        info = provenance_document(self._provenance_text, self.path)
+        if key not in info:
             raise BagError(f"{self.path}: its provenance holds no true {key} (recorded by an older "
                            "deepsync simulate, or not simulated)")
         return info[key]
@@ -229,13 +227,10 @@ def check_same_frame(provenance: str | None, where: str | os.PathLike, towers: T
     frame) and the fixes (in the database's) would be compared, or written side by side, as if
     they shared one, every position off by the distance between the origins. A bag that does
     not say (a real recording) or a database without an origin has nothing to compare."""
-    if towers is None or towers.origin is None or not provenance:
+    if towers is None or towers.origin is None:
         return
-    try:
-        info = json.loads(provenance)
-    except (ValueError, RecursionError):
-        return  # unreadable provenance is judged where the front end is read from it
-    if not isinstance(info, dict) or "origin" not in info:
+    info = provenance_document(provenance, where)
+    if "origin" not in info:
         return
     recorded = _truth_fields(MapOrigin, info["origin"], f"{where}: provenance origin")
     origin = towers.origin
