@@ -142,7 +142,7 @@ def check_ranges(config: object, ranges: Ranges) -> None:
                 continue
             if isinstance(item, bool) or not isinstance(item, (int, float)):
                 raise ValueError(f"{name} must be a number, got {reprlib.repr(value)}")
-            if not (math.isfinite(item) and low <= item <= high):
+            if not low <= item <= high:  # NaN compares false; a huge int compares exactly (no float conversion)
                 allowed = f"[{low:g}, {high:g}] {unit}".rstrip()
                 raise ValueError(f"{name} must be within {allowed}, got {reprlib.repr(value)}")
 
