@@ -457,3 +457,22 @@ def test_what_a_killed_simulate_left_is_removed_by_the_next_write_of_that_bag(tm
     assert main(["simulate", "--scenario", str(SCENARIO), "--seconds", "0.05", "--out", str(out), "--quiet",
                  "--workers", "1"]) == 0
     assert not left.exists() and alive.exists() and (out / "metadata.yaml").is_file()
+
+
+@pytest.mark.parametrize("command", ["evaluate-route", "calibrate"])
+def test_a_ground_truth_pose_holding_nan_is_refused(tmp_path, capsys, command):
+    """A NaN in the truth made every error NaN, which passes every comparison that scores a route
+    (the comparisons family's other member): refused naming the pose."""
+    from deepsync.bag import TRUTH_POSE_TOPIC, BagReader, BagWriter
+
+    bag = tmp_path / "nan_truth"
+    with BagReader(BAG) as reader, BagWriter(bag, provenance=reader.provenance) as writer:
+        for k, item in enumerate(reader.messages(["/deepsync/envelope", TRUTH_POSE_TOPIC])):
+            if item.topic == TRUTH_POSE_TOPIC and k > 50:
+                item.message.pose.position.x = float("nan")
+            writer.write(item.topic, item.message)
+            if k > 120:
+                break
+    out = tmp_path / ("out.yaml" if command == "calibrate" else "out")
+    fails([command, "--bag", str(bag), "--towers", str(TOWERS), "--out", str(out), "--quiet"], capsys,
+          "ns holds NaN or inf")

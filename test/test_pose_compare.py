@@ -96,3 +96,16 @@ def test_a_nan_pose_is_never_the_same(tmp_path, capsys, field, side):
     assert main(["compare-poses", "--reference", str(tmp_path / reference), "--other", str(tmp_path / other)]) == 1
     out = capsys.readouterr().out
     assert "1 of them hold NaN or inf" in out and "NOT the same poses" in out
+
+
+def test_poses_in_two_frames_are_refused(tmp_path):
+    """Poses published in another frame (another map, an odom frame) were compared metre for
+    metre: the frames family's other member."""
+    write(tmp_path / "a", [fix(i) for i in range(3)])
+    with BagWriter(tmp_path / "b") as bag:
+        for i in range(3):
+            message = fix_to_pose_msg(fix(i), store=bag.store)
+            message.header.frame_id = "odom"
+            bag.write(POSE_TOPIC, message)
+    with pytest.raises(ValueError, match="the poses of .*a are in frame map, those of .*b in odom"):
+        compare_poses(tmp_path / "a", tmp_path / "b")

@@ -45,10 +45,11 @@ class PoseComparison:
                 and self.max_difference_m <= tolerance_m and self.max_sigma_ratio <= 1.01)
 
 
-def _poses(bag: str | Path, topic: str) -> dict[int, tuple[np.ndarray, float]]:
-    """Header stamp -> (position, horizontal sigma) of every pose on ``topic``; a pose holding
-    NaN or inf anywhere (orientation and covariance too) has NaN for both."""
-    poses = {}
+def _poses(bag: str | Path, topic: str) -> tuple[dict[int, tuple[np.ndarray, float]], set[str]]:
+    """Header stamp -> (position, horizontal sigma) of every pose on ``topic``, and the frames
+    they are in; a pose holding NaN or inf anywhere (orientation and covariance too) has NaN for
+    both."""
+    poses, frames = {}, set()
     with BagReader(bag) as reader:
         kind = reader.topics.get(topic)
         if kind is not None and kind != POSE_WITH_COVARIANCE_STAMPED:
@@ -63,12 +64,17 @@ def _poses(bag: str | Path, topic: str) -> dict[int, tuple[np.ndarray, float]]:
                 position, covariance = np.full(3, math.nan), np.full((6, 6), math.nan)
             sigma = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0)) if np.isfinite(covariance).all() else math.nan
             poses[stamp_to_ns(item.message.header.stamp)] = (position, sigma)
-    return poses
+            frames.add(item.message.header.frame_id)
+    return poses, frames
 
 
 def compare_poses(reference: str | Path, other: str | Path, topic: str = POSE_TOPIC) -> PoseComparison:
-    """Compare the ``PoseWithCovarianceStamped`` messages of ``topic`` in two bags."""
-    ours, theirs = _poses(reference, topic), _poses(other, topic)
+    """Compare the ``PoseWithCovarianceStamped`` messages of ``topic`` in two bags; ValueError
+    when their poses are in different frames (positions in two frames compare as nonsense)."""
+    (ours, our_frames), (theirs, their_frames) = _poses(reference, topic), _poses(other, topic)
+    if our_frames and their_frames and our_frames != their_frames:
+        raise ValueError(f"{topic}: the poses of {reference} are in frame {', '.join(sorted(our_frames))}, those of "
+                         f"{other} in {', '.join(sorted(their_frames))}: positions in two frames cannot be compared")
     common = sorted(ours.keys() & theirs.keys())
     finite = [t for t in common if math.isfinite(ours[t][1]) and math.isfinite(theirs[t][1])]
     differences = [float(np.linalg.norm(ours[t][0] - theirs[t][0])) for t in finite]
