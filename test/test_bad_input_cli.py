@@ -41,6 +41,7 @@ def fails(args: list[str], capsys, message: str) -> None:
     assert status == 2, err
     assert message in err, err
     assert "Traceback" not in err
+    assert len(err) < 2000, f"{len(err)} characters"  # argparse's usage, and one line
 
 
 @pytest.fixture
@@ -368,7 +369,13 @@ def test_compare_poses_of_a_topic_without_covariance_says_so(capsys):
     (["demo", "--simulate", "1e308"], "argument --simulate: '1e308' s is more than a day"),  # OverflowError on main
     (["evaluate-timing", "--frames", "abc"], "argument --frames: 'abc' is not a comma-separated list"),
     (["evaluate-timing", "--frames", "5,0"], "argument --frames: '5,0': frame counts must be 1..1000"),
-], ids=["demo_simulate_1e308", "evaluate_timing_frames_word", "evaluate_timing_frames_0"])
+    (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--initial-pose-std", "1e-320"],
+     "argument --initial-pose-std: '1e-320' m: give 0.01...10000 m"),  # found by the fuzzing pass
+    (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--initial-pose-std", "1e308"],
+     "argument --initial-pose-std: '1e308' m: give 0.01...10000 m"),
+    (["detect", "--bag", str(BAG), "--scale", "9" * 400], "argument --scale: '9999999999"),
+], ids=["demo_simulate_1e308", "evaluate_timing_frames_word", "evaluate_timing_frames_0", "initial_std_1e-320",
+        "initial_std_1e308", "scale_400_digits"])
 def test_flags_out_of_range_are_refused_naming_the_flag(capsys, args, message):
     fails(args, capsys, message)
 

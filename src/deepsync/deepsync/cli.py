@@ -36,6 +36,7 @@ DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus_route.yaml"
 DEMO_BAG = REPO / "bags" / "campus_route"
 DEMO_TOWERS = REPO / "config" / "towers" / "campus.yaml"
 MAX_WORKERS = 64
+INITIAL_STD_RANGE_M = (0.01, 1e4)  # evaluate-route --initial-pose-std
 
 
 def _workers(text: str) -> int:
@@ -52,9 +53,18 @@ def _positive_float(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} is not a number") from None
     if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} must be a positive number")
+    return value
+
+
+def _initial_std(text: str) -> float:
+    """An initial pose's sigma: from a centimetre (a variance that does not vanish) to 10 km."""
+    value = _positive_float(text)
+    if not INITIAL_STD_RANGE_M[0] <= value <= INITIAL_STD_RANGE_M[1]:
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} m: give {INITIAL_STD_RANGE_M[0]:g}..."
+                                         f"{INITIAL_STD_RANGE_M[1]:g} m")
     return value
 
 
@@ -578,7 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "tower database YAML with origin, positions and timing")
     route.add_argument("--out", default=str(REPO / "out" / "route"), type=_output_file,
                        help="where route.json and the PNGs go")
-    route.add_argument("--initial-pose-std", type=_positive_float, metavar="M",
+    route.add_argument("--initial-pose-std", type=_initial_std, metavar="M",
                        help="start the tracker from an initial position: the true start, off by a draw of "
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
                        "sites are heard to start)")
