@@ -302,6 +302,8 @@ def train(run: RunConfig, config_path: str = "") -> Path:
     step = 0
     calibrating_since = None  # the step the sigma's calibration started at, where last.pt is mid-way
     if last.exists():
+        if not (run_dir / BEST).exists() and Path(cfg.model_path).exists():
+            shutil.copyfile(cfg.model_path, run_dir / BEST)  # a run from before best.pt kept its best there
         resumed = load_checkpoint(last)
         if resumed.model.config != run.model:
             raise ValueError(f"{last} is a run of another model config ({resumed.model.config}): remove "
