@@ -92,7 +92,7 @@ def measure(bag: Path) -> dict:
         row["calibrated_on_all"] = str(error)
     else:
         row["calibrated_on_all"] = fixes(fuse_route(
-            recorded, calibrated_database(towers, calibration, database.reference_ns)))
+            recorded, calibrated_database(towers, calibration.sites, database.reference_ns)))
     return row
 
 

@@ -116,11 +116,11 @@ def evaluate(name: str, frames: int = 10) -> dict:
     middle = (recorded.arrivals[0].stamp_ns + recorded.arrivals[-1].stamp_ns) // 2
     observations, skipped = calibratable(runs["database"].observations(until_ns=middle))
     calibration = calibrate_sites(observations)
-    calibrated = calibrated_database(towers, calibration, runs["database"].reference_ns)
+    calibrated = calibrated_database(towers, calibration.sites, runs["database"].reference_ns)
     runs["calibrated"] = fuse_route(recorded, calibrated)
     whole, _ = calibratable(runs["database"].observations())
     runs["calibrated on all of it"] = fuse_route(
-        recorded, calibrated_database(towers, calibrate_sites(whole), runs["database"].reference_ns))
+        recorded, calibrated_database(towers, calibrate_sites(whole).sites, runs["database"].reference_ns))
     station = None
     reference = REPO / "bags" / "generated" / f"{name}_reference"
     if reference.exists():

@@ -31,6 +31,6 @@ PYTHON=${PYTHON:-python3}
 if [ ! -f "$STAMP" ] || [ constraints.txt -nt "$STAMP" ] || [ src/deepsync/setup.py -nt "$STAMP" ] || [ src/deepsync_ros/setup.py -nt "$STAMP" ]; then
   echo "setup: creating $VENV with pinned dependencies"
   "$PYTHON" -m venv "$VENV"
-  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -c constraints.txt -e "src/deepsync[network,onnx]" -e src/deepsync_ros pytest hypothesis
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -c constraints.txt -e "src/deepsync[network,onnx,ray]" -e src/deepsync_ros pytest hypothesis
   touch "$VENV/COLCON_IGNORE" "$STAMP"  # keep colcon out of the venv's packages
 fi

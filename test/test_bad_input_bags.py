@@ -611,7 +611,7 @@ def test_codes_outside_adc_bits_are_read_as_recorded(tmp_path):
 def test_a_bag_at_3_84_mhz_opened_by_its_mcap_alone_is_searched_at_its_own_rate(tmp_path):
     """On main this bag, opened by its .mcap, was searched with 1.92 MS/s templates and gave
     0 cells with no flag (exit 0)."""
-    from deepsync.pipeline import Pipeline
+    from deepsync.pipeline import Pipeline, PipelineConfig
     from deepsync.recording import record_scenario
     from deepsync.sources import BagSource
     from deepsync.towers import load_tower_database
@@ -626,7 +626,8 @@ def test_a_bag_at_3_84_mhz_opened_by_its_mcap_alone_is_searched_at_its_own_rate(
     shutil.copy(tmp_path / "fast" / "fast.mcap", alone / "fast.mcap")
     source = BagSource(alone / "fast.mcap")
     assert source.frontend.adc_rate_hz == 3.84e6 and source.frontend.rf_gain_db == 10.0
-    pipeline = Pipeline(source.frontend, towers=load_tower_database(repo / "config" / "towers" / "campus.yaml"))
+    pipeline = Pipeline(source.frontend, PipelineConfig().with_choices(n_frames=10),
+                        towers=load_tower_database(repo / "config" / "towers" / "campus.yaml"))
     results = list(pipeline.run(source.chunks()))
     assert len(results) == 4 and not any(r.health for r in results)
     assert {56, 301} <= set(results[-1].sync.pcis)

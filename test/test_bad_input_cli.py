@@ -250,7 +250,7 @@ def campus_bag(out: Path, n_chunks: int, *, drop: range = range(0)) -> Path:
 
 
 def replay_args(bag: Path, out: Path, *more: str) -> list[str]:
-    return ["replay", "--in", str(bag), "--out", str(out), "--quiet", *more]
+    return ["replay", "--in", str(bag), "--out", str(out), "--frames", "10", "--quiet", *more]
 
 
 def test_replay_refuses_what_it_cannot_start_on_and_writes_nothing(tmp_path, capsys):

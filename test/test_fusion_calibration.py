@@ -247,7 +247,7 @@ def test_bad_config_names_the_field():
 
 def test_the_calibrated_database_puts_the_sites_on_the_reference_sites_clock(tmp_path):
     result = calibrate_sites(recording(11))
-    calibrated = calibrated_database(TOWERS, result, REFERENCE_NS)
+    calibrated = calibrated_database(TOWERS, result.sites, REFERENCE_NS)
     assert calibrated.timing_epoch_ns == REFERENCE_NS
     reference = calibrated.site(result.reference_site)
     new_anchors = Anchors(calibrated)
@@ -277,7 +277,7 @@ def test_the_calibrated_database_puts_the_sites_on_the_reference_sites_clock(tmp
 
 def test_a_site_not_calibrated_is_moved_to_the_new_epoch():
     result = calibrate_sites([o for o in recording(4, seconds=20.0) if o.arrival.site != "S0"])
-    calibrated = calibrated_database(TOWERS, result, REFERENCE_NS)
+    calibrated = calibrated_database(TOWERS, result.sites, REFERENCE_NS)
     old, new = TOWERS.site("S0"), calibrated.site("S0")
     moved_s = (REFERENCE_NS - EPOCH_NS) * 1e-9
     assert new.timing_offset_us == pytest.approx((3120.4 - 12.0e-3 * moved_s) % 10_000.0, abs=1e-9)
@@ -288,10 +288,10 @@ def test_a_site_not_calibrated_is_moved_to_the_new_epoch():
 def test_calibrated_database_refuses_what_it_cannot_apply():
     result = calibrate_sites(recording(4, seconds=10.0))
     with pytest.raises(ValueError, match="whole number of 10 ms frames"):
-        calibrated_database(TOWERS, result, REFERENCE_NS + 1)
+        calibrated_database(TOWERS, result.sites, REFERENCE_NS + 1)
     other = parse_tower_database({**database_dict(), "sites": database_dict()["sites"][1:]})
     with pytest.raises(ValueError, match="S0 are not in tower database"):
-        calibrated_database(other, result, REFERENCE_NS)
+        calibrated_database(other, result.sites, REFERENCE_NS)
 
 
 def test_tower_database_to_dict_round_trips_exactly(tmp_path):

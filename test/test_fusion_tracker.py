@@ -400,7 +400,7 @@ def test_coasting_grows_the_covariance_and_a_long_gap_restarts():
     assert nees(outcomes[coasting[-1]], route.truth[coasting[-1]]) < chi2.ppf(0.999, 2)
     reset = outcomes[coasting[-1] + 1]
     assert isinstance(reset, NoFix) and reset.reason is NoFixReason.NOT_INITIALISED
-    assert "restarted" in reset.message and "no site accepted" in reset.message
+    assert "restarted" in reset.message and "no measurement accepted" in reset.message
     assert all(isinstance(outcomes[k], NoFix) for k in range(coasting[-1] + 1, 320))
     # sites heard again: a fresh start within a second, and a sane one
     restart = next(k for k in range(320, 400) if isinstance(outcomes[k], Fix))
@@ -486,7 +486,8 @@ def test_site_clock_states_beat_white_clock_errors():
         route = Route(rng, 120.0, random_sites(2, 3), site_errors=site_errors,
                       clock_std_m=lambda t: C * math.hypot(10e-9, 20e-9 * t), clock_drift_std_mps=C * 20e-9)
         for site_clocks in (False, True):
-            outcomes = route.track(TrackerConfig(site_clocks=site_clocks))
+            # claims of hundreds of metres: scored, not reported lost
+            outcomes = route.track(TrackerConfig(site_clocks=site_clocks, max_std_m=1e6))
             errors[site_clocks] += [horizontal_error(fix, truth)
                                     for fix, truth in zip(outcomes[100:], route.truth[100:])]
     without, with_states = (math.sqrt(np.mean(np.square(errors[flag]))) for flag in (False, True))
@@ -506,7 +507,7 @@ def site_clock_rms(drift_std_mps: float) -> dict[bool, float]:
     for _ in range(2):
         route = Route(rng, 60.0, random_sites(1, 3), bias_std_m=40.0, clock_drift_std_mps=drift_std_mps)
         for site_clocks in (False, True):
-            outcomes = route.track(TrackerConfig(site_clocks=site_clocks))
+            outcomes = route.track(TrackerConfig(site_clocks=site_clocks, max_std_m=1e6))
             errors[site_clocks] += [horizontal_error(fix, truth) for fix, truth in zip(outcomes[100:], route.truth[100:])]
     return {flag: math.sqrt(np.mean(np.square(e))) for flag, e in errors.items()}
 

@@ -36,6 +36,7 @@ DOCUMENTED = {
     "one_process": "false",
     "loop": "true",
     "realtime": "true",
+    "motion": "",
 }
 NODE_NAMES = ("envelope_adc", "cell_sync", "cell_timing", "tdoa_fusion", "deepsync_pipeline")
 # What may never be imported by the launch file: it runs on the interpreter of `ros2 launch`.

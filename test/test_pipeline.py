@@ -21,6 +21,7 @@ from deepsync.types import HealthKind, Severity
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "campus"
 TOWERS = REPO / "config" / "towers" / "campus.yaml"
+TEN_FRAMES = PipelineConfig().with_choices(n_frames=10)  # the stacks the expected results were made with
 # Per stack, the (PCI, arrival) pairs of the campus bag as the pipeline last reported them on
 # purpose (arrivals rounded to 1e-6 samples; since cells are tracked between full searches, the
 # 12 cells a full search missed in stacks 21-24 and 29 are held there, 8 strongly enough to be
@@ -31,7 +32,7 @@ EXPECTED = REPO / "test" / "data" / "campus_arrivals.json"
 
 def run_campus() -> tuple[BagSource, list]:
     source = BagSource(BAG)
-    pipeline = Pipeline(source.frontend, towers=load_tower_database(TOWERS))
+    pipeline = Pipeline(source.frontend, TEN_FRAMES, towers=load_tower_database(TOWERS))
     return source, list(pipeline.run(source.chunks()))
 
 
@@ -151,7 +152,7 @@ def test_the_timing_stage_fed_from_a_sync_window_message_gives_the_same_arrivals
 
 def test_the_pipelines_stages_share_one_set_of_templates_of_its_front_end():
     source = BagSource(BAG)
-    pipeline = Pipeline(source.frontend, towers=load_tower_database(TOWERS))
+    pipeline = Pipeline(source.frontend, TEN_FRAMES, towers=load_tower_database(TOWERS))
     assert pipeline.timing.templates is pipeline.sync.templates
     other = dataclasses.replace(source.frontend, adc_rate_hz=2 * source.frontend.adc_rate_hz)
     with pytest.raises(ValueError, match="not those of this front end"):

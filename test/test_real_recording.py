@@ -13,7 +13,7 @@ import pytest
 
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.iq.coherent import search_cells
-from deepsync.pipeline import Pipeline
+from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources import RawFileSource, read_iq
 from deepsync.sync.search import CellSearch
 from deepsync.sync.stacking import FrameStacker, StackConfig
@@ -22,6 +22,8 @@ from deepsync.towers import load_tower_database
 REPO = Path(__file__).resolve().parents[1]
 RECORDING = REPO.parent / "shared" / "data" / "real_lte" / "f1860_s1.92_g0_1s_strong_rtlsdr.bin"
 TOWERS = REPO / "config" / "towers" / "real_lte_1860.yaml"
+# a 1 s recording: 10-frame stacks give the cell search ten looks (a walker's 100-frame default, one)
+TEN_FRAMES = PipelineConfig().with_choices(n_frames=10)
 
 pytestmark = pytest.mark.skipif(not RECORDING.exists(), reason=f"real recording not present at {RECORDING}")
 
@@ -44,7 +46,7 @@ def reference(iq):
 
 @pytest.fixture(scope="module")
 def known(source):
-    pipeline = Pipeline(source.frontend, towers=load_tower_database(TOWERS))
+    pipeline = Pipeline(source.frontend, TEN_FRAMES, towers=load_tower_database(TOWERS))
     return list(pipeline.run(source.chunks()))
 
 

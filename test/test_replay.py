@@ -28,7 +28,7 @@ from deepsync.bag import (
 )
 from deepsync.cli import main
 from deepsync.eval.route import read_truth_track
-from deepsync.pipeline import Pipeline
+from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.replay import parse_stages, replay_bag
 from deepsync.towers import load_tower_database
 from test_bad_input_cli import campus_bag
@@ -36,6 +36,9 @@ from test_bad_input_cli import campus_bag
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "campus"
 TOWERS = REPO / "config" / "towers" / "campus.yaml"
+# the stacks the counts and errors below were measured with: 10 frames back to back (the
+# defaults, the pedestrian's 100-frame stacks, give a 3 s bag a third as many)
+CONFIG = PipelineConfig().with_choices(n_frames=10)
 PRODUCED = (SYNC_WINDOWS_TOPIC, CELL_TIMING_TOPIC, POSE_TOPIC, NAV_SAT_FIX_TOPIC)
 
 
@@ -60,7 +63,7 @@ def poses(bag: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
 @pytest.fixture(scope="module")
 def full(tmp_path_factory) -> tuple[Path, object]:
     out = tmp_path_factory.mktemp("replay") / "full"
-    summary = replay_bag(BAG, out, load_tower_database(TOWERS), progress=False)
+    summary = replay_bag(BAG, out, load_tower_database(TOWERS), CONFIG, progress=False)
     return out, summary
 
 
@@ -120,7 +123,7 @@ def test_the_mcap_package_reads_the_output_with_standard_schemas(full) -> None:
 def test_two_replays_write_identical_messages(full, tmp_path) -> None:
     out, _ = full
     again = tmp_path / "again"
-    replay_bag(BAG, again, load_tower_database(TOWERS), progress=False)
+    replay_bag(BAG, again, load_tower_database(TOWERS), CONFIG, progress=False)
     first, second = raw_messages(out), raw_messages(again)
     assert set(first) == set(second)
     for topic in PRODUCED:
@@ -130,7 +133,7 @@ def test_two_replays_write_identical_messages(full, tmp_path) -> None:
 def test_fusion_alone_from_the_replayed_cell_timing_gives_the_same_poses(full, tmp_path) -> None:
     out, _ = full
     fused = tmp_path / "fused"
-    summary = replay_bag(out, fused, load_tower_database(TOWERS), stages=["fusion"], progress=False)
+    summary = replay_bag(out, fused, load_tower_database(TOWERS), CONFIG, stages=["fusion"], progress=False)
     assert summary.stages == ("fusion",) and summary.inputs == 30
     full_messages, fused_messages = raw_messages(out), raw_messages(fused)
     assert SYNC_WINDOWS_TOPIC not in fused_messages and CELL_TIMING_TOPIC not in fused_messages
@@ -143,7 +146,7 @@ def test_timing_and_fusion_from_the_replayed_sync_windows_match_the_full_chain(f
     float rounding in the estimator, far below the 1e-3 samples that would move a pose by 15 cm."""
     out, _ = full
     timed = tmp_path / "timed"
-    summary = replay_bag(out, timed, load_tower_database(TOWERS), stages=["timing", "fusion"], progress=False)
+    summary = replay_bag(out, timed, load_tower_database(TOWERS), CONFIG, stages=["timing", "fusion"], progress=False)
     assert summary.stages == ("timing", "fusion") and summary.stacks == 30
     with BagReader(out) as a, BagReader(timed) as b:
         mine = [m.message for m in a.messages([CELL_TIMING_TOPIC])]
@@ -163,7 +166,7 @@ def test_copy_inputs_keeps_the_envelope(tmp_path) -> None:
     source = tmp_path / "short"
     campus_bag(source, 35)
     out = tmp_path / "copied"
-    summary = replay_bag(source, out, load_tower_database(TOWERS), copy_inputs=True, progress=False)
+    summary = replay_bag(source, out, load_tower_database(TOWERS), CONFIG, copy_inputs=True, progress=False)
     assert summary.written[ENVELOPE_TOPIC] == 35 and summary.stacks == 3
     assert raw_messages(out)[ENVELOPE_TOPIC] == raw_messages(source)[ENVELOPE_TOPIC]
 
@@ -180,7 +183,8 @@ def test_a_truncated_input_gives_a_valid_bag_of_what_came_before_the_damage(full
     mcap = cut / "cut.mcap"
     mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
     partial = tmp_path / "partial"
-    assert main(["replay", "--in", str(cut), "--towers", str(TOWERS), "--out", str(partial), "--quiet"]) == 1
+    assert main(["replay", "--in", str(cut), "--towers", str(TOWERS), "--out", str(partial), "--frames", "10",
+                 "--quiet"]) == 1
     captured = capsys.readouterr()
     assert "cut short" in captured.err and str(mcap) in captured.err and "Traceback" not in captured.err
     assert "cannot be opened whole" in captured.out
@@ -226,7 +230,7 @@ def test_an_interrupted_replay_leaves_nothing(tmp_path) -> None:
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        replay_bag(BAG, out, load_tower_database(TOWERS), progress=False, on_stack=interrupt)
+        replay_bag(BAG, out, load_tower_database(TOWERS), CONFIG, progress=False, on_stack=interrupt)
     assert not out.exists() and not list(tmp_path.iterdir())
 
 

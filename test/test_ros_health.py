@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from deepsync.pipeline import Pipeline, StackResult
+from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource
 from deepsync.towers import load_tower_database
 from deepsync.types import EnvelopeChunk, Fix, HealthKind, NoFix, NoFixReason, Severity
@@ -32,7 +32,7 @@ LOST_CHUNK = 150  # of 300: a stack in the middle of the recording spans it
 
 def run_campus(chunks: list[EnvelopeChunk]) -> list[StackResult]:
     source = BagSource(CAMPUS_BAG)
-    pipeline = Pipeline(source.frontend, None, load_tower_database(CAMPUS_TOWERS))
+    pipeline = Pipeline(source.frontend, PipelineConfig().with_choices(n_frames=10), load_tower_database(CAMPUS_TOWERS))
     return list(pipeline.run(chunks))
 
 

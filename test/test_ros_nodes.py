@@ -31,7 +31,7 @@ NAMESPACE = "deepsync"  # what the launch file runs the nodes in: topics resolve
 MAX_SPINS = 2000  # executor spins of at most SPIN_S each before a wait gives up
 SPIN_S = 0.05
 ROS_MODULES = ("rclpy", "rcl_interfaces.msg", "diagnostic_updater", "diagnostic_msgs.msg", "rosgraph_msgs.msg",
-               "geometry_msgs.msg", "sensor_msgs.msg", "deepsync_msgs.msg")
+               "geometry_msgs.msg", "sensor_msgs.msg", "nav_msgs.msg", "deepsync_msgs.msg")
 WHY_SKIPPED = ("need ROS 2 Jazzy sourced (source /opt/ros/jazzy/setup.bash, with ros-jazzy-diagnostic-updater) "
                "and the workspace built and sourced (colcon build; source install/setup.bash)")
 
@@ -318,6 +318,66 @@ def test_an_initial_pose_starts_the_track_where_two_sites_alone_cannot(ros, offl
         assert math.sqrt(np.linalg.eigvalsh(horizontal)[-1]) > 5.0
     finally:
         bench.close()
+
+
+def test_gnss_fixes_and_odometry_reach_the_tracker_and_bad_ones_are_refused(ros, offline: list[StackResult],
+                                                                           tmp_path: Path) -> None:
+    """use_gnss / use_odometry: a NavSatFix on gnss/fix starts the track from one site, one in the
+    node's own antenna frame is not taken, odometry back in time is refused; the diagnostics
+    count it all; learned_towers is written at shutdown."""
+    import numpy as np
+    from deepsync_msgs.msg import CellTimingArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import NavSatFix
+
+    from deepsync.bag.topics import GNSS_FIX_TOPIC, ODOMETRY_TOPIC, relative_name
+    from deepsync.types import StackArrivals
+    from deepsync.bag.convert import ns_to_stamp
+    from deepsync_ros.conversions import RCLPY_TYPES, cell_timing_array_to_msg, fix_to_navsat_msg
+    from deepsync_ros.node_base import RESULTS_QOS
+    from deepsync_ros.tdoa_fusion_node import TdoaFusionNode
+
+    learned = tmp_path / "learned.yaml"
+    fusion = TdoaFusionNode(namespace=NAMESPACE, parameter_overrides=parameters(
+        towers=CAMPUS_TOWERS, use_gnss=True, use_odometry=True, learned_towers=str(learned)))
+    bench = Bench(fusion)
+    try:
+        poses = bench.collect(PoseWithCovarianceStamped, "pose", RESULTS_QOS)
+        send_fix = bench.publisher(NavSatFix, relative_name(GNSS_FIX_TOPIC), RESULTS_QOS)
+        send_odometry = bench.publisher(Odometry, relative_name(ODOMETRY_TOPIC), RESULTS_QOS)
+        send_arrivals = bench.publisher(CellTimingArray, "cell_timing", RESULTS_QOS)
+        bench.spin(5)
+        heard = [r for r in offline if isinstance(r.fusion.published, Fix)]
+        here = heard[0].fusion.published
+        one_site = [StackArrivals(r.arrivals.stamp_ns, r.arrivals.first_sample_index, r.arrivals.sample_rate,
+                                  tuple(c for c in r.arrivals.cells if c.pci in (56, 57)), r.arrivals.clock_drift_ppm)
+                    for r in heard[:6]]
+        frame = fusion.stage.frame
+        own = fix_to_navsat_msg(here, frame, "deepsync_antenna")  # our own output fed back: refused
+        send_fix(own)
+        gnss = fix_to_navsat_msg(Fix(one_site[1].stamp_ns, here.position_enu, np.diag([9.0, 9.0, 36.0]), ()),
+                                 frame, "gnss")
+        send_fix(gnss)
+        odometry = Odometry()
+        odometry.header.frame_id, odometry.child_frame_id = "odom", "base_link"
+        odometry.pose.pose.orientation.w = 1.0
+        odometry.header.stamp = ns_to_stamp(one_site[1].stamp_ns, RCLPY_TYPES)
+        send_odometry(odometry)
+        odometry.header.stamp = ns_to_stamp(one_site[0].stamp_ns, RCLPY_TYPES)  # back in time
+        send_odometry(odometry)
+        bench.spin(10)
+        for stack in one_site:
+            send_arrivals(cell_timing_array_to_msg(stack))
+        assert bench.spin_until(lambda: len(poses) >= 1)
+        inputs = fusion.aiding.inputs
+        assert inputs.taken["gnss"] == 1 and inputs.refused["gnss"] == 1
+        assert inputs.taken["odometry"] == 1 and inputs.refused["odometry"] == 1
+        _, message, values = inputs.report()
+        assert dict(values)["GNSS fixes taken"] == "1"
+    finally:
+        bench.close()
+    assert learned.exists() and load_tower_database(learned).name == load_tower_database(CAMPUS_TOWERS).name
 
 
 def test_runtime_changes_are_checked_and_read_only_ones_refused(ros) -> None:

@@ -14,10 +14,9 @@ import pytest
 import yaml
 
 from deepsync.frontend.config import FrontendConfig
-from deepsync.fusion.stage import FusionConfig
+from deepsync.motion import MOTION_MODELS
 from deepsync.pipeline import PipelineConfig
 from deepsync.sources import BagSource
-from deepsync.sync.stage import SyncConfig
 from deepsync.timing.stage import Estimator, TimingConfig
 from deepsync_ros import params
 from deepsync_ros.health import PlaybackConfig
@@ -50,9 +49,11 @@ def build(node: str, values: dict[str, object]) -> None:
 
 def test_the_defaults_are_the_cores() -> None:
     pipeline = defaults("deepsync_pipeline")
-    assert params.sync_config(defaults("cell_sync")) == SyncConfig()
+    # the split nodes' defaults are the one-process chain's: the default motion model's stacks,
+    # and a tracker that counts their overlap
+    assert params.sync_config(defaults("cell_sync")) == PipelineConfig().sync
     assert params.timing_config(defaults("cell_timing")) == TimingConfig()
-    assert params.fusion_config(defaults("tdoa_fusion")) == FusionConfig()
+    assert params.fusion_config(defaults("tdoa_fusion")) == PipelineConfig().fusion
     assert params.pipeline_config(pipeline) == PipelineConfig()
     assert params.playback_config(defaults("envelope_adc")) == PlaybackConfig()
     assert params.frontend(defaults("cell_timing"), "cell_timing") == FrontendConfig()
@@ -96,7 +97,15 @@ def test_the_estimator_choices_are_the_cores_estimators() -> None:
     ("envelope_adc", "sample_format", "wav", "not one of"),
     ("envelope_adc", "frame_id", 3, "expected a string"),
     ("envelope_adc", "replay_speed", 1.0, "no such parameter"),
-    ("cell_sync", "n_frames", 1, "outside"),
+    ("cell_sync", "n_frames", 1, "at least 2"),
+    ("cell_sync", "motion", "bicycle", "not one of"),
+    ("tdoa_fusion", "motion", "car", "not one of"),
+    ("tdoa_fusion", "max_track_std_m", 0.0, "outside"),
+    ("tdoa_fusion", "bias_decorrelation_m", math.inf, "finite"),
+    ("tdoa_fusion", "gnss_std_m", -5.0, "outside"),
+    ("tdoa_fusion", "use_gnss", "yes", "expected true or false"),
+    ("tdoa_fusion", "odometry_timeout_s", 0.0, "outside"),
+    ("tdoa_fusion", "learned_save_period_s", 0.5, "outside"),
     ("cell_sync", "n_frames", 10.0, "expected an integer"),
     ("cell_sync", "clock_ppm", math.nan, "finite"),
     ("cell_sync", "confirm_stacks", 0, "outside"),
@@ -241,5 +250,13 @@ def test_sliding_stacks_set_the_trackers_overlap_in_one_process_and_by_parameter
 
     sliding = params.pipeline_config(values("deepsync_pipeline", n_frames=50, hop_frames=10))
     assert sliding.fusion.tracker.stack_overlap == 5.0
-    assert params.pipeline_config(values("deepsync_pipeline")).fusion.tracker.stack_overlap == 1.0
-    assert params.fusion_config(values("tdoa_fusion", stack_overlap=5.0)).tracker.stack_overlap == 5.0
+    back_to_back = params.pipeline_config(values("deepsync_pipeline", n_frames=10))
+    assert back_to_back.sync.stack.hop == 10 and back_to_back.fusion.tracker.stack_overlap == 1.0
+    assert params.fusion_config(values("tdoa_fusion", stack_overlap=2.0)).tracker.stack_overlap == 2.0
+    # unset on both sides, the split nodes agree through the motion model: its stacks, their overlap
+    for motion in MOTION_MODELS.values():
+        stack = params.sync_config(values("cell_sync", motion=motion.name)).stack
+        tracker = params.fusion_config(values("tdoa_fusion", motion=motion.name)).tracker
+        assert (stack.n_frames, stack.hop) == (motion.n_frames, motion.hop_frames)
+        assert tracker.stack_overlap == stack.n_frames / stack.hop
+        assert tracker.acceleration_std_mps2 == motion.acceleration_std_mps2

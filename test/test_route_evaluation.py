@@ -85,7 +85,7 @@ def test_an_initial_pose_fixes_a_route_where_two_sites_alone_cannot(tmp_path, ca
     towers.write_text(yaml.safe_dump(database))
     out = tmp_path / "out"
     assert main(["evaluate-route", "--bag", str(BAG), "--towers", str(towers), "--out", str(out), "--quiet",
-                 "--initial-pose-std", "10"]) == 0
+                 "--initial-pose-std", "10", "--frames", "10"]) == 0
     assert "starts from the true start position" in capsys.readouterr().out
     summary = json.loads((out / "route.json").read_text())["summary"]
     assert summary["sites_heard"] == ["A", "B"]
@@ -139,7 +139,8 @@ def test_replay_writes_what_the_nodes_publish_into_a_bag_ros_can_play(tmp_path) 
     from deepsync.types import UNMEASURED_VARIANCE
 
     out = tmp_path / "replayed"
-    assert main(["replay", "--bag", str(BAG), "--towers", str(TOWERS), "--out", str(out), "--quiet"]) == 0
+    assert main(["replay", "--bag", str(BAG), "--towers", str(TOWERS), "--out", str(out), "--frames", "10",
+                 "--quiet"]) == 0
     with BagReader(out) as bag:
         counts = bag.message_counts
         items = list(bag.messages([POSE_TOPIC, NAV_SAT_FIX_TOPIC]))

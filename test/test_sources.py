@@ -3,6 +3,8 @@
 import io
 import json
 import math
+import platform
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -487,9 +489,21 @@ def test_non_finite_samples_are_an_error_naming_the_file_and_the_sample(tmp_path
         next(chunks)
 
 
+def bag_reproduced_bit_for_bit() -> bool:
+    """Where the bundled bags are reproduced bit for bit (README, docs/simulator.md): Linux on
+    x86-64 with AVX2 and FMA, whose C math library (glibc's FMA variants) made them; numpy's and
+    OpenBLAS's kernels do not matter (test_simulator_physics)."""
+    from numpy.core._multiarray_umath import __cpu_features__
+
+    return (sys.platform.startswith("linux") and platform.machine() == "x86_64"
+            and bool(__cpu_features__.get("AVX2")) and bool(__cpu_features__.get("FMA3")))
+
+
 def test_the_live_simulator_streams_what_the_recorded_bag_holds():
     """A scenario opened as a source is the simulator run live: its first frames are the campus
-    bag's samples, stamps and indices exactly (same twin, seed and receiver clock epoch)."""
+    bag's samples, stamps and indices exactly (same twin, seed and receiver clock epoch); on
+    another CPU family or C library, a code at most one off now and then, where a sample sits
+    on a rounding boundary."""
     live = open_source(REPO / "config" / "scenarios" / "campus.yaml")
     recorded = BagSource(REPO / "bags" / "campus")
     assert isinstance(live, SimulatorSource)
@@ -498,7 +512,11 @@ def test_the_live_simulator_streams_what_the_recorded_bag_holds():
     for got, want, _ in zip(live.chunks(), recorded.chunks(), range(3)):
         assert (got.stamp_ns, got.first_sample_index, got.sample_rate) == (
             want.stamp_ns, want.first_sample_index, want.sample_rate)
-        np.testing.assert_array_equal(got.samples, want.samples)
+        if bag_reproduced_bit_for_bit():
+            np.testing.assert_array_equal(got.samples, want.samples)
+        else:
+            off = np.abs(got.samples.astype(int) - want.samples)
+            assert off.max() <= 1 and np.count_nonzero(off) <= 1e-3 * len(off)
 
 
 @pytest.mark.parametrize("kwargs, message", [

@@ -143,7 +143,7 @@ def test_ros_package_depends_on_core_and_msgs() -> None:
 def test_ros_package_declares_what_nodes_and_launch_use() -> None:
     """Messages, diagnostic_updater, /clock, parameter descriptors, the launch file, its test."""
     info = catkin_parse(REPO / "src" / "deepsync_ros")
-    assert {"std_msgs", "geometry_msgs", "sensor_msgs", "diagnostic_msgs", "diagnostic_updater",
+    assert {"std_msgs", "geometry_msgs", "sensor_msgs", "nav_msgs", "diagnostic_msgs", "diagnostic_updater",
             "rosgraph_msgs", "rcl_interfaces", "launch", "launch_ros", "ament_index_python"} <= set(info["exec_depends"])
     assert {"launch_testing", "launch_testing_ros", "python3-pytest"} <= set(info["test_depends"])
 

@@ -24,8 +24,10 @@ setup(
         "matplotlib>=3.7",
         "sigmf>=1.14",
     ],
-    # the timing network; the classical estimators, the nodes and the rest of the chain need none
-    extras_require={"network": ["torch>=2.4"], "onnx": ["onnx>=1.16", "onnxscript>=0.5", "onnxruntime>=1.18"]},
+    # the timing network; the classical estimators, the nodes and the rest of the chain need none;
+    # route sets, timing examples and route evaluations on a Ray cluster (deepsync.jobs)
+    extras_require={"network": ["torch>=2.4"], "onnx": ["onnx>=1.16", "onnxscript>=0.5", "onnxruntime>=1.18"],
+                    "ray": ["ray>=2.9"]},
     zip_safe=True,
     maintainer="DeepSync",
     maintainer_email="dev@deepsync.invalid",

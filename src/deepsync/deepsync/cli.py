@@ -24,9 +24,12 @@ from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import stack_record, summarize
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
+from deepsync.jobs import JobRunner
+from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
 from deepsync.numeric import one_blas_thread
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, SampleFormat, Source, open_source
+from deepsync.sync.stacking import StackConfig
 from deepsync.timing import network_install_hint
 from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS
@@ -49,14 +52,61 @@ def _workers(text: str) -> int:
     return value
 
 
-def _positive_float(text: str) -> float:
+def _bounded_float(text: str, *, positive: bool) -> float:
+    what = "a positive number" if positive else "a number >= 0"
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} is not a number") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} must be a positive number")
+    if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} must be {what}")
     return value
+
+
+def _positive_float(text: str) -> float:
+    return _bounded_float(text, positive=True)
+
+
+def _non_negative_float(text: str) -> float:
+    return _bounded_float(text, positive=False)
+
+
+def _seeds(text: str) -> list[int]:
+    """``1-12`` or ``3,5,9`` (or both, comma-separated) as a list of seeds."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            low, _, high = part.partition("-")
+            seeds += range(int(low), int(high or low) + 1)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give seeds as 1-12 or 3,5,9") from None
+    if not seeds or min(seeds) < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: give at least one seed, none negative")
+    return seeds
+
+
+def _aiding_arguments(command: argparse.ArgumentParser) -> None:
+    """What a route evaluation may give the tracker besides the sites, drawn from the truth."""
+    command.add_argument("--gnss-interval", type=_non_negative_float, metavar="S",
+                         help="give the tracker a GNSS fix drawn from the truth every S seconds (0: only at the "
+                         "start), as a receiver that runs its GNSS now and then")
+    command.add_argument("--gnss-std", type=_positive_float, default=5.0, metavar="M",
+                         help="the GNSS fixes' error and claimed 1-sigma per horizontal axis (default %(default)g m)")
+    command.add_argument("--odometry-std", type=_positive_float, metavar="F",
+                         help="give the tracker odometry at 10 Hz: the true velocity in an odometry frame of unknown "
+                         "yaw, with a fractional error F (a scale error and noise) and a slow yaw drift")
+
+
+def _aiding_plan(args: argparse.Namespace):
+    from deepsync.eval.aiding import AidingPlan
+
+    return AidingPlan(args.gnss_interval, args.gnss_std, args.odometry_std)
+
+
+def _job_arguments(command: argparse.ArgumentParser, workers: int) -> None:
+    command.add_argument("--workers", type=_workers, default=workers, help=f"local processes (default {workers})")
+    command.add_argument("--ray", metavar="ADDRESS", help="run the jobs on a Ray cluster instead: auto (the cluster "
+                         "this machine belongs to), local, or ray://HOST:10001 (needs deepsync[ray])")
 
 
 def _initial_std(text: str) -> float:
@@ -168,6 +218,46 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         overwrite=args.overwrite, progress=not args.quiet,
     )
     _print_recording(summary)
+    return 0
+
+
+def _cmd_simulate_set(args: argparse.Namespace) -> int:
+    from deepsync.recording import record_route_set
+
+    runner = JobRunner(args.workers, args.ray)
+    print(f"route set: {len(args.scenario)} scenario(s) x {len(args.seeds)} seed(s) of {args.seconds:g} s into "
+          f"{args.out}, on {runner.description}")
+    for summary in record_route_set(args.scenario, args.seeds, args.seconds, args.out, runner, overwrite=args.overwrite):
+        print(f"  {summary.out}: {summary.seconds:.1f} s simulated in {summary.wall_seconds:.1f} s")
+    return 0
+
+
+def _cmd_make_dataset(args: argparse.Namespace) -> int:
+    try:
+        from deepsync.training.train import load_run_config
+    except ModuleNotFoundError as error:
+        raise ValueError(f"the run config needs {error.name}: {network_install_hint(error.name)}") from None
+    from deepsync.training.dataset import generate
+
+    run = load_run_config(args.config)
+    cfg = run.training
+    runner = JobRunner(args.workers, args.ray)
+    print(f"timing examples of {args.config} into {cfg.data_dir}, on {runner.description}")
+    made = generate(Path(cfg.data_dir), {"train": cfg.train_shards, "val": cfg.val_shards, "test": cfg.test_shards},
+                    run.dataset, workers=args.workers, ray=args.ray)
+    print(f"  {made} examples made; `deepsync train --config {args.config}` uses them")
+    return 0
+
+
+def _cmd_evaluate_routes(args: argparse.Namespace) -> int:
+    from deepsync.eval.route_set import evaluate_route_set, write_table
+
+    runner = JobRunner(args.workers, args.ray)
+    aiding = _aiding_plan(args)
+    print(f"route evaluation of {len(args.bag)} bag(s) with {args.towers}, on {runner.description}; {aiding.describes}")
+    for bag, summary in evaluate_route_set(args.bag, args.towers, args.out, runner, _pipeline_config(args), aiding):
+        print(f"  {bag}: {summary['stacks']} stacks, heard {', '.join(summary['sites_heard']) or 'no site'}")
+    print(f"  written: {write_table(args.out, args.bag)}")
     return 0
 
 
@@ -359,7 +449,13 @@ def _print_health(health: dict[str, int]) -> None:
 
 def _pipeline_config(args: argparse.Namespace) -> PipelineConfig:
     """The pipeline a replaying command asked for (``_replay_arguments``)."""
-    return PipelineConfig().with_choices(args.frames, args.estimator, args.hop, args.search_every)
+    return PipelineConfig().with_choices(args.frames, args.estimator, args.hop, args.search_every, args.motion)
+
+
+def _stacks_text(config: PipelineConfig, motion: str) -> str:
+    stack = config.sync.stack
+    every = "back to back" if stack.hop == stack.n_frames else f"one every {stack.hop} frames"
+    return f"{stack.n_frames}-frame stacks {every}, motion model {motion}"
 
 
 def _cmd_evaluate_route(args: argparse.Namespace) -> int:
@@ -367,13 +463,15 @@ def _cmd_evaluate_route(args: argparse.Namespace) -> int:
 
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
-    print(f"route evaluation of {source.description}\n  tower database {args.towers}, {args.frames}-frame stacks")
     config = _pipeline_config(args)
+    aiding = _aiding_plan(args)
+    print(f"route evaluation of {source.description}\n  tower database {args.towers}, "
+          f"{_stacks_text(config, args.motion)}; {aiding.describes}")
     initial_pose = None if args.initial_pose_std is None else InitialPose(args.initial_pose_std)
     if initial_pose is not None:
         print(f"  the tracker starts from the true start position off by N(0, {args.initial_pose_std:g} m) per axis")
     summary, paths = evaluate_route(source, towers, Path(args.out), config,
-                                    progress=not args.quiet, initial_pose=initial_pose)
+                                    progress=not args.quiet, initial_pose=initial_pose, aiding=aiding)
     _print_route(summary)
     print("  written: " + ", ".join(str(p) for p in paths))
     return 130 if summary["interrupted"] else 0
@@ -385,8 +483,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
-    print(f"site clock calibration from {source.description}\n  tower database {args.towers}")
     config = _pipeline_config(args)
+    print(f"site clock calibration from {source.description}\n  tower database {args.towers}, "
+          f"{_stacks_text(config, args.motion)}")
     calibration = calibrate_route(source, towers, config, progress=not args.quiet)
     result = calibration.result
     print(f"  {len(result.sites)} sites heard; offsets relative to site {result.reference_site} (the most heard); "
@@ -408,9 +507,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     stages = parse_stages(args.stages)
     towers = None if args.towers is None else load_tower_database(args.towers)
-    print(f"replay of {args.bag} through {', '.join(stages)}; "
-          + (f"tower database {args.towers}" if towers else "no tower database") + f", {args.frames}-frame stacks")
     config = _pipeline_config(args)
+    print(f"replay of {args.bag} through {', '.join(stages)}; "
+          + (f"tower database {args.towers}" if towers else "no tower database") + f", {_stacks_text(config, args.motion)}")
     summary = replay_bag(args.bag, args.out, towers, config, stages=stages,
                          copy_inputs=args.copy_inputs, overwrite=args.overwrite, progress=not args.quiet, say=_say)
     print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
@@ -532,15 +631,21 @@ def _print_route(summary: dict) -> None:
 
 
 def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_help: str, *,
-                      bag_options: Sequence[str] = ("--bag",), towers_required: bool = True) -> None:
+                      bag_options: Sequence[str] = ("--bag",), towers_required: bool = True,
+                      many_bags: bool = False) -> None:
     """What every command that replays a bag through the whole chain takes."""
     defaults = PipelineConfig()
-    command.add_argument(*bag_options, dest="bag", required=True, help=bag_help)
+    many = {"action": "extend", "nargs": "+"} if many_bags else {}
+    command.add_argument(*bag_options, dest="bag", required=True, help=bag_help, **many)
     command.add_argument("--towers", required=towers_required, help=towers_help)
-    command.add_argument("--frames", type=int, default=defaults.sync.stack.n_frames,
-                         help=f"frames per stack (default {defaults.sync.stack.n_frames})")
-    command.add_argument("--hop", type=int, help="frames from one stack to the next (default: --frames, back to "
-                         "back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz)")
+    command.add_argument("--motion", choices=tuple(MOTION_MODELS), default=DEFAULT_MOTION,
+                         help="how the receiver moves, which sets the stacks and the tracker's motion model "
+                         "(default %(default)s): " + "; ".join(f"{m.name}: {m.summary} ({m.n_frames}-frame stacks "
+                                                               f"every {m.hop_frames})" for m in MOTION_MODELS.values()))
+    command.add_argument("--frames", type=int, help="frames per stack (default: the motion model's)")
+    command.add_argument("--hop", type=int, help="frames from one stack to the next (default: the motion model's; "
+                         "with --frames alone, back to back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for "
+                         "50-frame stacks at 10 Hz)")
     command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
                          f"{defaults.sync.search_every}; between, the cells found are tracked; while none finds a new "
                          f"cell the gap doubles up to {defaults.sync.max_search_interval_s:g} s of stream)")
@@ -566,6 +671,16 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--quiet", action="store_true", help="no progress bar")
     sim.set_defaults(run=_cmd_simulate)
 
+    route_set = commands.add_parser("simulate-set", help="a bag for every scenario and seed (a route set), in "
+                                    "local processes or on a Ray cluster")
+    route_set.add_argument("--scenario", required=True, action="append", help="scenario YAML (repeat for more)")
+    route_set.add_argument("--seeds", required=True, type=_seeds, help="seeds, e.g. 1-12 or 3,5,9")
+    route_set.add_argument("--seconds", required=True, type=_positive_float, help="length of each recording")
+    route_set.add_argument("--out", required=True, help="directory of the bags (<scenario>_seed<seed>)")
+    route_set.add_argument("--overwrite", action="store_true", help="replace bags already there (default: keep them)")
+    _job_arguments(route_set, workers)
+    route_set.set_defaults(run=_cmd_simulate_set)
+
     detect = commands.add_parser("detect", help="cell search and timing over a recording (bag, I/Q or envelope file)")
     detect.add_argument("--bag", help="rosbag2 bag (directory or .mcap) with /deepsync/envelope")
     detect.add_argument("--input", metavar="FILE",
@@ -578,7 +693,7 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--scale", type=_positive_float,
                         help="envelope units per ADC code for --input (default: the recording's peak maps to 32766)")
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
-    frames = PipelineConfig().sync.stack.n_frames
+    frames = StackConfig().n_frames  # a cell search shows each stack: short ones, back to back
     detect.add_argument("--frames", type=int, default=frames, help=f"frames per stack (default {frames})")
     detect.set_defaults(run=_cmd_detect)
 
@@ -592,7 +707,17 @@ def build_parser() -> argparse.ArgumentParser:
                        help="start the tracker from an initial position: the true start, off by a draw of "
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
                        "sites are heard to start)")
+    _aiding_arguments(route)
     route.set_defaults(run=_cmd_evaluate_route)
+
+    routes = commands.add_parser("evaluate-routes", help="evaluate-route on many bags, in local processes or on a "
+                                 "Ray cluster: a report per bag and route_set.json")
+    _replay_arguments(routes, "bags with /deepsync/envelope and /deepsync/truth/pose (e.g. --bag bags/set/*)",
+                      "tower database YAML with origin, positions and timing", many_bags=True)
+    routes.add_argument("--out", required=True, help="where the reports (one directory per bag) go")
+    _aiding_arguments(routes)
+    _job_arguments(routes, workers)
+    routes.set_defaults(run=_cmd_evaluate_routes)
 
     replay = commands.add_parser("replay", help="run the chain's stages over a bag and write what the nodes publish "
                                  "(sync windows, cell timing, pose with covariance, NavSatFix) into a new bag")
@@ -628,6 +753,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "if missing; resumes an interrupted run)")
     training.add_argument("--config", required=True, help="run YAML (config/timing/timing_net.yaml)")
     training.set_defaults(run=_cmd_train)
+
+    dataset = commands.add_parser("make-dataset", help="make a run config's missing timing examples, in local "
+                                  "processes or on a Ray cluster (deepsync train then uses them)")
+    dataset.add_argument("--config", required=True, help="run YAML (config/timing/timing_net.yaml)")
+    _job_arguments(dataset, workers)
+    dataset.set_defaults(run=_cmd_make_dataset)
 
     evaluate = commands.add_parser("evaluate-timing", help="network, ML, FFT-upsampled and parabolic timing side "
                                    "by side against the true first path and the CRLB: JSON and a figure")

@@ -51,6 +51,12 @@ def _as_points(points: ArrayLike, name: str) -> np.ndarray:
     return array
 
 
+def _rotate(points: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """``points @ rotation.T`` term by term: a matrix product would go to BLAS, whose rounding
+    depends on the CPU, and the simulator's geometry must not (``deepsync.frontend.portable``)."""
+    return (points[..., :1] * rotation[:, 0] + points[..., 1:2] * rotation[:, 1]) + points[..., 2:] * rotation[:, 2]
+
+
 @dataclass(frozen=True)
 class LocalFrame:
     """East-north-up tangent plane at a WGS84 origin: the REP-105 ``map`` frame.
@@ -72,8 +78,8 @@ class LocalFrame:
             raise ValueError(f"latitude_deg {self.latitude_deg!r} is outside [-90, 90]")
         if not -180.0 <= self.longitude_deg <= 180.0:
             raise ValueError(f"longitude_deg {self.longitude_deg!r} is outside [-180, 180]")
-        lat, lon = np.radians(self.latitude_deg), np.radians(self.longitude_deg)
-        sin_lat, cos_lat, sin_lon, cos_lon = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+        lat, lon = math.radians(self.latitude_deg), math.radians(self.longitude_deg)
+        sin_lat, cos_lat, sin_lon, cos_lon = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
         # Rows: east, north, up unit vectors in ECEF.
         rotation = np.array([
             [-sin_lon, cos_lon, 0.0],
@@ -86,11 +92,11 @@ class LocalFrame:
 
     def ecef_to_enu(self, ecef: ArrayLike) -> np.ndarray:
         """ENU (m) of ECEF points (trailing axis of 3)."""
-        return (_as_points(ecef, "ecef") - self._origin_ecef) @ self._rotation.T
+        return _rotate(_as_points(ecef, "ecef") - self._origin_ecef, self._rotation)
 
     def enu_to_ecef(self, enu: ArrayLike) -> np.ndarray:
         """ECEF (m) of ENU points (trailing axis of 3)."""
-        return _as_points(enu, "enu") @ self._rotation + self._origin_ecef
+        return _rotate(_as_points(enu, "enu"), self._rotation.T) + self._origin_ecef
 
     def geodetic_to_enu(self, latitude_deg: ArrayLike, longitude_deg: ArrayLike,
                         height_m: ArrayLike = 0.0) -> np.ndarray:

@@ -26,17 +26,31 @@ from dataclasses import dataclass, field, replace
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
+from deepsync.motion import DEFAULT_MOTION, MotionModel, motion_model
 from deepsync.sync.stage import SyncConfig, SyncResult, SyncStage
 from deepsync.timing.stage import Estimator, TimingConfig, TimingResult, TimingStage
 from deepsync.towers import TowerDatabase
 from deepsync.types import EnvelopeChunk, Health, StackArrivals, StackWindows
 
 
+def moving(model: MotionModel, sync: SyncConfig, fusion: FusionConfig) -> tuple[SyncConfig, FusionConfig]:
+    """``sync`` and ``fusion`` with a motion model's stacks and tracker process model."""
+    stack = replace(sync.stack, n_frames=model.n_frames, hop_frames=model.hop_frames)
+    tracker = replace(fusion.tracker, acceleration_std_mps2=model.acceleration_std_mps2,
+                      initial_speed_std_mps=model.initial_speed_std_mps)
+    return replace(sync, stack=stack), replace(fusion, tracker=tracker)
+
+
+def _default_sync() -> SyncConfig:
+    return moving(motion_model(DEFAULT_MOTION), SyncConfig(), FusionConfig())[0]
+
+
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Every stage's settings."""
+    """Every stage's settings. The defaults are the default motion model's
+    (``deepsync.motion``): its stacks, its tracker; :meth:`for_motion` gives another's."""
 
-    sync: SyncConfig = field(default_factory=SyncConfig)
+    sync: SyncConfig = field(default_factory=_default_sync)
     timing: TimingConfig = field(default_factory=TimingConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
 
@@ -50,21 +64,33 @@ class PipelineConfig:
             tracker = replace(self.fusion.tracker, stack_overlap=overlap)
             object.__setattr__(self, "fusion", replace(self.fusion, tracker=tracker))
 
+    @classmethod
+    def for_motion(cls, motion: str) -> PipelineConfig:
+        """The defaults with the motion model ``motion``'s stacks and tracker (ValueError listing
+        the names)."""
+        sync, fusion = moving(motion_model(motion), SyncConfig(), FusionConfig())
+        return cls(sync=sync, fusion=fusion)
+
     def with_choices(self, n_frames: int | None = None, estimator: str | None = None,
-                     hop_frames: int | None = None, search_every: int | None = None) -> PipelineConfig:
-        """This config with the knobs a command line offers: frames per stack, frames from one
-        stack to the next (sliding stacks), stacks per full search for new cells, the timing
+                     hop_frames: int | None = None, search_every: int | None = None,
+                     motion: str | None = None) -> PipelineConfig:
+        """This config with the knobs a command line offers: the motion model by name (its
+        stacks and tracker), frames per stack (without ``hop_frames``: back to back), frames from
+        one stack to the next (sliding stacks), stacks per full search for new cells, the timing
         estimator by name (ValueError listing the names)."""
-        sync, timing = self.sync, self.timing
+        sync, timing, fusion = self.sync, self.timing, self.fusion
+        if motion is not None:
+            sync, fusion = moving(motion_model(motion), sync, fusion)
         if n_frames is not None or hop_frames is not None:
             frames = sync.stack.n_frames if n_frames is None else n_frames
-            stack = replace(sync.stack, n_frames=frames, hop_frames=hop_frames)
+            hop = hop_frames if hop_frames is not None or n_frames is None else frames
+            stack = replace(sync.stack, n_frames=frames, hop_frames=hop)
             sync = replace(sync, stack=stack)
         if search_every is not None:
             sync = replace(sync, search_every=search_every)
         if estimator is not None:
             timing = replace(timing, estimator=Estimator.named(estimator))
-        return replace(self, sync=sync, timing=timing)
+        return replace(self, sync=sync, timing=timing, fusion=fusion)
 
 
 @dataclass(frozen=True)

@@ -30,11 +30,13 @@ import deepsync
 from deepsync.bag import BagWriter
 from deepsync.configio import parse_yaml, read_config_bytes
 from deepsync.frontend.channel import Emitter
+from deepsync.frontend.portable import squared_magnitude
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
+from deepsync.jobs import JobRunner
 from deepsync.sync.stacking import check_stack_rate
 from deepsync.twin import Twin, build_twin
-from deepsync.twin.scenario import SEED_RANGE, parse_scenario
+from deepsync.twin.scenario import SEED_RANGE, load_scenario, parse_scenario
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming, StackArrivals
 
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: receiver clock at sample 0
@@ -78,7 +80,7 @@ def cell_summaries(twin: Twin) -> list[CellSummary]:
     out = []
     for i, (cell, emitter) in enumerate(zip(twin.cells, twin.emitters)):
         paths = twin.channel.paths(i, 0.0)
-        power_w = emitter.re_power_w * float(np.sum(np.abs(paths.gains) ** 2))
+        power_w = emitter.re_power_w * float(np.sum(squared_magnitude(paths.gains)))
         out.append(
             CellSummary(
                 pci=cell.pci,
@@ -241,3 +243,36 @@ def record_scenario(
         stats=stats,
         cells=cell_summaries(twin),
     )
+
+
+def route_set_bag(out_dir: str | Path, scenario_path: str | Path, seed: int) -> Path:
+    """Where a route set keeps the bag of one scenario and seed: ``<out>/<scenario>_seed<seed>``."""
+    return Path(out_dir) / f"{Path(scenario_path).stem}_seed{seed}"
+
+
+def record_route_set(
+    scenarios: list[str | Path],
+    seeds: list[int],
+    seconds: float,
+    out_dir: str | Path,
+    runner: JobRunner,
+    *,
+    overwrite: bool = False,
+) -> Iterator[RecordingSummary]:
+    """A bag for every scenario and seed (``route_set_bag``), one job each, on ``runner``'s
+    processes or Ray cluster; bags already there are kept (a rerun makes the missing ones)
+    unless ``overwrite``. Summaries come as their bags are finished."""
+    jobs = []
+    for scenario in scenarios:
+        if Path(scenario).exists() and not Path(scenario).is_file():  # every seed's job reads it: a pipe gives one
+            raise ValueError(f"{scenario}: a route set reads its scenario once per seed: give a file, not a pipe")
+        load_scenario(scenario)  # a bad file fails here, before any job starts
+        for seed in seeds:
+            out = route_set_bag(out_dir, scenario, seed)
+            if overwrite or not out.exists():
+                jobs.append((str(scenario), seconds, str(out), seed, overwrite))
+    return runner.map(_record_one, jobs)
+
+
+def _record_one(scenario: str, seconds: float, out: str, seed: int, overwrite: bool) -> RecordingSummary:
+    return record_scenario(scenario, seconds, out, seed=seed, overwrite=overwrite, progress=False)

@@ -50,7 +50,8 @@ class HealthKind(enum.Enum):
     Timing: ``UNTIMEABLE`` (a cell's windows could not be timed at all), ``WEAK_TIMING`` (an
     arrival whose 1-sigma says it may be far off). Fusion: ``UNANCHORED`` (a heard cell the tower
     database cannot place: unknown PCI, reused PCI without a carrier, site without position or
-    timing).
+    timing), ``AIDING_REFUSED`` (a GNSS fix or an odometry velocity fusion did not use: not a
+    number, back in time, stale, or refused by the tracker's innovation test).
     """
 
     GAP = "gap"  # samples missing from the stream: the stack spanning them is dropped
@@ -65,6 +66,7 @@ class HealthKind(enum.Enum):
     UNTIMEABLE = "untimeable"  # a detected cell's windows carry nothing to time
     WEAK_TIMING = "weak_timing"  # an arrival beyond the estimator's threshold: its 1-sigma is large
     UNANCHORED = "unanchored"  # a heard cell fusion cannot use: the database does not place it
+    AIDING_REFUSED = "aiding_refused"  # a GNSS fix or odometry velocity fusion could not or would not use
 
     @property
     def severity(self) -> Severity:
@@ -84,6 +86,7 @@ _SEVERITY = {
     HealthKind.UNTIMEABLE: Severity.WARN,
     HealthKind.WEAK_TIMING: Severity.WARN,
     HealthKind.UNANCHORED: Severity.WARN,
+    HealthKind.AIDING_REFUSED: Severity.WARN,
 }
 
 
@@ -334,6 +337,7 @@ class NoFixReason(enum.Enum):
     NOT_CONVERGED = "not_converged"  # the solver did not converge
     INCONSISTENT = "inconsistent"  # the arrivals contradict each other beyond their sigmas
     NOT_INITIALISED = "not_initialised"  # the tracker has not yet heard enough sites to start
+    TRACK_LOST = "track_lost"  # the tracker's own uncertainty grew beyond what is worth publishing
 
 
 class FixKind(enum.Enum):
@@ -393,16 +397,8 @@ class PositionPrior:
         position = tuple(float(v) for v in self.position_enu)
         if len(position) != 3 or not all(math.isfinite(v) for v in position):
             raise ValueError(f"position_enu: {self.position_enu!r} is not 3 finite ENU metres")
-        covariance = np.array(self.covariance, dtype=np.float64)
-        if covariance.shape != (3, 3) or not np.all(np.isfinite(covariance)):
-            raise ValueError(f"covariance: must be a finite 3x3 matrix (m^2), got shape {covariance.shape}")
-        if not np.allclose(covariance, covariance.T, rtol=1e-9, atol=1e-9 * float(np.abs(covariance).max())):
-            raise ValueError("covariance: is not symmetric")
-        if not np.all(np.linalg.eigvalsh(covariance) > 0):
-            raise ValueError("covariance: is not positive definite (every axis needs a variance > 0 m^2)")
-        covariance.setflags(write=False)
         object.__setattr__(self, "position_enu", position)
-        object.__setattr__(self, "covariance", covariance)
+        object.__setattr__(self, "covariance", _covariance(self.covariance, 3, "covariance (m^2)"))
 
     @property
     def tightest_std_m(self) -> float:
@@ -422,3 +418,77 @@ class PositionPrior:
             return self
         widened = (axes * np.maximum(variances, min_std_m**2)) @ axes.T
         return PositionPrior(self.position_enu, 0.5 * (widened + widened.T))
+
+
+@dataclass(frozen=True)
+class GnssFix:
+    """A position from outside the chain, stamped on the receiver clock: a GNSS fix (a
+    ``sensor_msgs/NavSatFix``), a surveyed point passed on the way. WGS84 latitude, longitude
+    and ellipsoidal height; ``covariance_enu`` in m^2 (east, north, up), or None when the
+    receiver gives none (fusion then takes its configured sigma). ``frame_id`` names the
+    antenna that made it. Raises ValueError naming the field that is not a number it can use."""
+
+    stamp_ns: int
+    latitude_deg: float
+    longitude_deg: float
+    height_m: float
+    covariance_enu: np.ndarray | None = None
+    frame_id: str = ""
+
+    def __post_init__(self) -> None:
+        _check_stamp(self.stamp_ns, "GnssFix")
+        if not (_real(self.latitude_deg) and abs(self.latitude_deg) <= 90):
+            raise ValueError(f"GnssFix.latitude_deg {self.latitude_deg!r} is not a latitude (-90..90)")
+        if not (_real(self.longitude_deg) and abs(self.longitude_deg) <= 180):
+            raise ValueError(f"GnssFix.longitude_deg {self.longitude_deg!r} is not a longitude (-180..180)")
+        if not _real(self.height_m):
+            raise ValueError(f"GnssFix.height_m {self.height_m!r} is not a finite number")
+        if self.covariance_enu is not None:
+            object.__setattr__(self, "covariance_enu", _covariance(self.covariance_enu, 3, "GnssFix.covariance_enu"))
+
+
+@dataclass(frozen=True)
+class OdometryVelocity:
+    """A horizontal velocity from outside the chain (a robot's wheel or visual odometry),
+    stamped on the receiver clock: ``velocity`` (m/s) along the axes of the frame it is
+    expressed in, with its covariance (m^2/s^2). ``in_map_frame``: those axes are the ``map``
+    frame's (east, north); else they are an odometry frame's, turned by an unknown yaw that the
+    tracker estimates. Raises ValueError naming the field that is not a number it can use."""
+
+    stamp_ns: int
+    velocity: tuple[float, float]
+    covariance: np.ndarray
+    in_map_frame: bool = False
+
+    def __post_init__(self) -> None:
+        _check_stamp(self.stamp_ns, "OdometryVelocity")
+        velocity = tuple(self.velocity)
+        if len(velocity) != 2 or not all(_real(v) for v in velocity):
+            raise ValueError(f"OdometryVelocity.velocity {self.velocity!r} is not two finite m/s")
+        object.__setattr__(self, "velocity", tuple(float(v) for v in velocity))
+        object.__setattr__(self, "covariance", _covariance(self.covariance, 2, "OdometryVelocity.covariance"))
+
+
+def _real(value: object) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_stamp(stamp_ns: object, what: str) -> None:
+    if not isinstance(stamp_ns, (int, np.integer)) or isinstance(stamp_ns, bool) or stamp_ns < 0:
+        raise ValueError(f"{what}.stamp_ns {stamp_ns!r} is not a time (integer nanoseconds >= 0)")
+
+
+def _covariance(value: object, size: int, where: str) -> np.ndarray:
+    """A read-only symmetric positive-definite ``size`` x ``size`` matrix, or ValueError naming ``where``."""
+    try:
+        matrix = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where} is not a matrix of numbers") from None
+    if matrix.shape != (size, size) or not np.all(np.isfinite(matrix)):
+        raise ValueError(f"{where} must be a finite {size}x{size} matrix, got shape {matrix.shape}")
+    if not np.allclose(matrix, matrix.T, rtol=1e-9, atol=1e-12 + 1e-9 * float(np.abs(matrix).max())):
+        raise ValueError(f"{where} is not symmetric")
+    if not np.all(np.linalg.eigvalsh(matrix) > 0):
+        raise ValueError(f"{where} is not positive definite (every axis needs a variance > 0)")
+    matrix.setflags(write=False)
+    return matrix

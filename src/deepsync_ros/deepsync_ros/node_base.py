@@ -23,6 +23,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus
 from diagnostic_updater import DiagnosticStatusWrapper, Updater
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
@@ -35,12 +36,20 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import NavSatFix
 
 from deepsync.bag.convert import ns_to_stamp
-from deepsync.bag.topics import INITIAL_POSE_TOPIC, NAV_SAT_FIX_TOPIC, POSE_TOPIC, relative_name
+from deepsync.bag.topics import (
+    GNSS_FIX_TOPIC,
+    INITIAL_POSE_TOPIC,
+    NAV_SAT_FIX_TOPIC,
+    ODOMETRY_TOPIC,
+    POSE_TOPIC,
+    relative_name,
+)
 from deepsync.fusion.stage import FusionStage
 from deepsync.geo import LocalFrame
 from deepsync.numeric import one_blas_thread
-from deepsync.types import EnvelopeChunk, Fix, Severity
+from deepsync.types import EnvelopeChunk, Fix, HealthKind, Severity
 
+from .aiding import AidingInputs, LearnedTowers
 from .conversions import RCLPY_TYPES, fix_to_navsat_msg, fix_to_pose_msg, prior_from_pose_msg
 from .health import Playback, Report, StageHealth, chunk_end_ns
 from .params import ParameterError, ParamSpec, ParamValue, checked
@@ -57,6 +66,10 @@ ENVELOPE_SUBSCRIBER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE)
 CLOCK_TOPIC = "/clock"
+# GNSS fixes and odometry: best effort takes a reliable publisher's messages too; 50 messages
+# hold a second of 50 Hz odometry while a stack is being fused
+AIDING_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
+                        durability=DurabilityPolicy.VOLATILE)
 
 REJECTION_LOG_PERIOD_S = 5.0
 # Steady-clock pacing: the tick bounds how late a due chunk goes out; the burst bounds how long
@@ -229,6 +242,71 @@ class InitialPoseListener:
                    "(initial_pose_min_std_m)" if prior is not claimed else "")
         logger.info(f"tracking starts again from the initial pose ({east:.1f}, {north:.1f}) m, {spread:.1f} m DRMS"
                     f"{widened}")
+
+
+class AidingListener:
+    """GNSS fixes (``gnss/fix``, with ``use_gnss``) and odometry (``odometry``, with
+    ``use_odometry``) into a fusion stage through :class:`~deepsync_ros.aiding.AidingInputs`, its
+    "aiding" diagnostics, and the learned tower database (``learned_towers``) written every
+    ``learned_save_period_s`` of steady time and at shutdown. What is refused is logged
+    (throttled) with the reason; the node runs on."""
+
+    def __init__(self, node: DeepSyncNode, values: Mapping[str, ParamValue], fusion: FusionStage | None) -> None:
+        self.node = node
+        self.fusion = fusion
+        path = str(values["learned_towers"])
+        self.learned = LearnedTowers(path, float(values["learned_save_period_s"])) if path and fusion else None
+        self.inputs = None if fusion is None else AidingInputs(
+            fusion, map_frame=str(values["map_frame"]), antenna_frame=str(values["antenna_frame"]),
+            gnss_frame=str(values["gnss_frame"]), odometry_min_std_mps=float(values["odometry_min_std_mps"]),
+            odometry_timeout_s=float(values["odometry_timeout_s"]), use_gnss=bool(values["use_gnss"]),
+            use_odometry=bool(values["use_odometry"]), learned=self.learned)
+        if self.inputs is None:
+            if values["use_gnss"] or values["use_odometry"] or path:
+                node.get_logger().warning("use_gnss, use_odometry and learned_towers need fusion (a tower database "
+                                          "that places its sites): ignored")
+            return
+        if values["use_gnss"]:
+            self.gnss = node.create_subscription(NavSatFix, relative_name(GNSS_FIX_TOPIC),
+                                                 self._taking(self.inputs.gnss), AIDING_QOS)
+        if values["use_odometry"]:
+            self.odometry = node.create_subscription(Odometry, relative_name(ODOMETRY_TOPIC),
+                                                     self._taking(self.inputs.odometry), AIDING_QOS)
+        if values["use_gnss"] or values["use_odometry"] or self.learned is not None:
+            node.add_diagnostic("aiding", self.inputs.report)
+        if self.learned is not None:
+            self.timer = node.create_timer(1.0, self._save_when_due, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _taking(self, take: Callable[[Any], str | None]) -> Callable[[Any], None]:
+        def callback(message: Any) -> None:
+            refused = take(message)
+            if refused is not None:
+                self.node.get_logger().warning(f"aiding refused: {refused}", throttle_duration_sec=REJECTION_LOG_PERIOD_S)
+        return callback
+
+    def stacked(self, stamp_ns: int, events: tuple) -> None:
+        """A stack was fused (see :meth:`AidingInputs.stacked`)."""
+        if self.inputs is not None:
+            self.inputs.stacked(stamp_ns, events)
+            for event in events:
+                if event.kind is HealthKind.AIDING_REFUSED:
+                    self.node.get_logger().warning(f"aiding refused: {event.message}",
+                                                   throttle_duration_sec=REJECTION_LOG_PERIOD_S)
+
+    def _save_when_due(self) -> None:
+        now = time.monotonic()
+        if self.learned is not None and self.learned.due(now):
+            self._save(now)
+
+    def _save(self, now: float) -> None:
+        error = self.learned.save(self.fusion, now)
+        if error is not None:
+            self.node.get_logger().error(error)
+
+    def shutdown(self) -> None:
+        """Write the learned database one last time (the node is going)."""
+        if self.learned is not None:
+            self._save(time.monotonic())
 
 
 class PacedPlayer:

@@ -27,7 +27,8 @@ from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
 from deepsync.fusion.snapshot import SnapshotConfig
 from deepsync.fusion.stage import FusionConfig
 from deepsync.fusion.tracker import TrackerConfig
-from deepsync.pipeline import PipelineConfig, places_sites
+from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS, motion_model
+from deepsync.pipeline import PipelineConfig, moving, places_sites
 from deepsync.sources import SampleFormat, Source, bag_frontend, open_source
 from deepsync.sources.bagfile import is_bag_path
 from deepsync.sync.search import SearchConfig
@@ -99,7 +100,13 @@ _SEARCH = SearchConfig()
 _SYNC = SyncConfig()
 _TIMING = TimingConfig()
 _FUSION = FusionConfig()
+_TRACKER = TrackerConfig()
 _SNAPSHOT = SnapshotConfig()
+
+MOTION = ParamSpec("motion", DEFAULT_MOTION, "How the receiver moves: it sets the stacks (unless n_frames and "
+                   "hop_frames are given) and the tracker's motion model. " + "; ".join(
+                       f"{m.name}: {m.summary} ({m.n_frames}-frame stacks every {m.hop_frames})"
+                       for m in MOTION_MODELS.values()) + ".", choices=tuple(MOTION_MODELS))
 
 SOURCE = (
     ParamSpec("source", "", "Recording to publish: a rosbag2 bag (directory or .mcap), a SigMF recording, a raw "
@@ -123,12 +130,11 @@ TOWERS = ParamSpec("towers", "", "Tower database YAML; empty: blind search over 
 FRONTEND = ParamSpec("frontend", "", "Receiver chain the stream went through, for the templates: a bag "
                      "(its recorded front end), a YAML of FrontendConfig fields, or empty: the default chain.")
 SYNC = (
-    ParamSpec("n_frames", _STACK.n_frames, "LTE frames (10 ms) stacked per search; the timing stage needs 2 to "
-              "measure the noise. 50: a fix every 0.5 s for a fifth of the processing, and on a walk the "
-              "better track (a slow tracker's choice).", range=(2, 1000)),
-    ParamSpec("hop_frames", 0, "Frames from one stack's start to the next; 0: n_frames (back to back). Fewer "
-              "gives sliding stacks: n_frames 50, hop_frames 10 hears as 50 frames do and answers at 10 Hz.",
-              range=(0, 1000)),
+    ParamSpec("n_frames", 0, "LTE frames (10 ms) stacked per search; 0: the motion model's. Longer stacks hear "
+              "weaker sites (3 dB per doubling); the timing stage needs 2 to measure the noise.", range=(0, 1000)),
+    ParamSpec("hop_frames", 0, "Frames from one stack's start to the next; 0: the motion model's, or with n_frames "
+              "given, n_frames (back to back). Fewer gives sliding stacks: n_frames 100, hop_frames 20 hears as 100 "
+              "frames do and answers at 5 Hz.", range=(0, 1000)),
     ParamSpec("clock_ppm", _STACK.clock_ppm, "Initial receiver clock error, compensated [ppm].",
               range=FRONTEND_RANGES["clock_offset_ppm"][:2]),
     ParamSpec("track_clock", _STACK.track_clock, "Follow the receiver clock drift measured on each stack."),
@@ -168,6 +174,15 @@ TIMING = (
 FUSION = (
     ParamSpec("tracking", _FUSION.track, "Run the tracker besides the snapshot solver; the published fix is the "
               "tracker's when it has one."),
+    ParamSpec("max_track_std_m", _TRACKER.max_std_m, "Horizontal 1-sigma (DRMS) beyond which the track is "
+              "reported lost and no pose is published for it [m].", range=(1.0, 1e6)),
+    ParamSpec("bias_decorrelation_m", _TRACKER.bias_decorrelation_m, "Path over which a site's NLOS range bias "
+              "changes (fades to 1/e) [m]: 38.901 UMa's delay-spread correlation distance is 40 m NLOS, UMi's "
+              "10 m.", range=(1.0, 1e6)),
+    ParamSpec("gnss_std_m", _FUSION.gnss_std_m, "Horizontal 1-sigma of a GNSS fix that states no covariance "
+              "[m].", range=(0.01, 1e4)),
+    ParamSpec("gnss_min_std_m", _FUSION.gnss_min_std_m, "No GNSS fix is taken as better than this per axis [m] "
+              "(urban multipath a receiver's own covariance does not see).", range=(0.01, 1e4)),
     ParamSpec("multipath_std_m", _FUSION.multipath_std_m, "Range bias multipath and NLOS add to a site, beyond "
               "the timing sigma [m].", range=(0.0, 1e4)),
     ParamSpec("min_std_m", _FUSION.min_std_m, "Floor of each arrival's 1-sigma: the scatter multipath adds "
@@ -175,10 +190,27 @@ FUSION = (
     ParamSpec("receiver_height_m", _SNAPSHOT.receiver_height_m, "Antenna height above the map origin's ground "
               "in a 2-D fix [m].", range=(-500.0, 1e4)),
 )
-STACK_OVERLAP = ParamSpec("stack_overlap", 1.0, "Stacks each ADC frame is in: cell_sync's n_frames / hop_frames "
+AIDING = (
+    ParamSpec("use_gnss", False, "Take GNSS fixes (sensor_msgs/NavSatFix on gnss/fix) as anchors: each makes the "
+              "heard sites' biases observable, and the tracker carries them on."),
+    ParamSpec("gnss_frame", "", "Accept only NavSatFix messages in this frame_id; empty: any frame but the "
+              "node's own antenna_frame (its own output fed back)."),
+    ParamSpec("use_odometry", False, "Take odometry (nav_msgs/Odometry on odometry: a robot's wheel or visual "
+              "odometry) as a velocity measurement; its frame's yaw and scale error are estimated."),
+    ParamSpec("odometry_min_std_mps", 0.05, "No odometry velocity is taken as better than this per axis [m/s] "
+              "(and one that states no covariance is taken with this).", range=(1e-4, 100.0)),
+    ParamSpec("odometry_timeout_s", 1.0, "Odometry older than this is stale: the diagnostics say the tracker "
+              "runs on its motion model alone [s].", range=(0.01, 3600.0)),
+    ParamSpec("learned_towers", "", "Write what the tracker learned of each site (its range bias and clock) as a "
+              "tower database to this YAML file, atomically, every learned_save_period_s and on shutdown; a next "
+              "run can start from it (towers). Empty: not written."),
+    ParamSpec("learned_save_period_s", 300.0, "Seconds between writes of learned_towers.", range=(1.0, 86400.0)),
+)
+"""What the fusion nodes take besides the arrivals, and where they write what they learn."""
+STACK_OVERLAP = ParamSpec("stack_overlap", 0.0, "Stacks each ADC frame is in: cell_sync's n_frames / hop_frames "
                           "(sliding stacks share frames, so their timing noise repeats); the tracker counts each "
-                          "arrival's timing variance that many times. (deepsync_pipeline derives it.)",
-                          range=(1.0, 1000.0))
+                          "arrival's timing variance that many times. 0: the motion model's stacks' "
+                          "(deepsync_pipeline derives it).", range=(0.0, 1000.0))
 INITIAL_POSE_MIN_STD = ParamSpec("initial_pose_min_std_m", 10.0, "Least 1-sigma an initial pose on /initialpose "
                                  "is taken with [m]: RViz's \"2D Pose Estimate\" claims 0.5 m, more than a click on "
                                  "a city map knows. 0: as the pose's covariance says.", range=(0.0, 1e5))
@@ -190,11 +222,11 @@ FUSION_TOWERS = ParamSpec("towers", "", "Tower database YAML placing the sites (
                           "offsets). Required.")
 
 ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME)
-CELL_SYNC = (TOWERS, FRONTEND, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the published "
-                                                "windows (the stream's frame)."))
+CELL_SYNC = (TOWERS, FRONTEND, MOTION, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the "
+                                                        "published windows (the stream's frame)."))
 CELL_TIMING = (FRONTEND, *TIMING)
-TDOA_FUSION = (FUSION_TOWERS, *FUSION, STACK_OVERLAP, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES)
-DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, *SYNC, *TIMING, *FUSION, INITIAL_POSE_MIN_STD,
+TDOA_FUSION = (FUSION_TOWERS, MOTION, *FUSION, STACK_OVERLAP, *AIDING, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES)
+DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, MOTION, *SYNC, *TIMING, *FUSION, *AIDING, INITIAL_POSE_MIN_STD,
                      *OUTPUT_FRAMES)
 
 NODES: dict[str, tuple[ParamSpec, ...]] = {
@@ -236,13 +268,23 @@ def _config(build: Callable[..., T], specs: tuple[ParamSpec, ...], values: Mappi
         raise ParameterError(f"{node}: {error}") from None
 
 
-def _sync(n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int,
+def _stacking(motion: str, n_frames: int, hop_frames: int) -> tuple[int, int]:
+    """Frames per stack and per hop: 0 and 0, the motion model's; n_frames alone, back to back."""
+    if n_frames == 1:
+        raise ValueError("n_frames 1: the timing stage measures the noise from how frames differ, so a stack needs "
+                         "at least 2 (0: the motion model's)")
+    model = motion_model(motion)
+    frames = n_frames or model.n_frames
+    return frames, hop_frames or (frames if n_frames else model.hop_frames)
+
+
+def _sync(motion: str, n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int,
           search_every: int, max_search_interval_s: float, hold_stacks: int, report_z: float,
           false_alarm_rate: float, max_cells: int, full_code_timing: bool, crs_cancel_z: float, hold_by_frame: bool,
           learn_bandwidths: bool) -> SyncConfig:
+    frames, hop = _stacking(motion, n_frames, hop_frames)
     return SyncConfig(
-        stack=StackConfig(n_frames=n_frames, hop_frames=hop_frames or None, clock_ppm=clock_ppm,
-                          track_clock=track_clock),
+        stack=StackConfig(n_frames=frames, hop_frames=hop, clock_ppm=clock_ppm, track_clock=track_clock),
         search=SearchConfig(false_alarm_rate=false_alarm_rate, max_cells=max_cells, full_code_timing=full_code_timing,
                             crs_cancel_z=crs_cancel_z, hold_by_frame=hold_by_frame),
         confirm_stacks=confirm_stacks, search_every=search_every, max_search_interval_s=max_search_interval_s,
@@ -254,15 +296,20 @@ def _timing(estimator: str, weak_std_samples: float, checkpoint: str) -> TimingC
                         checkpoint=checkpoint or None)
 
 
-def _fusion(tracking: bool, multipath_std_m: float, min_std_m: float, receiver_height_m: float,
-            stack_overlap: float = 1.0) -> FusionConfig:
-    return FusionConfig(snapshot=SnapshotConfig(receiver_height_m=receiver_height_m), track=tracking,
-                        min_std_m=min_std_m, multipath_std_m=multipath_std_m,
-                        tracker=TrackerConfig(stack_overlap=stack_overlap))
+def _fusion(motion: str, tracking: bool, max_track_std_m: float, bias_decorrelation_m: float, gnss_std_m: float,
+            gnss_min_std_m: float, multipath_std_m: float, min_std_m: float, receiver_height_m: float,
+            stack_overlap: float = 0.0) -> FusionConfig:
+    model = motion_model(motion)
+    tracker = TrackerConfig(stack_overlap=stack_overlap or model.n_frames / model.hop_frames,
+                            max_std_m=max_track_std_m, bias_decorrelation_m=bias_decorrelation_m)
+    fusion = FusionConfig(snapshot=SnapshotConfig(receiver_height_m=receiver_height_m), track=tracking,
+                          min_std_m=min_std_m, multipath_std_m=multipath_std_m, gnss_std_m=gnss_std_m,
+                          gnss_min_std_m=gnss_min_std_m, tracker=tracker)
+    return moving(model, SyncConfig(), fusion)[1]
 
 
 def sync_config(values: Mapping[str, ParamValue], node: str = "cell_sync") -> SyncConfig:
-    return _config(_sync, SYNC, values, node)
+    return _config(_sync, (MOTION, *SYNC), values, node)
 
 
 def timing_config(values: Mapping[str, ParamValue], node: str = "cell_timing") -> TimingConfig:
@@ -272,7 +319,7 @@ def timing_config(values: Mapping[str, ParamValue], node: str = "cell_timing") -
 def fusion_config(values: Mapping[str, ParamValue], node: str = "tdoa_fusion") -> FusionConfig:
     """From the fusion parameters ``node`` declares: the one-process pipeline declares no
     stack overlap, which its stacks give (``PipelineConfig``)."""
-    specs = tuple(spec for spec in NODES[node] if spec in (*FUSION, STACK_OVERLAP))
+    specs = tuple(spec for spec in NODES[node] if spec in (MOTION, *FUSION, STACK_OVERLAP))
     return _config(_fusion, specs, values, node)
 
 

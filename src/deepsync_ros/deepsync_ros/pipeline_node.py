@@ -5,7 +5,8 @@ Plays a source as ``envelope_adc`` does (same parameters, pacing and /clock) str
 :class:`deepsync.pipeline.Pipeline`, and publishes what the separate nodes would: ``cell_timing``
 for every stack, ``pose`` and ``fix`` for every stack with a fix. Without a tower database that
 places its sites there is no fusion, and only ``cell_timing`` is published. A pose on
-``/initialpose`` restarts the tracker from there, as in ``tdoa_fusion``.
+``/initialpose`` restarts the tracker from there, GNSS fixes and odometry aid it and the learned
+tower database is written, as in ``tdoa_fusion``.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from deepsync.types import EnvelopeChunk, Fix
 from . import params
 from .conversions import cell_timing_array_to_msg
 from .health import Playback, StageHealth
-from .node_base import RESULTS_QOS, DeepSyncNode, FixPublisher, InitialPoseListener, PacedPlayer, run
+from .node_base import RESULTS_QOS, AidingListener, DeepSyncNode, FixPublisher, InitialPoseListener, PacedPlayer, run
 from .params import ParameterError, ParamValue
 
 
@@ -45,6 +46,7 @@ class PipelineNode(DeepSyncNode):
         self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
         self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.pipeline.fusion,
                                                 float(values["initial_pose_min_std_m"]))
+        self.aiding = AidingListener(self, values, self.pipeline.fusion)
         self.updater.setHardwareID(str(values["source"]))  # the recording stands in for the ADC
         self.add_diagnostic("source", self.playback.report)
         self.add_diagnostic("localization", self.health.report)
@@ -78,7 +80,14 @@ class PipelineNode(DeepSyncNode):
                     self.fixes.publish(fix, self.pipeline.fusion.frame)
             except ValueError as error:  # a stamp beyond what builtin_interfaces/Time holds
                 self.reject(self.health, error)
+            if result.fusion is not None:
+                self.aiding.stacked(result.stamp_ns, result.fusion.events)
             self.health.result(result, latency_s=time.monotonic() - now_s, stage_s=stage_s)
+
+    def destroy_node(self) -> None:
+        if hasattr(self, "aiding"):
+            self.aiding.shutdown()
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:

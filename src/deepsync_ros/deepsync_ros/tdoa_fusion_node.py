@@ -5,8 +5,11 @@ Subscribes ``cell_timing`` (CellTimingArray) and runs the core's
 when it has one, else the stack's own snapshot) goes out on ``pose``
 (PoseWithCovarianceStamped in ``map_frame``, reliable) and ``fix`` (NavSatFix in
 ``antenna_frame``), stamped with the stack's ADC time. A stack without a fix publishes nothing;
-the diagnostics say why (too few sites, unknown PCIs, geometry, ...). A pose on ``/initialpose``
-(RViz's "2D Pose Estimate") restarts the tracker from there: one heard site is then enough.
+the diagnostics say why (too few sites, unknown PCIs, geometry, a lost track, ...). A pose on
+``/initialpose`` (RViz's "2D Pose Estimate") restarts the tracker from there: one heard site is
+then enough. With ``use_gnss`` it takes ``gnss/fix`` (NavSatFix) as anchors, with
+``use_odometry`` ``odometry`` (Odometry) as velocities (``deepsync_ros.aiding``); with
+``learned_towers`` it writes what it learned of the sites to that file.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from deepsync.types import Fix
 from . import params
 from .conversions import cell_timing_array_from_msg
 from .health import StageHealth
-from .node_base import RESULTS_QOS, DeepSyncNode, FixPublisher, InitialPoseListener, run
+from .node_base import RESULTS_QOS, AidingListener, DeepSyncNode, FixPublisher, InitialPoseListener, run
 from .params import ParamValue
 
 
@@ -38,6 +41,7 @@ class TdoaFusionNode(DeepSyncNode):
         self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
         self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.stage,
                                                 float(values["initial_pose_min_std_m"]))
+        self.aiding = AidingListener(self, values, self.stage)
         self.subscription = self.create_subscription(CellTimingArray, relative_name(CELL_TIMING_TOPIC),
                                                      self._on_arrivals, RESULTS_QOS)
         self.add_diagnostic("position fix", self.health.report)
@@ -59,9 +63,15 @@ class TdoaFusionNode(DeepSyncNode):
                 self.fixes.publish(fix, self.stage.frame)
             except ValueError as error:
                 self.reject(self.health, error)
+        self.aiding.stacked(arrivals.stamp_ns, result.events)
         self.health.stack([cell.pci for cell in arrivals.cells], events=result.events,
                           sites=[site.site for site in result.sites], fix=fix,
                           latency_s=time.monotonic() - arrived, stage_s=stage_s)
+
+    def destroy_node(self) -> None:
+        if hasattr(self, "aiding"):
+            self.aiding.shutdown()
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:

@@ -89,6 +89,12 @@ def generate_launch_description():
             default_value="true",
             description="Publish the recording at its own pace; false: as fast as the nodes take it.",
         ),
+        DeclareLaunchArgument(
+            "motion",
+            default_value="",
+            description="How the receiver moves: pedestrian, vehicle or static, for cell_sync (its "
+                        "stacks) and tdoa_fusion (its motion model) alike; '': the params file's.",
+        ),
         OpaqueFunction(function=_launch_setup),
     ])
 
@@ -249,12 +255,14 @@ def _launch_setup(context):
     playback = {"source": source, "realtime": realtime, "loop": loop,
                 # the recording's stamps become /clock when every node runs on sim time
                 "publish_clock": use_sim_time}
+    # one motion for the nodes that stack and the node that tracks: they must agree
+    motion = {"motion": arg["motion"].strip()} if arg["motion"].strip() else {}
     overrides = {
         "envelope_adc": playback,
-        "cell_sync": {"towers": towers, **frontend},
+        "cell_sync": {"towers": towers, **frontend, **motion},
         "cell_timing": dict(frontend),
-        "tdoa_fusion": {"towers": towers},
-        ONE_PROCESS: {**playback, "towers": towers},
+        "tdoa_fusion": {"towers": towers, **motion},
+        ONE_PROCESS: {**playback, "towers": towers, **motion},
     }
     nodes = []
     for name in executables:

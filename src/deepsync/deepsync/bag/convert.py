@@ -27,6 +27,8 @@ from ..types import (
     CellTiming,
     EnvelopeChunk,
     Fix,
+    GnssFix,
+    OdometryVelocity,
     PositionPrior,
     StackArrivals,
     StackWindows,
@@ -323,3 +325,52 @@ def fix_to_navsat_msg(fix: Fix, frame: LocalFrame, *, frame_id: str = ANTENNA_FR
         position_covariance=np.ascontiguousarray(np.asarray(fix.covariance, dtype=np.float64).ravel(), dtype="<f8"),
         position_covariance_type=3,  # COVARIANCE_TYPE_KNOWN
     )
+
+
+NAV_SAT_STATUS_NO_FIX = -1  # sensor_msgs/NavSatStatus.STATUS_NO_FIX
+NAV_SAT_COVARIANCE_UNKNOWN = 0  # sensor_msgs/NavSatFix.COVARIANCE_TYPE_UNKNOWN
+
+
+def gnss_fix_from_msg(msg: Any) -> GnssFix | None:
+    """``sensor_msgs/msg/NavSatFix`` -> :class:`GnssFix`; None for ``STATUS_NO_FIX`` (a receiver
+    saying it has none). Its ENU covariance where the message states one (approximated,
+    diagonal or full), else None. ValueError naming what is not a position (NaN latitude, a
+    covariance that is not one)."""
+    if int(msg.status.status) == NAV_SAT_STATUS_NO_FIX:
+        return None
+    covariance = None
+    if int(msg.position_covariance_type) != NAV_SAT_COVARIANCE_UNKNOWN:
+        covariance = np.asarray(msg.position_covariance, dtype=np.float64)[:9].reshape(3, 3)
+    try:
+        return GnssFix(stamp_to_ns(msg.header.stamp), float(msg.latitude), float(msg.longitude), float(msg.altitude),
+                       covariance, str(msg.header.frame_id))
+    except ValueError as error:
+        raise ValueError(f"NavSatFix in frame {msg.header.frame_id!r}: {error}") from None
+
+
+def odometry_from_msg(msg: Any, map_frame: str, min_std_mps: float) -> OdometryVelocity:
+    """``nav_msgs/msg/Odometry`` -> the horizontal velocity along the axes of its frame
+    (``header.frame_id``; the twist is in ``child_frame_id``, the body, turned into the frame by
+    the pose's yaw), its covariance turned alike and no axis taken as better than
+    ``min_std_mps`` (an odometry that states none, zeros, gets that). ``in_map_frame`` when the
+    frame is ``map_frame``. ValueError naming what is not a velocity it can use."""
+    q = msg.pose.pose.orientation
+    quaternion = np.array([float(q.x), float(q.y), float(q.z), float(q.w)])
+    twist = msg.twist.twist.linear
+    body = np.array([float(twist.x), float(twist.y)])
+    covariance = np.asarray(msg.twist.covariance, dtype=np.float64)[:36].reshape(6, 6)[:2, :2]
+    where = f"Odometry in frame {msg.header.frame_id!r}"
+    if not (np.all(np.isfinite(quaternion)) and abs(float(quaternion @ quaternion) - 1.0) < 1e-3):
+        raise ValueError(f"{where}: its orientation {quaternion.tolist()} is not a unit quaternion")
+    if not (np.all(np.isfinite(body)) and np.all(np.isfinite(covariance))):
+        raise ValueError(f"{where}: its twist or twist covariance is not finite")
+    x, y, z, w = quaternion
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    turn = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    variances, axes = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    floored = (axes * np.maximum(variances, min_std_mps**2)) @ axes.T
+    try:
+        return OdometryVelocity(stamp_to_ns(msg.header.stamp), tuple(turn @ body), turn @ floored @ turn.T,
+                                str(msg.header.frame_id).lstrip("/") == map_frame)
+    except ValueError as error:
+        raise ValueError(f"{where}: {error}") from None

@@ -27,6 +27,8 @@ CELL_TIMING_TOPIC = "/deepsync/cell_timing"  # the timing stage's arrivals
 POSE_TOPIC = "/deepsync/pose"  # fusion's fix in map, with covariance
 NAV_SAT_FIX_TOPIC = "/deepsync/fix"  # the same fix in WGS84
 INITIAL_POSE_TOPIC = "/initialpose"  # an operator's pose (RViz, Nav2): outside our namespace, where they publish it
+GNSS_FIX_TOPIC = "/deepsync/gnss/fix"  # a GNSS receiver's NavSatFix, fusion's anchors (remap a driver's onto it)
+ODOMETRY_TOPIC = "/deepsync/odometry"  # a robot's nav_msgs/Odometry, fusion's velocities (remap onto it)
 
 # RMW_DURATION_INFINITE = INT64_MAX ns, as rosbag2 (Jazzy) records it.
 _INFINITE = QosTime(sec=9_223_372_036, nsec=854_775_807)

@@ -54,7 +54,7 @@ def calibrate_route(source: BagSource, towers: TowerDatabase, config: PipelineCo
         raise ValueError(f"no site of tower database {towers.name!r} was heard {MIN_ARRIVALS} times in "
                          f"{source.description}: nothing to calibrate")
     result = calibrate_sites(observations)
-    return RouteCalibration(result, calibrated_database(towers, result, run.reference_ns), run, skipped)
+    return RouteCalibration(result, calibrated_database(towers, result.sites, run.reference_ns), run, skipped)
 
 
 def oracle_database(towers: TowerDatabase, source: BagSource) -> TowerDatabase:

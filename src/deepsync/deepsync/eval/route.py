@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from deepsync.bag import TRUTH_POSE_TOPIC, BagReader, position_from_pose_msg
 from deepsync.bag.convert import stamp_to_ns
+from deepsync.eval.aiding import AidingPlan
 from deepsync.eval.cell_search import timing_error
 from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
@@ -34,7 +35,16 @@ from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
 from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
 from deepsync.sources import BagSource
 from deepsync.towers import TowerDatabase
-from deepsync.types import SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, NoFix, PositionPrior, StackArrivals
+from deepsync.types import (
+    SPEED_OF_LIGHT_M_S,
+    UNMEASURED_VARIANCE,
+    Fix,
+    GnssFix,
+    HealthKind,
+    NoFix,
+    PositionPrior,
+    StackArrivals,
+)
 
 CHI2_2DOF_95 = chi_square_limit(0.05, 2)  # 95 % of a 2-D Gaussian's NEES lies below this (5.99)
 
@@ -88,6 +98,7 @@ class RouteEpoch:
     site_truth: dict[str, np.ndarray] = field(default_factory=dict)  # truth at each site's arrival
     timing_errors: dict[str, tuple[float, float]] = field(default_factory=dict)  # site: (error, claimed sigma), samples
     rssi: Fix | NoFix | None = None
+    events: tuple[str, ...] = ()  # what fusion refused of the aiding, in words
 
 
 @dataclass
@@ -96,6 +107,14 @@ class RouteRun:
     epochs: list[RouteEpoch]
     reference_ns: int | None  # the fusion stage's time origin: ``SiteArrival.time_s`` counts from it
     interrupted: bool = False
+    aiding: str = "no aiding"  # what the tracker was given besides the sites (AidingPlan.describes)
+    anchors: tuple[tuple[int, np.ndarray], ...] = ()  # the GNSS fixes given: (stamp, map ENU)
+    site_biases: dict[str, tuple[float, float]] = field(default_factory=dict)  # learned at the end: site: (m, sigma m)
+
+    def since_anchor_s(self, stamp_ns: int) -> float:
+        """Seconds from the latest GNSS fix at or before ``stamp_ns`` (NaN before the first)."""
+        before = [stamp for stamp, _ in self.anchors if stamp <= stamp_ns]
+        return (stamp_ns - before[-1]) * 1e-9 if before else math.nan
 
     def observations(self, until_ns: int | None = None) -> list[CalibrationObservation]:
         """Every site heard (in stacks stamped up to ``until_ns``), with where the receiver truly
@@ -163,19 +182,46 @@ class InitialPose:
 
 
 def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None,
-               initial_pose: InitialPose | None = None) -> RouteRun:
+               initial_pose: InitialPose | None = None, aiding: AidingPlan | None = None) -> RouteRun:
     """Fusion over a replay's arrivals with ``towers``, every stack paired with the truth; the
-    tracker started from ``initial_pose`` where one is given."""
+    tracker started from ``initial_pose`` where one is given, and given the GNSS fixes and
+    odometry ``aiding`` draws from the truth."""
     stage = FusionStage(towers, config)
-    fused = []
+    plan = aiding or AidingPlan()
+    truth = recorded.truth
+    stamps = [arrivals.stamp_ns for arrivals in recorded.arrivals]
+    fixes, odometry = [], []
+    if stamps:  # from the first stack on, as a receiver starting with its ADC would have them
+        end = min(int(truth.stamps_ns[-1]), stamps[-1])
+        fixes = plan.gnss_fixes(stamps[0], end, truth.at, stage.frame)
+        odometry = plan.odometry(stamps[0], end, truth.stamps_ns, truth.positions)
+    aids = sorted([*fixes, *odometry], key=lambda aid: aid.stamp_ns)
+    fused, notes = [], []
     pending = initial_pose
-    for arrivals in recorded.arrivals:
+    given = 0
+    for k, arrivals in enumerate(recorded.arrivals):
         if pending is not None and (pending.after_ns is None or arrivals.stamp_ns >= pending.after_ns):
-            stage.start_from(pending.prior(recorded.truth.at(arrivals.stamp_ns)))
+            stage.start_from(pending.prior(truth.at(arrivals.stamp_ns)))
             pending = None
+        # what a live receiver has queued by the time this stack is fused: everything up to the next stack
+        due = stamps[k + 1] if k + 1 < len(stamps) else math.inf
+        refused = []
+        while given < len(aids) and aids[given].stamp_ns <= due:
+            event = (stage.add_gnss if isinstance(aids[given], GnssFix) else stage.add_odometry)(aids[given])
+            refused += [] if event is None else [event.message]
+            given += 1
         fusion = stage.process(arrivals)
+        notes.append(tuple(refused) + tuple(e.message for e in fusion.events if e.kind is HealthKind.AIDING_REFUSED))
         fused.append((arrivals, fusion, stage.reference_ns))
-    return score_stacks(str(recorded.source.path), fused, recorded.truth, recorded.true_arrivals, recorded.interrupted)
+    run = score_stacks(str(recorded.source.path), fused, truth, recorded.true_arrivals, recorded.interrupted)
+    for epoch, events in zip(run.epochs, notes):
+        epoch.events = events
+    run.aiding = plan.describes
+    run.anchors = tuple((fix.stamp_ns, np.asarray(stage.frame.geodetic_to_enu(fix.latitude_deg, fix.longitude_deg,
+                                                                              fix.height_m))) for fix in fixes)
+    if stage.tracker is not None:
+        run.site_biases = {name: (b.bias_m, b.std_m) for name, b in stage.tracker.site_biases().items()}
+    return run
 
 
 def score_stacks(bag: str, fused: Sequence[tuple[StackArrivals, FusionResult, int]], truth: TruthTrack,
@@ -187,10 +233,11 @@ def score_stacks(bag: str, fused: Sequence[tuple[StackArrivals, FusionResult, in
 
 
 def replay_route(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
-                 progress: bool = True, initial_pose: InitialPose | None = None) -> RouteRun:
+                 progress: bool = True, initial_pose: InitialPose | None = None,
+                 aiding: AidingPlan | None = None) -> RouteRun:
     """Replay and fuse in one go."""
     config = config or PipelineConfig()
-    return fuse_route(replay(source, towers, config, progress), towers, config.fusion, initial_pose)
+    return fuse_route(replay(source, towers, config, progress), towers, config.fusion, initial_pose, aiding)
 
 
 def _epoch(arrivals: StackArrivals, fusion: FusionResult, reference_ns: int, truth: TruthTrack,
@@ -307,7 +354,32 @@ def summarize_route(run: RouteRun) -> dict:
             "median_m": float(np.median(finite)) if finite.size else None,
             "p90_m": float(np.percentile(finite, 90)) if finite.size else None,
         },
+        "aiding": run.aiding,
+        "anchors": len(run.anchors),
+        "aiding_refused": sum(len(epoch.events) for epoch in run.epochs),
+        "tracked_by_time_since_anchor": _by_time_since_anchor(run),
+        "learned_site_biases_m": {site: {"bias_m": bias, "std_m": std} for site, (bias, std) in
+                                  sorted(run.site_biases.items())},
     }
+
+
+SINCE_ANCHOR_BINS_S = (0.0, 10.0, 30.0, 60.0, 120.0, 300.0, math.inf)
+
+
+def _by_time_since_anchor(run: RouteRun) -> list[dict]:
+    """The tracked fixes' horizontal error by time since the latest GNSS fix (bins of
+    :data:`SINCE_ANCHOR_BINS_S`): how long an anchor keeps helping."""
+    if not run.anchors:
+        return []
+    rows = []
+    pairs = [(run.since_anchor_s(e.stamp_ns), horizontal_error(e.tracked, e.truth_enu)) for e in run.epochs
+             if isinstance(e.tracked, Fix)]
+    for low, high in zip(SINCE_ANCHOR_BINS_S, SINCE_ANCHOR_BINS_S[1:]):
+        errors = np.array([error for since, error in pairs if low <= since < high])
+        if errors.size:
+            rows.append({"from_s": low, "to_s": high if math.isfinite(high) else None, "fixes": int(errors.size),
+                         "median_m": float(np.median(errors)), "p90_m": float(np.percentile(errors, 90))})
+    return rows
 
 
 def _site_timing(run: RouteRun) -> dict:
@@ -337,7 +409,9 @@ def write_route_report(run: RouteRun, summary: dict, anchors: Anchors, out_dir: 
 
     out_dir.mkdir(parents=True, exist_ok=True)
     report = out_dir / "route.json"
-    document = {"summary": summary, "stacks": [_epoch_record(e) for e in run.epochs]}
+    document = {"summary": summary,
+                "anchors": [{"stamp_ns": stamp, "enu": [float(v) for v in enu]} for stamp, enu in run.anchors],
+                "stacks": [_epoch_record(e, run) for e in run.epochs]}
     report.write_text(json.dumps(_strict_json(document), indent=1))
     paths = [report, out_dir / "route_cdf.png", out_dir / "route_map.png", out_dir / "route_timeline.png"]
     if run.epochs:
@@ -368,7 +442,7 @@ def _answer_record(answer: Fix | NoFix | None, truth_enu: np.ndarray) -> dict | 
             "sites": list(answer.sites), "rejected": list(answer.rejected)}
 
 
-def _epoch_record(epoch: RouteEpoch) -> dict:
+def _epoch_record(epoch: RouteEpoch, run: RouteRun) -> dict:
     return {
         "stamp_ns": epoch.stamp_ns,
         "truth_enu": [float(v) for v in epoch.truth_enu],
@@ -376,14 +450,17 @@ def _epoch_record(epoch: RouteEpoch) -> dict:
         "sites": [site.site for site in epoch.sites],
         "timing_errors_samples": {site: error for site, (error, _) in epoch.timing_errors.items()},
         "bound_m": epoch.bound_m,
+        "since_anchor_s": run.since_anchor_s(epoch.stamp_ns),
+        "aiding_refused": list(epoch.events),
         **{name: _answer_record(pick(epoch), epoch.truth_enu) for name, pick in METHODS.items()},
     }
 
 
 def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, config: PipelineConfig | None = None,
-                   progress: bool = True, initial_pose: InitialPose | None = None) -> tuple[dict, list[Path]]:
+                   progress: bool = True, initial_pose: InitialPose | None = None,
+                   aiding: AidingPlan | None = None) -> tuple[dict, list[Path]]:
     """Replay, score and report a route: the summary and the files written."""
-    run = replay_route(source, towers, config, progress, initial_pose)
+    run = replay_route(source, towers, config, progress, initial_pose, aiding)
     if not run.epochs:
         raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
     model = add_rssi_fixes(run, RssiConfig(receiver_height_m=(config or PipelineConfig()).fusion.snapshot.receiver_height_m))

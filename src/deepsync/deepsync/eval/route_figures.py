@@ -65,11 +65,14 @@ def plot_map(run: RouteRun, anchors: Anchors, path: Path) -> None:
         scatter = ax.scatter(points[:, 0], points[:, 1], c=errors, s=6, cmap="viridis",
                              vmax=np.percentile(errors, 95), label="tracked fixes")
         fig.colorbar(scatter, ax=ax, shrink=0.7, label="horizontal error (m)")
+    if run.anchors:
+        given = np.array([enu[:2] for _, enu in run.anchors])
+        ax.plot(given[:, 0], given[:, 1], "D", color="tab:purple", mfc="none", ms=7, label="GNSS fixes given")
     ax.set_aspect("equal")
     _zoom_on_route(ax, truth, points if fixes else np.empty((0, 2)))
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
-    ax.set_title("Route, sites (red: heard) and tracked fixes")
+    ax.set_title(f"Route, sites (red: heard) and tracked fixes; {run.aiding}")
     ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -90,6 +93,9 @@ def _zoom_on_route(ax: plt.Axes, truth: np.ndarray, fixes: np.ndarray) -> None:
     inset = ax.inset_axes((0.58, 0.04, 0.38, 0.38))
     for line in ax.get_lines()[:1]:  # the true route
         inset.plot(*line.get_data(), "k-", lw=1.5)
+    for line in ax.get_lines()[1:]:  # the GNSS fixes given (the sites are far off the inset)
+        if line.get_label() == "GNSS fixes given":
+            inset.plot(*line.get_data(), "D", color="tab:purple", mfc="none", ms=6)
     for collection in ax.collections:  # the fixes
         inset.scatter(*collection.get_offsets().T, c=collection.get_array(), s=10, cmap=collection.get_cmap(),
                       norm=collection.norm)
@@ -121,6 +127,13 @@ def plot_timeline(run: RouteRun, path: Path) -> None:
         axes[2].legend(fontsize=8)
     axes[2].set_ylabel("tracked NEES")
     axes[2].set_xlabel("time (s)")
+    for k, (stamp, _) in enumerate(run.anchors):
+        for ax in axes:
+            ax.axvline((stamp - start) * 1e-9, color="tab:purple", lw=0.8, alpha=0.6,
+                       label="GNSS fix given" if k == 0 and ax is axes[0] else None)
+    if run.anchors:
+        axes[0].legend(fontsize=8)
+    axes[0].set_title(f"{Path(run.bag).name}: {run.aiding}")
     for ax in axes:
         ax.grid(True, alpha=0.3)
     fig.tight_layout()

@@ -8,7 +8,7 @@ import numpy as np
 import scipy.signal
 
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.video import highpass_sos
+from deepsync.frontend.video import highpass_settled_state, highpass_sos
 from deepsync.rng import ADC_NOISE, indexed_rng
 from deepsync.types import FRAME_SECONDS
 
@@ -27,6 +27,11 @@ class ReceiverClock:
     def receiver_time(self, true_time: np.ndarray | float) -> np.ndarray | float:
         t = np.asarray(true_time, dtype=np.float64)
         return t * (1 + self.e0) + 0.5 * self.e1 * t * t
+
+    @property
+    def nominal(self) -> bool:
+        """Whether receiver time is true time (no offset, no drift)."""
+        return self.e0 == 0.0 and self.e1 == 0.0
 
     def true_time(self, receiver_time: np.ndarray | float) -> np.ndarray | float:
         tau = np.asarray(receiver_time, dtype=np.float64)
@@ -72,11 +77,12 @@ class AdcStage:
         self.clipped = 0
 
     def couple(self, volts: np.ndarray) -> np.ndarray:
-        """AC coupling (state carried across calls; starts settled on the first input's mean)."""
+        """AC coupling (state carried across calls; starts settled on the mean of the first
+        10 ms, so a stream starts the same however long it is)."""
         if self._sos is None:
             return volts
         if self._zi is None:
-            self._zi = scipy.signal.sosfilt_zi(self._sos) * float(np.mean(volts))
+            self._zi = highpass_settled_state(self._sos, float(np.mean(volts[: self.settling])))
         out, self._zi = scipy.signal.sosfilt(self._sos, volts, zi=self._zi)
         return out
 
@@ -98,12 +104,13 @@ class AdcStage:
         codes = coupled * (self.gain / self.config.volts_per_code)
         if self.config.adc_noise_lsb > 0:
             codes += self._adc_noise(first_sample, len(coupled))
-        codes = np.rint(codes)
-        self.clipped += int(np.count_nonzero((codes < self.lowest) | (codes > self.highest)))
-        return np.clip(codes, self.lowest, self.highest).astype("<i2")
+        np.rint(codes, out=codes)
+        inside = np.clip(codes, self.lowest, self.highest)
+        self.clipped += len(codes) - int(np.count_nonzero(inside == codes))
+        return inside.astype("<i2")
 
     def _adc_noise(self, first_sample: int, count: int) -> np.ndarray:
-        noise = np.empty(count)
+        noise = np.empty(count, dtype=np.float32)
         block = first_sample // self.noise_block
         position = 0
         while position < count:
@@ -114,4 +121,4 @@ class AdcStage:
             noise[position : position + take] = draws[offset : offset + take]
             position += take
             block += 1
-        return noise * self.config.adc_noise_lsb
+        return noise * np.float32(self.config.adc_noise_lsb)

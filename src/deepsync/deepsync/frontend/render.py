@@ -2,14 +2,16 @@
 
 A *group* is the cells of one site on one carrier (its sectors): same position, frame timing
 and oscillator, hence the same propagation delays. Their grids are weighted by their own
-channels, summed, and sent through a single IFFT per OFDM symbol.
+channels, summed, and sent through a single IFFT per OFDM symbol. The group is rendered at
+its own carrier (its subcarriers around DC); the cluster turns it to its offset from the
+cluster's centre (``ClusterDetector``), a rotation that only matters against other groups.
 
 What is exact and what is approximated:
 
 * The bulk delay (frame timing + first-path delay) is applied exactly, sub-sample part
   included: each symbol's waveform is evaluated at the true sample instants through a phase
-  ramp on its subcarriers, and every symbol boundary falls on the right sample (see
-  ``lte.ofdm.symbol_index_map``). The ground-truth arrival time is therefore the waveform's.
+  ramp on its subcarriers, and every symbol boundary falls on the first sample at or after
+  its true instant. The ground-truth arrival time is therefore the waveform's.
 * Later paths are applied per subcarrier within each symbol (a cyclic channel). This is exact
   except in the first (path excess delay) of each symbol's CP, where the true signal still
   holds the previous symbol's tail; TR 38.901 delay spreads keep that inside the 4.7 us CP.
@@ -21,12 +23,14 @@ What is exact and what is approximated:
 * A site's frame clock may drift (``Emitter.frame_rate_error``): frame starts follow it
   exactly, while the samples within a frame keep their nominal spacing (<= 10 ns off by the
   frame's end at 1000 ppb); the frame then ends a sample early or late now and then, as above.
-* Carrier offsets that are not whole 15 kHz bins (100 kHz raster, oscillator error) rotate
-  the samples continuously in true time.
+
+Every product of complex numbers here goes through ``deepsync.frontend.portable``: the frame
+is the same, bit for bit, on every CPU.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,21 +38,15 @@ import scipy.fft
 
 from deepsync.frontend.channel import ChannelProvider, Emitter, Paths
 from deepsync.frontend.plan import Cluster
+from deepsync.frontend.portable import ExactProduct, multiply, multiply_double, phasor
 from deepsync.lte.frame import FrameGenerator
-from deepsync.lte.numerology import SLOTS_PER_FRAME, SUBCARRIER_SPACING_HZ, Numerology
-from deepsync.lte.ofdm import symbol_index_map
+from deepsync.lte.numerology import SLOTS_PER_FRAME, SUBCARRIER_SPACING_HZ, SYMBOLS_PER_SLOT, Numerology
 from deepsync.types import FRAME_SECONDS
 
 STATIC_DOPPLER_CYCLES = 1e-4  # below this many cycles per frame, gains are held constant
 SLOT_DOPPLER_CYCLES = 0.01  # below this many cycles per slot (20 Hz), gains change per slot
 ON_SAMPLE = 1e-9  # arrivals this close to a sample instant are on it (float noise, not physics)
-
-
-def _contiguous_runs(bins: np.ndarray) -> list[tuple[slice, slice]]:
-    """(FFT-bin slice, subcarrier slice) pairs covering ``bins``, which wrap and skip DC."""
-    breaks = np.flatnonzero(np.diff(bins) != 1) + 1
-    edges = np.concatenate(([0], breaks, [len(bins)]))
-    return [(slice(int(bins[a]), int(bins[b - 1]) + 1), slice(int(a), int(b))) for a, b in zip(edges[:-1], edges[1:])]
+CACHE_SIZE = 64  # path sets whose layout and rotations are kept (a static scene needs one per cell)
 
 
 def _first_sample(arrival: float) -> int:
@@ -61,9 +59,27 @@ def emitter_seed(seed: int, emitter_index: int) -> int:
     return int(np.random.SeedSequence([seed, 0x5EED, emitter_index]).generate_state(1)[0])
 
 
+class _TapLayout:
+    """Paths grouped by delay (taps), and every tap's phase across the subcarriers."""
+
+    def __init__(self, relative_delays: np.ndarray, frequencies: np.ndarray) -> None:
+        delays, tap = np.unique(relative_delays, return_inverse=True)
+        self.order = np.argsort(tap, kind="stable")
+        self.first = np.searchsorted(tap[self.order], np.arange(len(delays)))  # each tap's first path
+        self.steering = ExactProduct(phasor(-2 * np.pi * np.outer(delays, frequencies)))
+
+
+def _cached(cache: dict, key: bytes, make):
+    if key not in cache:
+        if len(cache) >= CACHE_SIZE:
+            cache.pop(next(iter(cache)))
+        cache[key] = make()
+    return cache[key]
+
+
 @dataclass(frozen=True)
 class Frame:
-    """Samples ``start .. start + len(samples)`` of a cluster's complex baseband."""
+    """Samples ``start .. start + len(samples)`` of a group's complex baseband."""
 
     start: int
     samples: np.ndarray
@@ -74,7 +90,7 @@ class Frame:
 
 
 class GroupRenderer:
-    """Renders the frames of one site's cells on one carrier into a cluster's sample grid."""
+    """Renders the frames of one site's cells on one carrier at a cluster's sample rate."""
 
     def __init__(
         self,
@@ -94,29 +110,34 @@ class GroupRenderer:
         self.members = members
         self.clock = first  # the group's frame clock (Emitter.frame_start_s and friends)
         self.channel = channel
-        self.carrier_bin = cluster.carrier_bins[position]
-        self.residual_hz = cluster.residual_hz[position]
+        # the carrier's offset from the cluster's centre: whole subcarriers and the rest
+        self.offset_hz = cluster.carrier_bins[position] * SUBCARRIER_SPACING_HZ + cluster.residual_hz[position]
         self.timing_offset_s = first.timing_offset_s
         self.num = Numerology.for_bandwidth(first.cell.bandwidth_mhz, fft_size=cluster.fft_size)
         self.rate = self.num.sample_rate_hz
         self.frame_length = self.num.samples_per_frame
         self.generators = [FrameGenerator(emitters[i].cell, emitter_seed(seed, i)) for i in members]
-        self.amplitudes = [np.sqrt(emitters[i].re_power_w) for i in members]
+        self.amplitudes = [math.sqrt(emitters[i].re_power_w) for i in members]
 
         offsets = self.num.subcarrier_offsets()
         self.frequencies = offsets * SUBCARRIER_SPACING_HZ
-        self._bin_runs = _contiguous_runs((offsets + self.carrier_bin) % self.num.fft_size)
+        half = len(offsets) // 2  # subcarriers below DC go to the top of the IFFT
+        n = self.num.fft_size
+        self._runs = ((slice(n - half, n), slice(0, half)), (slice(1, half + 1), slice(half, None)))
         self.useful_start = self.num.symbol_starts + self.num.cp_lengths
         self.symbol_times = (self.useful_start + self.num.fft_size / 2) / self.rate
         self.slot_times = self.symbol_times.reshape(SLOTS_PER_FRAME, -1).mean(axis=1)
-        self._symbols = np.zeros((len(self.useful_start), self.num.fft_size), dtype=np.complex64)
-        self._index_maps: dict[int, np.ndarray] = {}
-        self._steering: dict[bytes, np.ndarray] = {}
-        self._paths: dict[int, list[Paths]] = {}
+        self._spectrum = np.zeros((len(self.useful_start), n), dtype=np.complex64)
+        self._content = np.empty((len(self.useful_start), len(offsets)), dtype=np.complex64)
+        self._layouts: dict[bytes, _TapLayout] = {}  # by relative delays
+        self._rotations: dict[bytes, np.ndarray] = {}  # path gains' rotation over the frame, by delays and Doppler
+        self._turns_per_sample = 0.0
         self._rotation = None
-        if self.residual_hz != 0.0:
-            n = np.arange(self.frame_length + 1)
-            self._rotation = np.exp(2j * np.pi * self.residual_hz * n / self.rate).astype(np.complex64)
+        self._paths: dict[int, list[Paths]] = {}
+        cp = self.num.cp_lengths
+        if not (np.all(cp[::SYMBOLS_PER_SLOT] == cp[0]) and np.all(np.delete(cp, np.s_[::SYMBOLS_PER_SLOT]) == cp[1])):
+            raise AssertionError("every slot starts with the long cyclic prefix")
+        self._cp_first, self._cp_other = int(cp[0]), int(cp[1])
 
     # -- timing -----------------------------------------------------------------------------
 
@@ -154,63 +175,95 @@ class GroupRenderer:
 
     # -- waveform ---------------------------------------------------------------------------
 
-    def _index_map(self, shift: int) -> np.ndarray:
-        """Flat IFFT index for each frame sample, plus one continuing the last symbol."""
-        if shift not in self._index_maps:
-            index = symbol_index_map(self.num, shift)
-            last_symbol = (len(self.useful_start) - 1) * self.num.fft_size
-            extra = last_symbol + (index[-1] - last_symbol + 1) % self.num.fft_size
-            self._index_maps[shift] = np.append(index, extra)
-        return self._index_maps[shift]
-
-    def _channel_response(self, paths: Paths, reference_delay: float, fraction: float) -> np.ndarray:
-        """(U, K) per-subcarrier response, U = 1 (static frame), 20 (per slot) or 140 (per symbol)."""
+    def _response(self, member: int, k: int, reference_delay: float, ramp: np.ndarray) -> np.ndarray:
+        """(U, K) per-subcarrier response of one cell in frame k, U = 1 (static frame), 20 (per
+        slot) or 140 (per symbol)."""
+        paths = self.paths(k)[member]
         # femtosecond rounding: equal delays computed along different float paths stay equal
-        relative, tap = np.unique(np.round(paths.delays_s - reference_delay, 15), return_inverse=True)
-        key = relative.tobytes()
-        if key not in self._steering:
-            self._steering[key] = np.exp(-2j * np.pi * np.outer(relative, self.frequencies)).astype(np.complex64)
-        order = np.argsort(tap, kind="stable")
-        first_of_tap = np.searchsorted(tap[order], np.arange(len(relative)))
-        doppler = paths.doppler_hz[order]
+        relative = np.round(paths.delays_s - reference_delay, 15)
+        layout = _cached(self._layouts, relative.tobytes(), lambda: _TapLayout(relative, self.frequencies))
+        doppler = paths.doppler_hz[layout.order]
+        # a static scene's paths rotate the same way in every frame
+        rotation = _cached(self._rotations, relative.tobytes() + doppler.tobytes(), lambda: self._rotation_over(doppler))
+        gains = paths.gains[layout.order] * self.amplitudes[member]
+        per_tap = np.add.reduceat(multiply_double(rotation, gains), layout.first, axis=1)  # (U, Q)
+        response = layout.steering(per_tap)
+        return multiply(response, ramp, out=response)
+
+    def _rotation_over(self, doppler: np.ndarray) -> np.ndarray:
+        """exp(j 2 pi f t) of every path (P Doppler shifts) at the update instants: (U, P)."""
+        return phasor(2 * np.pi * np.outer(self.update_times(doppler), doppler))
+
+    def update_times(self, doppler: np.ndarray) -> np.ndarray:
+        """Instants (s from the frame start) at which path gains are evaluated: the whole
+        frame, each slot's or each symbol's middle, by the fastest Doppler."""
         fastest = float(np.max(np.abs(doppler)))
         if fastest * FRAME_SECONDS < STATIC_DOPPLER_CYCLES:
-            times = np.zeros(1)
-        elif fastest * FRAME_SECONDS / SLOTS_PER_FRAME < SLOT_DOPPLER_CYCLES:
-            times = self.slot_times
-        else:
-            times = self.symbol_times
-        rotation = np.exp(2j * np.pi * np.outer(times, doppler)) * paths.gains[order]  # (U, P)
-        taps = np.add.reduceat(rotation, first_of_tap, axis=1).astype(np.complex64)  # (U, Q)
-        ramp = np.exp(-2j * np.pi * self.frequencies * fraction / self.rate).astype(np.complex64)
-        return (taps @ self._steering[key]) * ramp
+            return np.zeros(1)
+        if fastest * FRAME_SECONDS / SLOTS_PER_FRAME < SLOT_DOPPLER_CYCLES:
+            return self.slot_times
+        return self.symbol_times
 
     def render(self, k: int) -> Frame:
-        """Received samples of frame k of every cell of the group, summed."""
+        """Received samples of frame k of every cell of the group, summed, and turned by
+        ``turns_per_sample`` (the cluster's rotation of this group against its first one)."""
         start, stop = self.bounds(k)
-        arrival = self._arrival(k)
-        whole = int(np.floor(arrival + ON_SAMPLE))
-        fraction = arrival - whole
         reference_delay = min(p.first_delay_s for p in self.paths(k))
+        # each symbol read from the first sample at or after its true start: a delay of
+        # ``arrival - start`` (in (-1, 0]) samples on every subcarrier; and the rotation's phase
+        # at the frame's first sample
+        lead = self._arrival(k) - start
+        turned = (self.turns_per_sample * start) % 1.0
+        ramp = phasor(2 * np.pi * (turned - self.frequencies * (lead / self.rate))).astype(np.complex64)
 
-        # Each symbol's IFFT is referenced to its own start; this restores the phase of the
-        # carrier's whole-bin offset from the cluster centre accumulated up to that start.
-        n = self.num.fft_size
-        at_symbol = (whole % n + self.useful_start) % n
-        symbol_phase = np.exp(2j * np.pi * ((self.carrier_bin * at_symbol) % n) / n)
+        for m, generator in enumerate(self.generators):
+            response = self._response(m, k, reference_delay, ramp)  # (U, K)
+            shared = len(response)  # rows of the grid that share one response
+            grid = generator.grid(k).reshape(shared, -1, response.shape[1])
+            if m == 0:  # rounded to single precision once, the sum of the cells too
+                content = multiply(grid, response[:, None, :], out=self._content.reshape(grid.shape))
+            else:
+                content = multiply(grid, response[:, None, :])
+            content = content.reshape(len(self._spectrum), -1)
+            for bins, subcarriers in self._runs:
+                if m == 0:
+                    self._spectrum[:, bins] = content[:, subcarriers]
+                else:
+                    self._spectrum[:, bins] += content[:, subcarriers]
+        symbols = scipy.fft.ifft(self._spectrum, axis=1, norm="forward", workers=1)
+        return Frame(start, self._with_prefixes(symbols)[: stop - start])
 
-        content = np.zeros(self._symbols.shape[:1] + self.frequencies.shape, dtype=np.complex64)
-        for generator, amplitude, paths in zip(self.generators, self.amplitudes, self.paths(k)):
-            response = self._channel_response(paths, reference_delay, fraction) * np.float32(amplitude)
-            grid = generator.grid(k)
-            per_update = grid.reshape(len(response), -1, grid.shape[1])  # rows sharing a response
-            content += (per_update * response[:, None, :]).reshape(grid.shape)
-        content *= symbol_phase[:, None].astype(np.complex64)
-        for bins, subcarriers in self._bin_runs:
-            self._symbols[:, bins] = content[:, subcarriers]
-        symbols = scipy.fft.ifft(self._symbols, axis=1, norm="forward")
-        samples = symbols.reshape(-1)[self._index_map(start - whole)[: stop - start]]
-        if self._rotation is not None:
-            turns = (self.residual_hz * start / self.rate) % 1.0
-            samples *= np.complex64(np.exp(2j * np.pi * turns)) * self._rotation[: stop - start]
-        return Frame(start, samples)
+    @property
+    def turns_per_sample(self) -> float:
+        """The rotation the cluster gives this group (cycles per sample)."""
+        return self._turns_per_sample
+
+    @turns_per_sample.setter
+    def turns_per_sample(self, turns: float) -> None:
+        self._turns_per_sample = float(turns)
+        self._rotation = phasor(2 * np.pi * self._turns_per_sample * np.arange(self.frame_length + 1)).astype(np.complex64)
+
+    def _with_prefixes(self, symbols: np.ndarray) -> np.ndarray:
+        """The frame's samples: each symbol after its cyclic prefix (its own tail), and one
+        sample more that continues the last symbol (for a frame that ends a sample late);
+        turned by the group's rotation on the way where it has one."""
+        n, first, other = self.num.fft_size, self._cp_first, self._cp_other
+        out = np.empty(self.frame_length + 1, dtype=np.complex64)
+        by_slot = symbols.reshape(SLOTS_PER_FRAME, SYMBOLS_PER_SLOT, n)
+        slots = out[:-1].reshape(SLOTS_PER_FRAME, -1)
+        rest = slots[:, first + n :].reshape(SLOTS_PER_FRAME, SYMBOLS_PER_SLOT - 1, other + n)
+        pieces = ((slots[:, :first], by_slot[:, 0, n - first:]), (slots[:, first : first + n], by_slot[:, 0]),
+                  (rest[:, :, :other], by_slot[:, 1:, n - other:]), (rest[:, :, other:], by_slot[:, 1:]))
+        if not self.turns_per_sample:
+            for into, source in pieces:
+                into[...] = source
+            out[-1] = symbols[-1, 0]
+            return out
+        turn = self._rotation
+        turn_slots = turn[:-1].reshape(SLOTS_PER_FRAME, -1)
+        turn_rest = turn_slots[:, first + n :].reshape(SLOTS_PER_FRAME, SYMBOLS_PER_SLOT - 1, other + n)
+        turns = (turn_slots[:, :first], turn_slots[:, first : first + n], turn_rest[:, :, :other], turn_rest[:, :, other:])
+        for (into, source), by in zip(pieces, turns):
+            multiply(source, by, out=into)
+        multiply(symbols[-1, :1], turn[-1:], out=out[-1:])
+        return out

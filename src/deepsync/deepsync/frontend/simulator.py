@@ -38,7 +38,8 @@ import numpy as np
 from deepsync.frontend.adc import AdcStage, ReceiverClock, cubic_sample
 from deepsync.frontend.channel import ChannelProvider, Emitter
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.square_law import Detector
+from deepsync.frontend.square_law import CHUNK_TICKS, Detector, DetectorNoise
+from deepsync.lte.numerology import BASE_RATE_HZ
 from deepsync.numeric import one_blas_thread
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 
@@ -75,13 +76,14 @@ class EnvelopeSimulator:
         self.seed = int(seed)
         self.epoch_ns = int(epoch_ns)
         self.clock = ReceiverClock(config.clock_offset_ppm, config.clock_drift_ppm_per_s)
+        self.noise = DetectorNoise(config, self.seed)
         self._detector: Detector | None = None
-        self._video: tuple[int, np.ndarray] | None = None  # (first video index, samples)
-        self._next_block = 0
+        self._video: dict[int, np.ndarray] = {}  # video chunks at hand, by index
+        self._last_block: tuple[int, np.ndarray] | None = None
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_detector=None, _video=None, _next_block=0)
+        state.update(_detector=None, _video={}, _last_block=None)
         return state
 
     @property
@@ -101,32 +103,46 @@ class EnvelopeSimulator:
     # -- analog part: pure in (n0, n1) -------------------------------------------------------
 
     def analog(self, n0: int, n1: int) -> np.ndarray:
-        """Diode-output volts at ADC samples n0..n1-1 (before AC coupling and gain)."""
-        step = max(1, int(self.detector.block_samples * self.config.adc_rate_hz / self.detector.video_rate))
+        """Diode-output volts at ADC samples n0..n1-1 (before AC coupling and gain), noise
+        included; computed in whole 10 ms blocks of samples, each a pure function of its index."""
+        per_block = self.noise.block
+        first, last = n0 // per_block, -(-n1 // per_block)
         # The matrix products here are small; BLAS threads would spin against the worker
         # processes (which are the parallelism) and cost more than they save.
         with one_blas_thread():
-            return np.concatenate([self._analog_piece(n, min(n + step, n1)) for n in range(n0, n1, step)])
+            volts = np.concatenate([self._block(b) for b in range(first, last)])
+        return volts[n0 - first * per_block : n1 - first * per_block]
 
-    def _analog_piece(self, n0: int, n1: int) -> np.ndarray:
-        detector = self.detector
-        per_block = detector.block_samples
-        positions = self.clock.true_time(np.arange(n0, n1) / self.config.adc_rate_hz) * detector.video_rate
-        first, last = int(np.floor(positions[0])) - 1, int(np.floor(positions[-1])) + 3
-        if self._video is None or not self._video[0] <= first < self._next_block * per_block:
-            # Not a continuation of the previous call: start afresh (blocks are pure).
-            self._next_block = first // per_block
-            self._video = (self._next_block * per_block, np.empty(0, dtype=np.float32))
-        start, kept = self._video
-        pieces = [kept]
-        while self._next_block * per_block < last:
-            pieces.append(detector.block(self._next_block))
-            self._next_block += 1
-        video = np.concatenate(pieces)
-        values = cubic_sample(video, start, positions)
-        tail = (last - 8 - start) // per_block * per_block  # what the next call may still need
-        self._video = (start + tail, video[tail:])
-        return values
+    def _block(self, block: int) -> np.ndarray:
+        """Volts at ADC samples [block, block + 1) x ``noise.block``."""
+        if self._last_block is not None and self._last_block[0] == block:
+            return self._last_block[1]
+        signal = self._signal(block)
+        diode_power = float(np.mean(signal)) / self.config.detector_responsivity_v_per_w  # H(0) = 1
+        volts = signal + self.noise.samples(block, diode_power)
+        self._last_block = (block, volts)
+        return volts
+
+    def _signal(self, block: int) -> np.ndarray:
+        """The detector's noiseless output at the block's ADC samples."""
+        detector, per_block = self.detector, self.noise.block
+        per_tick = self.config.adc_rate_hz / BASE_RATE_HZ
+        if self.clock.nominal and detector.aligned(per_tick) and per_block == round(CHUNK_TICKS * per_tick):
+            return detector.output(block, per_tick)  # the ADC samples the tick grid: no interpolation
+        positions = self.clock.true_time(np.arange(block * per_block, (block + 1) * per_block)
+                                         / self.config.adc_rate_hz) * detector.video_rate
+        per_chunk = CHUNK_TICKS * detector.video_multiplier
+        needed = int(np.floor(positions[0])) - 1, int(np.floor(positions[-1])) + 2  # cubic_sample's reach
+        chunks = range(needed[0] // per_chunk, needed[1] // per_chunk + 1)
+        video = np.concatenate([self._video_chunk(c) for c in chunks])
+        return cubic_sample(video, chunks[0] * per_chunk, positions)
+
+    def _video_chunk(self, chunk: int) -> np.ndarray:
+        if chunk not in self._video:
+            if len(self._video) > 2:
+                self._video.pop(min(self._video))
+            self._video[chunk] = self.detector.output(chunk, self.detector.video_multiplier)
+        return self._video[chunk]
 
     # -- whole stream ---------------------------------------------------------------------
 

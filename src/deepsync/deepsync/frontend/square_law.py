@@ -1,12 +1,17 @@
-"""Square-law detection and the video filter, block by block, into the *video signal*.
+"""Square-law detection and the video filter, chunk by chunk, into the detector output.
 
 Time runs in *ticks* of 1/1.92 MHz (every LTE rate is an integer number of samples per
-tick). The video signal is produced in overlap-save blocks of ``BLOCK_TICKS``: for each
-cluster, |x|^2 of its complex baseband is Fourier transformed, multiplied by the analog
-filter's exact H(f), cropped to the video band and summed; one inverse FFT per block then
-gives the detector output at ``video_rate`` (volts at the diode, before AC coupling and gain).
+tick). The output is produced per *chunk* of ``CHUNK_TICKS`` (10 ms): each cluster's |x|^2
+over the chunk, plus the filter's memory on either side, is cut into overlapping blocks (the
+overlap-save method), Fourier transformed, cropped to the video band, multiplied by the analog
+filter's exact H(f) and summed over clusters; one inverse FFT per block then gives the detector
+output (volts at the diode, before AC coupling and gain). The output comes at any whole number
+of samples per tick: at the ADC's instants, when they fall on the tick grid, the spectrum is
+first folded onto the ADC's band, which is what sampling the filtered signal there gives
+(aliasing included) at a fraction of the work; otherwise at the video rate, which the ADC
+stage interpolates.
 
-Noise:
+Noise (``DetectorNoise``), added at the ADC's samples:
 
 * Detector noise (diode + video amplifier) is white at the diode output with density
   R * NEP (V/sqrt(Hz)), shaped by the video filter.
@@ -16,9 +21,13 @@ Noise:
   |x + n|^2). With the default detector this is 20-50 dB below the diode's own noise for
   any input inside the square-law region, which is why envelope detectors are insensitive.
   Simulating 10-20 MHz of explicit RF noise would cost a fifth of the run time for that.
-* Noise is drawn independently per block, so its correlation across the ~10 us filter
-  memory at block edges (0.1 % of samples) is not reproduced; and only up to where the video
-  filter is 40 dB down, beyond which it holds ~1e-4 of the filtered noise power.
+* Both are drawn in the frequency domain at the ADC rate, per 10 ms block of ADC samples,
+  with the filtered spectrum folded onto the ADC's band (every alias up to where the video
+  filter is 40 dB down): one normal deviate per sample. Blocks are independent, so the
+  noise's correlation across the ~10 us filter memory at block edges (0.1 % of samples) is
+  not reproduced. A receiver clock off its nominal rate samples a stationary noise at
+  instants ppm off the uniform grid: the same statistics to a few ppm, so the noise is drawn
+  on the uniform grid.
 """
 
 from __future__ import annotations
@@ -32,13 +41,16 @@ import scipy.fft
 from deepsync.frontend.channel import ChannelProvider, Emitter
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.plan import Cluster, plan_clusters
+from deepsync.frontend.portable import multiply, squared_magnitude
 from deepsync.frontend.render import Frame, GroupRenderer
 from deepsync.frontend.video import VideoFilter
 from deepsync.lte.numerology import BASE_RATE_HZ
 from deepsync.rng import DETECTOR_NOISE, indexed_rng
+from deepsync.types import FRAME_SECONDS
 
 BOLTZMANN = 1.380649e-23
-BLOCK_TICKS = 16384  # FFT span of one block (8.5 ms): a power of two times any cluster's multiplier
+CHUNK_TICKS = round(BASE_RATE_HZ * FRAME_SECONDS)  # 10 ms of output per chunk
+STEP_TICKS = 960  # output of one filter block: 20 blocks per chunk
 GUARD_TICKS = 32  # 17 us after each block for the tapered filter's pre-ringing
 NOISE_DB = 40.0  # noise is drawn up to where the video filter is this far down
 
@@ -81,6 +93,9 @@ class ClusterDetector:
             key = (e.site or f"#{i}", e.carrier_hz, e.cell.bandwidth_mhz, e.timing_offset_s, e.frequency_offset_hz)
             groups[key].append(i)
         self.renderers = [GroupRenderer(cluster, members, emitters, channel, seed) for members in groups.values()]
+        # |x|^2 only sees the groups' carriers relative to one another: the first stays put
+        for renderer in self.renderers[1:]:
+            renderer.turns_per_sample = (renderer.offset_hz - self.renderers[0].offset_hz) / cluster.sample_rate_hz
         self._frames: list[list[Frame]] = [[] for _ in self.renderers]
         self._next: list[int | None] = [None] * len(self.renderers)
 
@@ -88,24 +103,38 @@ class ClusterDetector:
         """|x|^2 (W) at the cluster rate over [first_tick, first_tick + n_ticks)."""
         start = first_tick * self.m
         stop = start + n_ticks * self.m
-        signal = np.zeros(stop - start, dtype=np.complex64)
-        for r, renderer in enumerate(self.renderers):
-            frames = [f for f in self._frames[r] if f.stop > start]
-            if not frames or frames[0].start > start:
-                frames, self._next[r] = [], renderer.frame_at(start)
-            while not frames or frames[-1].stop < stop:
-                frames.append(renderer.render(self._next[r]))
-                self._next[r] += 1
-            for frame in frames:
-                a, b = max(frame.start, start), min(frame.stop, stop)
-                if a < b:
-                    signal[a - start : b - start] += frame.samples[a - frame.start : b - frame.start]
-            self._frames[r] = frames
-        return signal.real**2 + signal.imag**2
+        signal = None
+        for r in range(len(self.renderers)):
+            pieces = [f.samples[max(f.start, start) - f.start : min(f.stop, stop) - f.start]
+                      for f in self._frames_over(r, start, stop) if f.stop > start and f.start < stop]
+            if signal is None:  # the first group's samples; written to only if another group follows
+                signal = pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
+                if len(self.renderers) > 1 and len(pieces) == 1:
+                    signal = signal.copy()
+            else:
+                at = 0
+                for piece in pieces:
+                    signal[at : at + len(piece)] += piece
+                    at += len(piece)
+        power = np.square(signal.real)
+        power += np.square(signal.imag)
+        return power
+
+    def _frames_over(self, r: int, start: int, stop: int) -> list[Frame]:
+        """Group r's frames from the one holding ``start`` to the one holding ``stop - 1``."""
+        renderer = self.renderers[r]
+        frames = [f for f in self._frames[r] if f.stop > start]
+        if not frames or frames[0].start > start:
+            frames, self._next[r] = [], renderer.frame_at(start)
+        while not frames or frames[-1].stop < stop:
+            frames.append(renderer.render(self._next[r]))
+            self._next[r] += 1
+        self._frames[r] = frames
+        return frames
 
 
 class Detector:
-    """The video signal (volts at the diode output) in fixed overlap-save blocks."""
+    """The detector output (volts at the diode output, noiseless) in 10 ms chunks."""
 
     def __init__(
         self,
@@ -122,25 +151,18 @@ class Detector:
         self.video = VideoFilter(config)
         self.video_multiplier = video_multiplier(config, self.video)
         self.video_rate = self.video_multiplier * BASE_RATE_HZ
-        # overlap-save guards: the filter's causal tail before each block, and the short
-        # pre-ringing its tapered stop band adds, after it
+        # overlap-save: the filter's causal tail before each block, and the short pre-ringing
+        # its tapered stop band adds, after it
         self.overlap_ticks = math.ceil(self.video.settle_seconds * BASE_RATE_HZ / 16) * 16
-        self.guard_ticks = GUARD_TICKS
-        self.step_ticks = BLOCK_TICKS - self.overlap_ticks - self.guard_ticks
-        if self.step_ticks <= BLOCK_TICKS // 2:
-            raise ValueError(
-                f"video filter ({config.video_cutoff_hz:g} Hz, order {config.video_filter_order}) "
-                "rings too long for the detector's block size; raise video_cutoff_hz"
-            )
+        self.block_ticks = scipy.fft.next_fast_len(STEP_TICKS + self.overlap_ticks + GUARD_TICKS, real=True)
         self.clusters = [
             ClusterDetector(cluster, emitters, channel, seed)
             for cluster in plan_clusters(emitters, self.video.stopband_hz)
         ]
-        self.block_length = BLOCK_TICKS * self.video_multiplier
-        self.last_diode_power_w = 0.0
-        bin_frequencies = np.arange(self.block_length // 2 + 1) * (BASE_RATE_HZ / BLOCK_TICKS)
-        self.kept_bins = int(np.searchsorted(bin_frequencies, self.video.stopband_hz)) + 1
-        self.noise_bins = int(np.searchsorted(bin_frequencies, self.video.attenuation_hz(NOISE_DB))) + 1
+        # the video band: every bin below the stop band and the first one at or above it
+        spacing = BASE_RATE_HZ / self.block_ticks
+        self.kept_bins = math.ceil(self.video.stopband_hz / spacing) + 1
+        bin_frequencies = np.arange(self.kept_bins) * spacing
         # antenna |x|^2 (W) -> diode output (V): LNA power gain, responsivity, video filter
         self._response = (
             config.rf_power_gain
@@ -148,41 +170,77 @@ class Detector:
             * self.video.response(bin_frequencies[: self.kept_bins])
         ).astype(np.complex64)
 
-    @property
-    def block_samples(self) -> int:
-        """Video samples each block contributes (its step)."""
-        return self.step_ticks * self.video_multiplier
-
-    def block_start_tick(self, block: int) -> int:
-        return block * self.step_ticks
-
-    def block(self, block: int) -> np.ndarray:
-        """Video signal (V) for ticks [b * step, (b + 1) * step) at ``video_rate``."""
-        first_tick = self.block_start_tick(block) - self.overlap_ticks
-        spectrum = np.zeros(self.block_length // 2 + 1, dtype=np.complex64)
-        antenna_power = 0.0
+    def output(self, chunk: int, per_tick: int | float) -> np.ndarray:
+        """Detector output (V) at ``per_tick`` samples per tick over chunk ``chunk``: ticks
+        [chunk, chunk + 1) x CHUNK_TICKS. ``per_tick`` must give whole samples per block step
+        and overlap (``aligned``)."""
+        first_tick = chunk * CHUNK_TICKS - self.overlap_ticks
+        n_ticks = CHUNK_TICKS - STEP_TICKS + self.block_ticks
+        by_rate: dict[int, np.ndarray] = {}  # clusters at one rate are filtered together
         for cluster in self.clusters:
-            power = cluster.power(first_tick, BLOCK_TICKS)
-            antenna_power += float(power.mean())
-            bins = scipy.fft.rfft(power)[: self.kept_bins]
-            spectrum[: len(bins)] += bins * (self.block_length / len(power))
-        spectrum[: self.kept_bins] *= self._response
-        self.last_diode_power_w = antenna_power * self.config.rf_power_gain
-        density = output_noise_density(self.config, self.last_diode_power_w)
-        if density > 0:
-            spectrum[: self.noise_bins] += self._noise_bins(block, density)
-        video = scipy.fft.irfft(spectrum, n=self.block_length)
-        first = self.overlap_ticks * self.video_multiplier
-        return video[first : first + self.block_samples]
+            power = cluster.power(first_tick, n_ticks)
+            by_rate[cluster.m] = power if cluster.m not in by_rate else by_rate[cluster.m] + power
+        spectra = np.zeros((CHUNK_TICKS // STEP_TICKS, self.kept_bins), dtype=np.complex64)
+        for m, power in by_rate.items():
+            blocks = np.lib.stride_tricks.sliding_window_view(power, self.block_ticks * m)[:: STEP_TICKS * m]
+            bins = scipy.fft.rfft(blocks, axis=1, workers=1)[:, : self.kept_bins]
+            bins *= np.float32(1 / m)  # every cluster's transform on the same scale
+            spectra[:, : bins.shape[1]] += bins  # a narrow cluster's |x|^2 ends below the stop band
+        spectra = multiply(spectra, self._response, out=spectra)
+        return self._inverse(spectra, per_tick)
 
-    def _noise_bins(self, block: int, density: float) -> np.ndarray:
-        """Spectrum of this block's noise (density in W^2/Hz at the diode), through the filter."""
-        responsivity = self.config.detector_responsivity_v_per_w
-        variance = responsivity**2 * density * self.video_rate  # V^2 per video sample
-        scale = math.sqrt(self.block_length * variance / 2)
+    def _inverse(self, spectra: np.ndarray, per_tick: int | float) -> np.ndarray:
+        """The blocks' signals (their steps, concatenated) at ``per_tick`` samples per tick."""
+        length = round(self.block_ticks * per_tick)
+        # fold the two-sided spectrum onto ``length`` bins (Z[-k] = conj Z[k]); bin 0 is real
+        spectra[:, 0] *= 0.5
+        padded = np.zeros((len(spectra), -(-self.kept_bins // length) * length), dtype=np.complex64)
+        padded[:, : self.kept_bins] = spectra
+        folded = padded.reshape(len(spectra), -1, length).sum(axis=1)
+        mirror = np.roll(folded[:, ::-1], 1, axis=1)  # folded[-q]
+        hermitian = folded[:, : length // 2 + 1] + np.conj(mirror[:, : length // 2 + 1])
+        blocks = scipy.fft.irfft(hermitian, n=length, axis=1, workers=1) * np.float32(per_tick)
+        first = round(self.overlap_ticks * per_tick)
+        return blocks[:, first : first + round(STEP_TICKS * per_tick)].reshape(-1).astype(np.float64)
+
+    def aligned(self, per_tick: float) -> bool:
+        """Whether ``per_tick`` samples per tick fall whole on every block step and overlap."""
+        return all(abs(n * per_tick - round(n * per_tick)) < 1e-9
+                   for n in (STEP_TICKS, self.overlap_ticks, self.block_ticks))
+
+
+class DetectorNoise:
+    """Detector and RF noise at the ADC's samples, drawn per 10 ms block of sample indices."""
+
+    def __init__(self, config: FrontendConfig, seed: int) -> None:
+        self.config = config
+        self.seed = seed
+        self.block = max(1, round(config.adc_rate_hz * FRAME_SECONDS))
+        video = VideoFilter(config)
+        rate = config.adc_rate_hz
+        frequencies = np.arange(self.block // 2 + 1) * (rate / self.block)
+        # every alias of the filtered white noise, up to where the filter is NOISE_DB down
+        cutoff = video.attenuation_hz(NOISE_DB)
+        aliases = np.arange(-math.ceil(cutoff / rate) - 1, math.ceil(cutoff / rate) + 2)
+        shifted = np.abs(frequencies[None, :] + aliases[:, None] * rate)
+        gain = squared_magnitude(video.response(shifted)) * (shifted < cutoff)
+        # white noise of unit two-sided density at the diode, filtered and sampled: the spectrum's
+        # standard deviation per bin (irfft's 1/block included); bins 0 and block/2 are real
+        self._spread = np.sqrt(gain.sum(axis=0) * self.block * rate / 2)
+        self._spread[0] *= math.sqrt(2)
+        if self.block % 2 == 0:
+            self._spread[-1] *= math.sqrt(2)
+
+    def samples(self, block: int, diode_power_w: float) -> np.ndarray:
+        """Noise (V) of ADC samples [block, block + 1) x ``block`` for a block whose signal
+        carries ``diode_power_w`` at the diode."""
+        density = output_noise_density(self.config, diode_power_w)  # W^2/Hz of |x|^2
+        if density <= 0:
+            return np.zeros(self.block)
         rng = indexed_rng(self.seed, DETECTOR_NOISE, block)
-        draws = rng.standard_normal((2, self.noise_bins), dtype=np.float32)
-        noise = (draws[0] + 1j * draws[1]) * scale
-        noise[0] = draws[0, 0] * scale * math.sqrt(2)
-        filtered = self._response[: self.noise_bins] / (responsivity * self.config.rf_power_gain)
-        return noise.astype(np.complex64) * filtered
+        draws = rng.standard_normal((2, len(self._spread)))
+        spectrum = np.empty(len(self._spread), dtype=np.complex128)
+        scale = self._spread * (self.config.detector_responsivity_v_per_w * math.sqrt(density))
+        spectrum.real = draws[0] * scale
+        spectrum.imag = draws[1] * scale
+        return scipy.fft.irfft(spectrum, n=self.block, workers=1)

@@ -363,9 +363,11 @@ def _check_coverage(names: list[str], site: np.ndarray, time: np.ndarray) -> Non
             raise ValueError(f"site {name!r} is heard at only {instants} instant: its offset and drift need at least 2")
 
 
-def calibrated_database(towers: TowerDatabase, result: CalibrationResult, reference_ns: int) -> TowerDatabase:
-    """``towers`` with the calibrated sites' timing corrected and their sigmas replaced, all
+def calibrated_database(towers: TowerDatabase, corrections: Sequence[SiteCalibration], reference_ns: int) -> TowerDatabase:
+    """``towers`` with the corrected sites' timing corrected and their sigmas replaced, all
     timing moved to the new epoch ``reference_ns`` (the arrivals' time origin, a whole frame).
+    A correction without a drift (its ``drift_std`` NaN: a tracker without site clock states)
+    keeps the site's drift and its sigma.
 
     A site not calibrated keeps its timing, moved to the new epoch by its drift (its offset sigma
     grows by its drift sigma times the time moved); note that the calibrated sites now follow
@@ -374,7 +376,7 @@ def calibrated_database(towers: TowerDatabase, result: CalibrationResult, refere
     """
     if reference_ns % FRAME_NS:
         raise ValueError(f"reference_ns {reference_ns} is not a whole number of 10 ms frames")
-    calibrated = {site.site: site for site in result.sites}
+    calibrated = {site.site: site for site in corrections}
     unknown = sorted(set(calibrated) - {site.name for site in towers.sites})
     if unknown:
         raise ValueError(f"calibrated site(s) {', '.join(unknown)} are not in tower database {towers.name!r}")
@@ -390,9 +392,10 @@ def calibrated_database(towers: TowerDatabase, result: CalibrationResult, refere
         offset_us = site.timing_offset_us + drift_ns_per_s * moved_s * 1e-3
         if site.name in calibrated:
             fitted = calibrated[site.name]
-            site = replace(site, timing_drift_ns_per_s=drift_ns_per_s + fitted.drift_correction * 1e9,
-                           timing_offset_std_us=fitted.offset_std_s * 1e6,
-                           timing_drift_std_ns_per_s=fitted.drift_std * 1e9)
+            site = replace(site, timing_offset_std_us=fitted.offset_std_s * 1e6)
+            if math.isfinite(fitted.drift_std):
+                site = replace(site, timing_drift_ns_per_s=drift_ns_per_s + fitted.drift_correction * 1e9,
+                               timing_drift_std_ns_per_s=fitted.drift_std * 1e9)
             offset_us += fitted.offset_correction_s * 1e6
         elif site.timing_drift_std_ns_per_s is not None:
             grown = site.timing_drift_std_ns_per_s * abs(moved_s) * 1e-3

@@ -10,6 +10,15 @@ solved on its own (``fusion.snapshot``: needs 3 sites in 2-D) and fed to the tra
 Time: ranges are read on the receiver clock counted from the first stack's frame-aligned
 stamp; a stream that starts over (stamps going back) starts the tracker afresh (the sync
 stage reports the restart; fusion does not report it twice).
+
+Aiding: GNSS fixes (:meth:`FusionStage.add_gnss`) and odometry velocities
+(:meth:`FusionStage.add_odometry`), stamped on the same receiver clock as the ADC, go to the
+tracker (``fusion.aiding``), which uses them in time order among the arrivals of the next stacks.
+What cannot be used is said as an ``AIDING_REFUSED`` event: at once (not a number, back in time,
+a clock far from the stacks', tracking off) by the method's return, later (stale, or refused by
+the tracker's innovation test) in the next stack's events. What the tracker learns of each
+site (its range bias, with site clock states its clock) comes back as a tower database
+(:meth:`FusionStage.learned_database`) the next run can start from.
 """
 
 from __future__ import annotations
@@ -21,12 +30,27 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 
+import numpy as np
+
+from deepsync.fusion.aiding import PositionAid, VelocityAid
 from deepsync.fusion.anchors import Anchors, SiteArrival, frame_reference_ns
+from deepsync.fusion.calibration import SiteCalibration, calibrated_database
 from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
 from deepsync.geo import LocalFrame
 from deepsync.towers import TowerDatabase
-from deepsync.types import Fix, Health, HealthKind, NoFix, NoFixReason, PositionPrior, StackArrivals
+from deepsync.types import (
+    SPEED_OF_LIGHT_M_S,
+    Fix,
+    GnssFix,
+    Health,
+    HealthKind,
+    NoFix,
+    NoFixReason,
+    OdometryVelocity,
+    PositionPrior,
+    StackArrivals,
+)
 
 
 @dataclass(frozen=True)
@@ -47,10 +71,16 @@ class FusionConfig:
     track: bool = True
     min_std_m: float = 8.0
     multipath_std_m: float = 40.0
+    gnss_std_m: float = 10.0  # a GNSS fix's horizontal 1-sigma where it states none (a phone in a street)
+    gnss_min_std_m: float = 3.0  # no fix is taken as better than this (urban multipath a receiver does not see)
+    aiding_clock_window_s: float = 60.0  # a fix or velocity further from the stacks' time is on another clock
 
     def __post_init__(self) -> None:
-        if not (_metres(self.min_std_m) and self.min_std_m > 0):
-            raise ValueError(f"min_std_m: {self.min_std_m!r} must be a positive number of metres (<= 1e4)")
+        for name, unit in (("min_std_m", "metres"), ("gnss_std_m", "metres"), ("gnss_min_std_m", "metres"),
+                           ("aiding_clock_window_s", "seconds")):
+            value = getattr(self, name)
+            if not (_metres(value) and value > 0):
+                raise ValueError(f"{name}: {value!r} must be a positive number of {unit} (<= 1e4)")
         if not _metres(self.multipath_std_m):
             raise ValueError(f"multipath_std_m: {self.multipath_std_m!r} must be a non-negative number of metres "
                              "(<= 1e4)")
@@ -98,6 +128,8 @@ class FusionStage:
         self.tracker = Tracker(self.config.tracker) if self.config.track else None
         self.reference_ns: int | None = None
         self._last_stamp_ns: int | None = None
+        self._waiting: list[GnssFix | OdometryVelocity] = []  # aiding given before the first stack
+        self._latest_aid_ns: dict[type, int] = {}  # stamp of the latest fix and velocity taken
 
     @property
     def frame(self) -> LocalFrame:
@@ -110,11 +142,81 @@ class FusionStage:
             raise ValueError("an initial position needs the tracker, and tracking is off (FusionConfig.track)")
         self.tracker.start_from(prior)
 
+    def add_gnss(self, fix: GnssFix) -> Health | None:
+        """Queue a GNSS fix for the tracker (its time must be on the ADC's receiver clock); an
+        ``AIDING_REFUSED`` event saying why where it cannot be used at all."""
+        return self._aid(fix, "GNSS fix")
+
+    def add_odometry(self, velocity: OdometryVelocity) -> Health | None:
+        """Queue an odometry velocity for the tracker (its time must be on the ADC's receiver
+        clock); an ``AIDING_REFUSED`` event saying why where it cannot be used at all."""
+        return self._aid(velocity, "odometry velocity")
+
+    def _aid(self, aid: GnssFix | OdometryVelocity, what: str) -> Health | None:
+        if not isinstance(aid, (GnssFix, OdometryVelocity)):
+            raise ValueError(f"aid: {aid!r} is neither a GnssFix nor an OdometryVelocity")
+        if self.tracker is None:
+            return Health(HealthKind.AIDING_REFUSED, f"{what} not used: tracking is off (FusionConfig.track)")
+        latest = self._latest_aid_ns.get(type(aid))
+        if latest is not None and aid.stamp_ns <= latest:
+            return Health(HealthKind.AIDING_REFUSED, f"{what} stamped {aid.stamp_ns} ns refused: not after the one "
+                          f"before ({latest} ns): stamps must only go forward")
+        if self._last_stamp_ns is not None:
+            apart = (aid.stamp_ns - self._last_stamp_ns) * 1e-9
+            if abs(apart) > self.config.aiding_clock_window_s:
+                return Health(HealthKind.AIDING_REFUSED, f"{what} refused: stamped {apart:+.1f} s from the latest "
+                              f"stack (aiding_clock_window_s {self.config.aiding_clock_window_s:g} s): it must be "
+                              "on the ADC's clock (use_sim_time with the bag's /clock, or a receiver on host time)")
+        self._latest_aid_ns[type(aid)] = aid.stamp_ns
+        self._waiting.append(aid)
+        if self.reference_ns is not None:
+            self._hand_over()
+        return None
+
+    def _hand_over(self) -> None:
+        """The aiding waiting for a time origin, on the tracker's time base."""
+        for aid in self._waiting:
+            time_s = (aid.stamp_ns - self.reference_ns) * 1e-9
+            if isinstance(aid, OdometryVelocity):
+                self.tracker.add_velocity(VelocityAid(time_s, np.array(aid.velocity), aid.covariance,
+                                                      aid.in_map_frame))
+            else:
+                self.tracker.add_position(self._position_aid(aid, time_s))
+        self._waiting.clear()
+
+    def _position_aid(self, fix: GnssFix, time_s: float) -> PositionAid:
+        """A GNSS fix in the ``map`` frame; its horizontal covariance the configured sigma where
+        it states none, and never tighter than ``gnss_min_std_m``."""
+        position = np.asarray(self.frame.geodetic_to_enu(fix.latitude_deg, fix.longitude_deg, fix.height_m))
+        c = self.config
+        covariance = np.diag([c.gnss_std_m**2] * 2 + [(3 * c.gnss_std_m) ** 2]) if fix.covariance_enu is None \
+            else np.array(fix.covariance_enu)
+        variances, axes = np.linalg.eigh(covariance[:2, :2])
+        covariance[:2, :2] = (axes * np.maximum(variances, c.gnss_min_std_m**2)) @ axes.T
+        return PositionAid(time_s, position, covariance, "GNSS fix" + (f" ({fix.frame_id})" if fix.frame_id else ""))
+
+    def learned_database(self) -> TowerDatabase | None:
+        """The tower database with what the tracker has learned of each site with states: its
+        range bias (with site clock states, its clock offset and drift) folded into the site's
+        timing, with the sigmas, at the tracker's time (a whole frame). TDOA cannot tell a
+        site's NLOS pull from its clock, so the next run near here starts with both; elsewhere the
+        pull changes within tens of metres, and the bias states' prior covers it. None before a
+        track has started."""
+        if self.tracker is None or not self.tracker.initialised or self.reference_ns is None:
+            return None
+        corrections = [SiteCalibration(name, bias.bias_m / SPEED_OF_LIGHT_M_S, bias.std_m / SPEED_OF_LIGHT_M_S,
+                                       bias.drift_mps / SPEED_OF_LIGHT_M_S, bias.drift_std_mps / SPEED_OF_LIGHT_M_S,
+                                       0, math.nan)
+                       for name, bias in self.tracker.site_biases().items()]
+        epoch_ns = frame_reference_ns(self.reference_ns + round(self.tracker.time_s * 1e9))
+        return calibrated_database(self.anchors.towers, corrections, epoch_ns)
+
     def process(self, arrivals: StackArrivals) -> FusionResult:
         """Fix (or no fix, with the reason) for one stack's arrivals."""
         if self._last_stamp_ns is not None and arrivals.stamp_ns < self._last_stamp_ns:
             # the stream started over (the sync stage reports it as a RESTART event): so does fusion
             self.reference_ns = None
+            self._latest_aid_ns.clear()
             if self.tracker is not None:
                 self.tracker.reset()
         if self.reference_ns is None:
@@ -127,8 +229,10 @@ class FusionStage:
         tracked = None
         prior = None
         if self.tracker is not None:
+            self._hand_over()
             time_s = max([site.time_s for site in sites], default=(arrivals.stamp_ns - self.reference_ns) * 1e-9)
             tracked = self.tracker.update(sites, arrivals.stamp_ns, time_s, clock_rate)
+            events += [Health(HealthKind.AIDING_REFUSED, note) for note in self.tracker.take_notes()]
             prior = tracked.position_enu if isinstance(tracked, Fix) else None
         if problems and not sites:
             unknown = NoFix(arrivals.stamp_ns, NoFixReason.UNKNOWN_SITES, "; ".join(problems))

@@ -1,26 +1,29 @@
 """The tightly coupled tracker: position, velocity and receiver clock, updated by each site as it
-is heard, like a GNSS receiver with too few satellites.
+is heard, like a GNSS receiver with too few satellites; and by GNSS fixes and odometry where the
+receiver has them.
 
 Each arrival says ``rho = |x(t) - p_s| + b(t) + m_s(t) (+ o_s(t))`` modulo one frame (2998 km):
 the receiver at ``x`` (ENU; 2-D: up held at the receiver height), its clock bias ``b`` (m), the
-site's range bias ``m_s`` (m) and, when asked for, the site's frame-clock error ``o_s`` (m). A single arrival fixes one
-combination of those, so one site per stack is enough for an update: the motion model carries
-the rest from arrival to arrival, and over a few seconds every heard site has its say.
+site's range bias ``m_s`` (m) and, when asked for, the site's frame-clock error ``o_s`` (m). A
+single arrival fixes one combination of those, so one site per stack is enough for an update:
+the motion model carries the rest from arrival to arrival, and over a few seconds every heard
+site has its say.
 
 **Filter.** A plain extended Kalman filter of our own (not filterpy, not a UKF). The states are
 additive (no attitude, no manifold), so an error-state form buys nothing; the range is nearly
 linear over the state's uncertainty (its curvature error, sigma^2 / distance, is centimetres
 at metres of uncertainty and hundreds of metres of range), so sigma points buy nothing either.
 One pseudorange is a scalar update: the gain is one matrix-vector product over a scalar
-innovation variance, no inverse; and the state grows when site clocks join, which a library
-filter sized at construction does not do. Sixty lines of numpy, no dependency.
+innovation variance, no inverse; and the state grows when sites join, which a library filter
+sized at construction does not do.
 
-**State** ``[position (D), horizontal velocity (2), b, d, (m_s (, o_s, r_s) per site)]``, ``D`` = 2 or 3:
+**State** ``[position (D), horizontal velocity (2), b, d, (m_s (, o_s, r_s) per site), (psi,
+s)]``, ``D`` = 2 or 3:
 
 * horizontal position and velocity: white-noise acceleration, power spectral density
   ``acceleration_std^2 x 1 s`` per axis, i.e. over one second the velocity wanders by
-  ``acceleration_std`` (1-sigma). 0.5 m/s^2 covers a walker's stops, starts and turns (1.4 m/s
-  gained or lost in about 2 s) without letting the noise of a 15 m range pull the track about.
+  ``acceleration_std`` (1-sigma): the motion model's (``deepsync.motion``: 0.5 m/s^2 for a
+  pedestrian, 3 for a vehicle, 0.01 for a static asset).
 * up (3-D only): a first-order Gauss-Markov process around the receiver height, stationary
   sigma the height prior's, correlation time ``height_correlation_s``: sites a few degrees above
   the horizon hardly measure height, so what holds it is that receivers stay near the ground.
@@ -30,17 +33,23 @@ filter sized at construction does not do. Sixty lines of numpy, no dependency.
   latter raised to 0.5 m/s/sqrt(s) for the temperature changes of a receiver carried about.
   ``b`` is kept modulo one frame: only that is measured.
 * site range bias ``m_s`` (m), one per heard site, appended when the site is first heard (and
-  after a start, for the sites it used), dropped when it has not been heard for
-  ``FORGET_CORRELATIONS`` x ``bias_correlation_s``, added afresh when heard again. Multipath
-  and NLOS lengthen a site's range by the same tens of metres stack after stack (the envelope's
-  peak lags a blocked first path): taken as white, that error averages down over hundreds of
-  stacks that share it, and the filter believes a position it cannot have (simulated walk,
-  site biases of -9..+90 m: 2-D NEES 278). As a state it does not average down. A first-order
-  Gauss-Markov process towards 0, correlation time ``bias_correlation_s`` (30 s: a walker
-  moves ~40 m, over which the scatterers around the receiver change), stationary variance
-  ``bias_std_m^2`` of the latest arrival, plus ``clock_std_m^2`` without site clock states:
-  the site clock's offset error is then one more per-site constant in the same state. It
-  should not decay (it is the database's, not the channel's); the approximation costs little
+  after a start, for the sites it used), dropped once it has faded (below), added afresh when
+  heard again. Multipath and NLOS lengthen a site's range by tens of metres stack after stack
+  (the envelope's peak lags a blocked first path): taken as white, that error averages down
+  over hundreds of stacks that share it, and the filter believes a position it cannot have
+  (simulated walk, site biases of -9..+90 m: 2-D NEES 278). As a state it does not average
+  down. A first-order Gauss-Markov process towards 0 **over the distance travelled**: over
+  ``bias_decorrelation_m`` (40 m) of the receiver's own path it keeps ``1/e`` of itself, over
+  ``bias_correlation_s`` of time (600 s) too, whichever comes first. The bias is the channel's,
+  and the channel changes with where the receiver is, not with time: 38.901's correlation
+  distances of the delay spread and shadowing are 30-50 m in UMa (40 m NLOS; 7-13 m UMi), so a
+  walker's bias changes over 30 s and a car's over 3 s, and a receiver that stands keeps its
+  bias for as long as its surroundings stand. The distance is the filter's own speed times the
+  step, its speed counted as ``sqrt(|v|^2 + trace(P_v))``: an uncertain velocity fades the biases
+  as if the receiver moved that fast, which errs towards trusting them less. Stationary
+  variance ``bias_std_m^2`` of the latest arrival, plus ``clock_std_m^2`` without site clock
+  states: the site clock's offset error is then one more per-site constant in the same state.
+  It should not fade (it is the database's, not the channel's); the approximation costs little
   while the site is heard every few seconds, since the arrivals hold it, and where the clocks
   matter ``site_clocks`` gives them their own states. A variance larger than before (a site
   clock's error grows with the database's age) is added to the state as a fresh error. The
@@ -48,22 +57,41 @@ filter sized at construction does not do. Sixty lines of numpy, no dependency.
   Sliding stacks (a stack every ``hop`` of its ``n`` frames) share frames, so that noise repeats
   in the next ``n / hop`` arrivals: its variance counts ``stack_overlap`` = n / hop times.
   A bias common to every site is the receiver clock's ``b``: the priors hold that gauge.
-  Weakly observable: a position error traded against biases ``m_s = -u_s . dx`` shows only as
-  the geometry turns, and with one site per stack the EKF runs somewhat overconfident along it
-  (simulated, constant N(0, 40 m) biases: 2-D NEES 2.1 with 2-3 sites per stack, 3.4 with 1-3).
+  Without an anchor the biases are weakly observable: a position error traded against biases
+  ``m_s = -u_s . dx`` shows only as the geometry turns. With one (below) they are not: the
+  position is pinned, and what is left of each site's range is its bias.
 * site clocks (``site_clocks=True``): per site, next to ``m_s``, offset ``o_s`` (m) and drift
   ``r_s`` (m/s), the error of the tower database's frame timing, appended with the site's
   bias state with the arrival's ``clock_std_m`` and ``clock_drift_std_mps`` as priors (the
   tower database's sigmas; a site without a drift in it gets ``anchors.UNKNOWN_DRIFT_STD``),
-  and dropped with it (heard again, the database's priors once more). The offsets are not observable against ``b`` as a whole (adding a
+  and dropped with it. The offsets are not observable against ``b`` as a whole (adding a
   constant to ``b`` and taking it from every ``o_s`` changes no range), nor the drifts against
-  ``d``: their priors hold that gauge, and what the data estimate is how sites disagree. Weakly
-  observable too: a constant velocity error ``dv`` traded against drifts ``r_s = -u_s . dv``
-  (``u_s`` the unit vector from site to receiver) shows only as the geometry turns, and an EKF
+  ``d``: their priors hold that gauge, and what the data estimate is how sites disagree. Without
+  an anchor, a constant velocity error ``dv`` trades against drifts ``r_s = -u_s . dv`` and an EKF
   linearised at its own estimate grows overconfident along it (simulated: 2-D NEES 2-20 over
-  two minutes of sites 10-20 ns/s off, now and then diverging). Worth it where site clocks do
-  drift (horizontal RMS 0.16-0.94 of that with their errors taken as white, over eight simulated
-  sets of three routes), not as a default.
+  two minutes of sites 10-20 ns/s off): off by default.
+* odometry (``psi``, ``s``): the odometry frame's yaw from ``map`` and the odometry's scale
+  error, random walks of ``heading_drift_rad_per_sqrt_s`` and
+  ``odometry_scale_wander_per_sqrt_s``, the scale's prior ``odometry_scale_std``. Appended once
+  the track says where the odometry frame points: from the first odometry velocity on, the
+  track's position is cloned into the state (stochastic cloning: two states that stay put while
+  the filter keeps their covariance with everything) and the odometry's displacement integrated;
+  when it has read ``ALIGN_MIN_M`` and the track's displacement since the clone points within
+  ``ALIGN_DIRECTION_STD_RAD``, the angle between the two is ``psi`` (``fusion.aiding``), with its
+  covariance to every state, and the clone goes. The track's velocity alone would rarely do: NLOS
+  biases that change over tens of metres make a site's range rate a poor measure of speed. The
+  yaw and scale outlive a restart of the track (they describe the odometry, not the track).
+
+**Aiding** (:meth:`Tracker.add_position`, :meth:`Tracker.add_velocity`): measurements of where
+the receiver is (a GNSS fix, with its covariance) and how it moves (odometry), queued and used
+in time order among the arrivals of the next update that reaches their time. Before a start, a
+position stands in for an initial position (below). A position the track contradicts (its
+normalised innovation beyond the chi-square gate, D dof) is refused and said; the track is wrong
+instead when ``max_position_rejections`` positions in a row are refused and agree with each
+other: the tracker then starts again from the latest. A velocity beyond the gate is refused and
+said. Those older than the filter's time are stale: refused and said. Odometry in its own
+frame before the frame's yaw is known still says when the receiver stands (a velocity within its
+noise of zero is ``v = 0`` in any frame), and its displacement aligns the frame (above).
 
 **Gating and the robust fallback.** An innovation whose normalised square exceeds the
 chi-square quantile (1 dof, ``gate_probability``) is not used: the site is named in
@@ -72,41 +100,34 @@ the state; inflating the noise of such an arrival instead would still let a site
 long pull the track by metres per epoch. The fallback for the opposite case, where the state
 is wrong and not the sites, is to start again: ``max_rejections`` arrivals in a row failing the
 gate, from at least two sites, restart the tracker at once from the arrivals it could not
-explain, and ``max_coast_s`` without an accepted arrival restarts it from what is heard next
-(``last_restart`` keeps why; a NoFix says it).
+explain, and ``max_coast_s`` without an accepted measurement restarts it from what is heard next
+(``last_restart`` keeps why; a NoFix says it). A track whose horizontal 1-sigma (DRMS) has grown
+beyond ``max_std_m`` is kept running (a site or an anchor may bring it back) but reported as a
+NoFix (``TRACK_LOST``): it knows it is lost, and a pose that vague guides nothing.
 
-**Start.** From the last ``init_window_s`` of arrivals, or the current stack alone when it
-holds enough sites: ranges unwrapped against the earliest with the drift prior, a drift
-guessed from how each repeated site's range moves, one range per site at the window's mid-time
-solved by :func:`solve_snapshot`, then all arrivals at once (position, ``b`` and ``d``; the
-receiver assumed static) with ``scipy.optimize.least_squares``: a Huber loss first, then the
-arrivals beyond the gate left out (named) and the rest solved plainly. The drift's prior is the
-sync stage's clock rate (sigma ``clock_rate_std_ppm``) when known, else 0 +- ``max_clock_ppm``.
-A start needs ``D + 1`` distinct sites (position and bias; a site more lets the residual test
-check them, and where two positions fit equally the snapshot step refuses), and one arrival
-more when the clock rate is unknown (the drift is then solved from the data); it must pass the
-same residual test as a snapshot. Its covariance comes from the Jacobian; the motion the static assumption ignores
-enters twice: each arrival's sigma grows by ``initial_speed_std_mps`` times its distance in time
-from the mid-time, and the velocity starts at 0 with that speed as its sigma, so predicting to
-the window's end widens the position by the distance walked. The batch takes each arrival's
-``std_m`` as white (its bias included); the filter it starts then gets bias states for the sites
-used, at their priors, independent of the position the batch solved with their biases in it.
+**Start** (``fusion.track_start``): from the last ``init_window_s`` of arrivals, or the
+current stack alone when it holds enough sites; ``D + 1`` sites, or one with an initial
+position. The velocity starts at 0 with ``initial_speed_std_mps`` as its sigma, so predicting to
+the window's end widens the position by the distance travelled meanwhile. The batch takes each
+arrival's ``std_m`` as white (its bias included); the filter it starts then gets bias states for
+the sites used, at their priors, independent of the position the batch solved with their
+biases in it.
 
-**An initial position** (:meth:`Tracker.start_from`: an operator's pose). Two sites measure one
-range difference, a hyperbola, and nothing above starts from them. A :class:`PositionPrior`
-adds ``D`` whitened rows to the batch, which then needs one site (the clock), keeps the prior's
-uncertainty along what the sites do not measure, and the filter grows it as the receiver walks.
-The track is held by the prior for ``prior_hold_s`` from when it was given (the first update
-after :meth:`Tracker.start_from`) while fewer than ``D + 1`` sites have states, then given up (a
-NoFix says so): along a hyperbola the estimate drifts by the distance walked, and once that is a
-fair part of the ranges the linearisation turns overconfident (simulated two-site walks
-300-1100 m from the sites: NEES 1.9 over the first 30 s from 30 m priors, 3.8-4.1 by 60 s). A
-prior the recent arrivals contradict fails the start's residual test. A prior still waiting for
-a site says where the receiver was: the start widens it by the motion model over its age (the
-start's speed prior and the acceleration walk), and one that waited ``prior_hold_s`` is dropped
-unused. Taken at its word, a 30 m prior that waited 20 s for two sites held the walk at NEES
-5.3, one that waited 40 s at 12; widened and held for what is left of its 30 s, NEES 1.6-2.3
-after waits of 0-29 s.
+**An initial position** (:meth:`Tracker.start_from`: an operator's pose; or a GNSS fix while no
+track runs). Two sites measure one range difference, a hyperbola, and the batch alone does not
+start from them; with a prior it starts from one site (the clock), keeps the prior's uncertainty
+along what the sites do not measure, and the filter grows it as the receiver moves. The track
+is held by the prior for ``prior_hold_s`` from when it was given while fewer than ``D + 1`` sites
+have states (an accepted GNSS fix renews the hold), then given up (a NoFix says so): along a
+hyperbola the estimate drifts by the distance walked, and once that is a fair part of the
+ranges the linearisation turns overconfident (simulated two-site walks 300-1100 m from the
+sites: NEES 1.9 over the first 30 s from 30 m priors, 3.8-4.1 by 60 s). A prior the recent
+arrivals contradict fails the start's residual test. A prior still waiting for a site says
+where the receiver was: the start widens it by the motion model over its age (the start's speed
+prior and the acceleration walk), and one that waited ``prior_hold_s`` is dropped unused.
+Taken at its word, a 30 m prior that waited 20 s for two sites held the walk at NEES 5.3, one
+that waited 40 s at 12; widened and held for what is left of its 30 s, NEES 1.6-2.3 after waits
+of 0-29 s.
 
 **Out-of-order input.** Arrivals older than the filter's time (a late stack) are skipped and
 counted (``stale_arrivals``); the returned state is then the filter's moved back to ``time_s``.
@@ -114,63 +135,78 @@ counted (``stale_arrivals``); the returned state is then the filter's moved back
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
+from deepsync.fusion.aiding import PositionAid, VelocityAid, heading_offset, odometry_velocity, rotation
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
-from deepsync.fusion.snapshot import SnapshotConfig, chi_square_limit, solve_snapshot
-from deepsync.types import (
-    SPEED_OF_LIGHT_M_S,
-    UNMEASURED_VARIANCE,
-    Fix,
-    FixKind,
-    NoFix,
-    NoFixReason,
-    PositionPrior,
-)
+from deepsync.fusion.snapshot import SnapshotConfig, chi_square_limit
+from deepsync.fusion.track_start import Start, batch_start
+from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
+from deepsync.types import UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason, PositionPrior
 
 MAX_CLOCK_RATE = 1e-3  # a clock 1000 ppm off is not a receiver clock but a wrong number
-# a site unheard this many bias correlation times is forgotten: its bias state then keeps
-# e^-5 (under 1 %) of what the arrivals taught it, and a drive past many sites stays small
+# a site whose bias has faded this many correlations since it was last heard is forgotten: its
+# state then keeps e^-5 (under 1 %) of what the arrivals taught it, and a drive past many
+# sites stays small
 FORGET_CORRELATIONS = 5.0
+# odometry is aligned with the track once the track's displacement over a stretch the odometry
+# measured too (at least ALIGN_MIN_M long) points this well (rad, 1-sigma); a stretch with a gap
+# in the odometry longer than ODOMETRY_GAP_S starts over
+ALIGN_DIRECTION_STD_RAD = 0.3
+ALIGN_MIN_M = 20.0
+ODOMETRY_GAP_S = 2.0
+STANDSTILL_SIGMAS = 3.0  # an odometry speed within this many of its sigmas of 0 is a standstill
+# odometry velocities refused in a row that say the track's velocity, not the odometry, is wrong
+MAX_VELOCITY_REFUSALS = 3
+_WALKER = MOTION_MODELS[DEFAULT_MOTION]
 
 
 @dataclass(frozen=True)
 class TrackerConfig:
     """How the receiver moves, how its clock wanders, and when to trust, coast or start again
-    (the module docstring gives the physics of each default)."""
+    (the module docstring gives the physics of each default; ``deepsync.motion`` the motion
+    models that set the first ones)."""
 
     snapshot: SnapshotConfig = SnapshotConfig()  # dims, receiver height (2-D: up fixed), residual test
-    acceleration_std_mps2: float = 0.5  # velocity random walk: m/s gained or lost per second (walking)
+    acceleration_std_mps2: float = _WALKER.acceleration_std_mps2  # velocity random walk, m/s per second
     clock_drift_std_mps_per_sqrt_s: float = 0.5  # receiver frequency random walk (TCXO carried about)
     clock_bias_std_m_per_sqrt_s: float = 0.1  # receiver white frequency noise (TCXO)
-    gate_probability: float = 1e-3  # chance of gating out a Gaussian innovation (chi-square, 1 dof)
-    max_coast_s: float = 10.0  # start again after this long without an accepted arrival
+    gate_probability: float = 1e-3  # chance of gating out a Gaussian innovation (chi-square)
+    max_coast_s: float = 10.0  # start again after this long without an accepted measurement
     init_window_s: float = 3.0  # arrivals kept for a start when no stack has enough sites
-    initial_speed_std_mps: float = 2.0  # speed prior at a start (walking; ~20 for driving)
+    initial_speed_std_mps: float = _WALKER.initial_speed_std_mps  # speed prior at a start
     clock_rate_std_ppm: float = 0.5  # uncertainty of the sync stage's clock rate, as a drift prior
     max_clock_ppm: float = 50.0  # drift prior (1-sigma) at a start when the clock rate is unknown
     max_rejections: int = 10  # gated arrivals in a row (from >= 2 sites) that say the state is wrong
     height_correlation_s: float = 60.0  # 3-D: how long the receiver's height stays off the nominal
-    bias_correlation_s: float = 30.0  # how long a site's multipath range bias stays (~40 m walked)
+    bias_decorrelation_m: float = 40.0  # path over which a site's range bias fades to 1/e (38.901 UMa NLOS)
+    bias_correlation_s: float = 600.0  # time over which it fades for a receiver that stands
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
     stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (PipelineConfig sets it)
     prior_hold_s: float = 30.0  # how long an initial position is used, from when it is given, while D + 1 sites are not heard
+    max_std_m: float = 100.0  # horizontal 1-sigma (DRMS) beyond which the track is reported lost
+    max_position_rejections: int = 2  # refused positions in a row, agreeing, that say the track is wrong
+    heading_drift_rad_per_sqrt_s: float = 0.003  # odometry frame's yaw random walk (a gyro's drift)
+    odometry_scale_std: float = 0.05  # odometry scale error, prior 1-sigma (fraction)
+    odometry_scale_wander_per_sqrt_s: float = 1e-4  # odometry scale random walk (tyre warming, load)
 
     def __post_init__(self) -> None:
         if not isinstance(self.snapshot, SnapshotConfig):
             raise ValueError(f"snapshot: {self.snapshot!r} is not a SnapshotConfig")
         if not isinstance(self.site_clocks, bool):
             raise ValueError(f"site_clocks: {self.site_clocks!r} is not a bool")
-        if not (isinstance(self.max_rejections, int) and not isinstance(self.max_rejections, bool)
-                and 2 <= self.max_rejections <= 10_000):
-            raise ValueError(f"max_rejections: {self.max_rejections!r} is out of range (2..10000)")
+        for name, low, high in (("max_rejections", 2, 10_000), ("max_position_rejections", 1, 1000)):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and low <= value <= high):
+                raise ValueError(f"{name}: {value!r} is out of range ({low}..{high})")
         checks = {
             "acceleration_std_mps2": 0 < self.acceleration_std_mps2 <= 100,
             "clock_drift_std_mps_per_sqrt_s": 0 < self.clock_drift_std_mps_per_sqrt_s <= 1e4,
@@ -182,10 +218,15 @@ class TrackerConfig:
             "clock_rate_std_ppm": 0 < self.clock_rate_std_ppm <= 1000,
             "max_clock_ppm": 0 < self.max_clock_ppm <= 1000,
             "height_correlation_s": 0 < self.height_correlation_s <= 1e5,
-            "bias_correlation_s": 0 < self.bias_correlation_s <= 1e5,
+            "bias_decorrelation_m": 0 < self.bias_decorrelation_m <= 1e6,
+            "bias_correlation_s": 0 < self.bias_correlation_s <= 1e7,
             "site_clock_wander_mps_per_sqrt_s": 0 <= self.site_clock_wander_mps_per_sqrt_s <= 1e3,
             "stack_overlap": 1 <= self.stack_overlap <= 1000,
             "prior_hold_s": 0 < self.prior_hold_s <= 3600,
+            "max_std_m": 0 < self.max_std_m <= 1e6,
+            "heading_drift_rad_per_sqrt_s": 0 <= self.heading_drift_rad_per_sqrt_s <= 1,
+            "odometry_scale_std": 0 < self.odometry_scale_std <= 1,
+            "odometry_scale_wander_per_sqrt_s": 0 <= self.odometry_scale_wander_per_sqrt_s <= 1,
         }
         for name, ok in checks.items():
             value = getattr(self, name)
@@ -197,49 +238,70 @@ class TrackerConfig:
         return self.snapshot.dims
 
 
-@dataclass(frozen=True)
-class _Start:
-    """A batch solution: ``mean`` = [position (D), b, d] at ``time_s``, its covariance, the time
-    of the latest arrival it used, and the sites it used and left out."""
-
-    time_s: float
-    mean: np.ndarray
-    covariance: np.ndarray
-    latest_s: float
-    sites: tuple[str, ...]
-    rejected: tuple[str, ...]
-
-
 @dataclass
 class _Site:
     """A heard site's states: its range bias at ``index`` (with site clocks, its clock offset and
-    drift next), the bias's stationary variance (m^2) and when the site was last heard."""
+    drift next), the bias's stationary variance (m^2) and how faded the tracker's biases were
+    (:attr:`Tracker._faded`) when the site was last heard."""
 
     index: int
     variance_m2: float
-    heard_s: float
+    heard_fade: float
+
+
+@dataclass(frozen=True)
+class SiteBias:
+    """What the tracker has learned of a heard site: its range bias (m, against the receiver
+    clock; with site clock states, the clock offset added) and 1-sigma, and its clock drift
+    (m/s, NaN without site clock states)."""
+
+    bias_m: float
+    std_m: float
+    drift_mps: float = math.nan
+    drift_std_mps: float = math.nan
+
+
+@dataclass
+class _Stretch:
+    """An odometry stretch: from ``first_s`` to ``last_s``, the displacement it read in its own
+    frame (m) and that displacement's covariance, and the latest velocity and its covariance."""
+
+    first_s: float = math.nan
+    last_s: float = math.nan
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    velocity_covariance: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+    displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
 
 
 class Tracker:
-    """Follows the receiver through stacks of 0..N site arrivals (see the module docstring)."""
+    """Follows the receiver through stacks of 0..N site arrivals, and positions and velocities
+    from outside (see the module docstring)."""
 
     def __init__(self, config: TrackerConfig | None = None) -> None:
         self.config = config or TrackerConfig()
         c = self.config
         self._gate = chi_square_limit(c.gate_probability, 1)
+        self._gate2 = chi_square_limit(c.gate_probability, 2)
+        self._gate_position = chi_square_limit(c.gate_probability, c.dims)
         self.stale_arrivals = 0  # arrivals older than the filter's time, skipped
         self.rejected_arrivals = 0  # arrivals that failed the gate
         self.last_restart: str | None = None  # why the tracker last gave up its state and started again
+        self._aids: list[tuple[float, int, PositionAid | VelocityAid]] = []  # a heap by time
+        self._order = itertools.count()
+        self._notes: list[str] = []
         self.reset()
 
     def reset(self) -> None:
         """Forget everything heard (a new stream, or one that started over): the next start
-        needs fresh arrivals."""
+        needs fresh arrivals; positions and velocities queued are dropped."""
         self._window: deque[SiteArrival] = deque()
         self._newest = -math.inf
         self._prior: PositionPrior | None = None
-        self._prior_since: float | None = None  # the time of the first update after the prior was given
+        self._prior_since: float | None = None  # when the prior was given (None: at the next update)
+        self._aids.clear()
         self._forget()
+        self._odometry_known: tuple[np.ndarray, np.ndarray] | None = None  # (psi, s), covariance kept over restarts
 
     def start_from(self, prior: PositionPrior) -> None:
         """Give up the state and start again from ``prior`` at the next update (an operator's
@@ -252,6 +314,38 @@ class Tracker:
         self._forget()
         self._prior, self._prior_since = prior, None
 
+    def add_position(self, aid: PositionAid) -> None:
+        """Queue an absolute position (a GNSS fix) for the update that reaches its time."""
+        if not isinstance(aid, PositionAid):
+            raise ValueError(f"aid: {aid!r} is not a PositionAid")
+        heapq.heappush(self._aids, (aid.time_s, next(self._order), aid))
+
+    def add_velocity(self, aid: VelocityAid) -> None:
+        """Queue an odometry velocity for the update that reaches its time."""
+        if not isinstance(aid, VelocityAid):
+            raise ValueError(f"aid: {aid!r} is not a VelocityAid")
+        heapq.heappush(self._aids, (aid.time_s, next(self._order), aid))
+
+    def take_notes(self) -> list[str]:
+        """What the tracker refused of the positions and velocities given since the last call,
+        in words (one sentence each)."""
+        notes, self._notes = self._notes, []
+        return notes
+
+    def site_biases(self) -> dict[str, SiteBias]:
+        """Every site with states: what the tracker has learned of its bias (and clock)."""
+        out = {}
+        for name, site in self._sites.items():
+            i = site.index
+            if self.config.site_clocks:
+                bias = self._x[i] + self._x[i + 1]
+                variance = self._P[i, i] + self._P[i + 1, i + 1] + 2 * self._P[i, i + 1]
+                out[name] = SiteBias(float(bias), math.sqrt(max(variance, 0.0)), float(self._x[i + 2]),
+                                     math.sqrt(max(self._P[i + 2, i + 2], 0.0)))
+            else:
+                out[name] = SiteBias(float(self._x[i]), math.sqrt(max(self._P[i, i], 0.0)))
+        return out
+
     def _forget(self) -> None:
         """Forget the state but keep the window of recent arrivals, for a start at once."""
         c, dims = self.config, self.config.dims
@@ -261,17 +355,27 @@ class Tracker:
         self._last_accepted = math.nan
         self._held_since: float | None = None  # when the initial position the track rests on was given
         self._rejection_run: list[str] = []
+        self._refused_positions: list[PositionAid] = []
+        self._velocity_refusals = 0  # odometry velocities refused in a row
+        if getattr(self, "_odometry", None) is not None:  # the odometry's yaw and scale outlive the track
+            block = slice(self._odometry, self._odometry + 2)
+            self._odometry_known = (self._x[block].copy(), self._P[block, block].copy())
         self._sites: dict[str, _Site] = {}  # in the order of their states
+        self._odometry: int | None = None  # index of the odometry frame's yaw (its scale next)
+        self._clone: int | None = None  # index of the position cloned where an odometry stretch began
+        self._stretch = _Stretch()
+        self._faded = 0.0  # the site biases' Gauss-Markov exponent summed since the start
         self._width = 3 if c.site_clocks else 1  # states per site: bias (, clock offset, clock drift)
         self._bias = dims + 2  # after the position and the horizontal velocity
         self._model()
 
     def _model(self) -> None:
-        """The motion model of the receiver's states and the sites': F = I + dt S, Q = |dt|^3/3 Q3
-        + dt|dt|/2 Q2 + |dt| Q1 (an integrated random walk per pair, exact for any step, back in
-        time too), the site biases' Gauss-Markov decay set in by :meth:`_propagated`."""
+        """The motion model of the receiver's states and the others': F = I + dt S, Q = |dt|^3/3
+        Q3 + dt|dt|/2 Q2 + |dt| Q1 (an integrated random walk per pair, exact for any step, back
+        in time too), the site biases' Gauss-Markov decay set in by :meth:`_propagated`."""
         c, dims = self.config, self.config.dims
-        n = self._bias + 2 + self._width * len(self._sites)
+        n = (self._bias + 2 + self._width * len(self._sites) + (0 if self._odometry is None else 2)
+             + (0 if self._clone is None else 2))
         # each pair: a "to" state integrating its "from" state, which random-walks with that PSD
         pairs = [(i, dims + i, c.acceleration_std_mps2**2) for i in range(2)]
         pairs.append((self._bias, self._bias + 1, c.clock_drift_std_mps_per_sqrt_s**2))
@@ -284,6 +388,9 @@ class Tracker:
             self._shift[to, frm] = 1.0
             self._q3[to, to] = self._q2[to, frm] = self._q2[frm, to] = self._q1[frm, frm] = q
         self._q1[self._bias, self._bias] = c.clock_bias_std_m_per_sqrt_s**2
+        if self._odometry is not None:
+            self._q1[self._odometry, self._odometry] = c.heading_drift_rad_per_sqrt_s**2
+            self._q1[self._odometry + 1, self._odometry + 1] = c.odometry_scale_wander_per_sqrt_s**2
         self._site_biases = np.array([site.index for site in self._sites.values()], dtype=np.intp)
         self._site_variances = np.array([site.variance_m2 for site in self._sites.values()])
 
@@ -291,10 +398,16 @@ class Tracker:
     def initialised(self) -> bool:
         return len(self._x) > 0
 
+    @property
+    def time_s(self) -> float:
+        """The filter's time, on the update's time base (NaN before a start)."""
+        return self._t
+
     def update(self, arrivals: Sequence[SiteArrival], stamp_ns: int, time_s: float,
                clock_rate: float | None = None) -> Fix | NoFix:
-        """Predict to each arrival's time in order and update with it; return the state at
-        ``time_s`` (a :class:`Fix`, ``kind`` TRACKED) or why there is none (NOT_INITIALISED).
+        """Predict to each measurement's time in order and update with it: the arrivals, and
+        the positions and velocities queued up to ``time_s``; return the state at ``time_s``
+        (a :class:`Fix`, ``kind`` TRACKED) or why there is none (NOT_INITIALISED, TRACK_LOST).
 
         ``clock_rate`` (ppm * 1e-6), the receiver clock error the sync stage measured, is the
         drift prior of a start. Once tracking it is not used: the ranges measure the drift to
@@ -304,12 +417,14 @@ class Tracker:
         """
         arrivals = _checked(arrivals, time_s, clock_rate)
         self._remember(arrivals, time_s)
-        now = min(time_s, arrivals[0].time_s) if arrivals else time_s
-        if self.initialised and now - self._last_accepted > self.config.max_coast_s:
-            return self._restart(f"no site accepted for {now - self._last_accepted:.1f} s "
-                                 f"(max_coast_s {self.config.max_coast_s:g} s)", stamp_ns, time_s, clock_rate, ())
+        aids = self._due_aids(time_s)
         if not self.initialised:
-            return self._start(stamp_ns, time_s, clock_rate, arrivals)
+            return self._start_aided(stamp_ns, time_s, clock_rate, arrivals, aids)
+        first = min([a.time_s for a in arrivals] + [a.time_s for a in aids], default=time_s)
+        now = min(time_s, first)
+        if now - self._last_accepted > self.config.max_coast_s:
+            return self._restart(f"no measurement accepted for {now - self._last_accepted:.1f} s "
+                                 f"(max_coast_s {self.config.max_coast_s:g} s)", stamp_ns, time_s, clock_rate, ())
         if self._held_since is not None and len(self._sites) > self.config.dims:
             self._held_since = None  # the sites fix the position now: the prior is forgotten
         if self._held_since is not None and now - self._held_since > self.config.prior_hold_s:
@@ -319,44 +434,74 @@ class Tracker:
         self._drop_unheard()
         used: list[str] = []
         rejected: list[str] = []
-        for arrival in arrivals:
-            if arrival.time_s < self._t:
-                self.stale_arrivals += 1
+        measurements = sorted([*arrivals, *aids], key=lambda m: m.time_s)  # stable: arrivals first at a tie
+        for measurement in measurements:
+            if measurement.time_s < self._t:
+                self._stale(measurement)
                 continue
-            self._predict(arrival.time_s - self._t)
-            self._t = arrival.time_s
-            if self._correct(arrival):
-                _add(used, arrival.site)
-                self._last_accepted = arrival.time_s
+            self._predict(measurement.time_s - self._t)
+            self._t = measurement.time_s
+            if isinstance(measurement, VelocityAid):
+                self._use_velocity(measurement)
+                continue
+            if isinstance(measurement, PositionAid):
+                restart = self._use_position(measurement)
+                if restart is not None:
+                    return self._restart(restart, stamp_ns, time_s, clock_rate, tuple(rejected), measurement)
+                continue
+            if self._correct(measurement):
+                _add(used, measurement.site)
+                self._last_accepted = measurement.time_s
                 self._rejection_run.clear()
                 continue
-            _add(rejected, arrival.site)
+            _add(rejected, measurement.site)
             self.rejected_arrivals += 1
-            self._rejection_run.append(arrival.site)
+            self._rejection_run.append(measurement.site)
             if len(self._rejection_run) >= self.config.max_rejections and len(set(self._rejection_run)) >= 2:
                 sites = ", ".join(sorted(set(self._rejection_run)))
                 return self._restart(f"the last {len(self._rejection_run)} arrivals (sites {sites}) all failed the "
                                      "gate: the state, not the sites, was wrong", stamp_ns, time_s, clock_rate,
                                      tuple(rejected))
-        self._P = 0.5 * (self._P + self._P.T)  # the scalar updates' rounding, kept from accumulating
-        return self._fix_at(time_s, stamp_ns, tuple(used), tuple(rejected))
+        self._P = 0.5 * (self._P + self._P.T)  # the updates' rounding, kept from accumulating
+        return self._reported(self._fix_at(time_s, stamp_ns, tuple(used), tuple(rejected)))
+
+    def _reported(self, fix: Fix) -> Fix | NoFix:
+        """The fix, or TRACK_LOST where its horizontal 1-sigma is beyond ``max_std_m``."""
+        if fix.horizontal_std_m <= self.config.max_std_m:
+            return fix
+        return NoFix(fix.stamp_ns, NoFixReason.TRACK_LOST,
+                     f"the track's horizontal 1-sigma grew to {fix.horizontal_std_m:.0f} m (max_std_m "
+                     f"{self.config.max_std_m:g} m): lost until sites or an anchor narrow it", fix.rejected)
 
     # ------------------------------------------------------------------ the filter
 
     def _predict(self, dt: float) -> None:
         """Move the filter ``dt`` seconds on; ``b`` stays within half a frame of 0."""
+        self._faded += self._fade(self._x, self._P, abs(dt))
         self._x, self._P = self._propagated(self._x, self._P, dt)
         self._x[self._bias] = (self._x[self._bias] + FRAME_RANGE_M / 2) % FRAME_RANGE_M - FRAME_RANGE_M / 2
+
+    def _fade(self, x: np.ndarray, P: np.ndarray, seconds: float) -> float:
+        """The site biases' Gauss-Markov exponent over ``seconds``: time over their correlation
+        time plus the distance the receiver covers (its speed, an uncertain one counted as
+        faster) over their decorrelation distance."""
+        if not len(self._site_biases) or seconds == 0:
+            return 0.0
+        dims, c = self.config.dims, self.config
+        v, Pv = x[dims: dims + 2], P[dims: dims + 2, dims: dims + 2]
+        speed = math.sqrt(float(v @ v) + float(np.trace(Pv)))
+        return seconds / c.bias_correlation_s + speed * seconds / c.bias_decorrelation_m
 
     def _propagated(self, x: np.ndarray, P: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         F = self._eye + dt * self._shift
         a = abs(dt)
         Q = (a**3 / 3) * self._q3 + (0.5 * dt * a) * self._q2 + a * self._q1
         if len(self._site_biases):
-            # site biases: first-order Gauss-Markov towards 0, holding their stationary variance
-            decay = -math.expm1(-2 * a / self.config.bias_correlation_s)
-            F[self._site_biases, self._site_biases] = math.exp(-dt / self.config.bias_correlation_s)
-            Q[self._site_biases, self._site_biases] = self._site_variances * decay
+            # site biases: first-order Gauss-Markov towards 0 over time and path, holding their
+            # stationary variance (back in time, the decay undone)
+            fade = self._fade(x, P, a)
+            F[self._site_biases, self._site_biases] = math.exp(-math.copysign(fade, dt))
+            Q[self._site_biases, self._site_biases] = self._site_variances * -math.expm1(-2 * fade)
         if self.config.dims == 2:
             return F @ x, F @ P @ F.T + Q
         # 3-D: up relaxes towards the receiver height (first-order Gauss-Markov, stationary sigma
@@ -390,9 +535,190 @@ class Tracker:
         if innovation * innovation > self._gate * variance:
             return False
         gain = ph / variance
+        if self._odometry is None:
+            x += gain * innovation
+            P -= np.outer(gain, ph)
+            return True
+        # the velocity and the odometry's yaw and scale are considered, not updated, by the sites
+        # (a Schmidt update): the odometry measures the velocity, and a bias drifting along the
+        # route would pass for a velocity or scale error it then carries on (simulated walk:
+        # scale -0.27 for a true -0.02, the track drifting 0.5 m/s)
+        dims = self.config.dims
+        gain[dims: dims + 2] = 0.0
+        gain[self._odometry: self._odometry + 2] = 0.0
         x += gain * innovation
-        P -= np.outer(gain, ph)
+        self._P = P - np.outer(gain, ph) - np.outer(ph, gain) + variance * np.outer(gain, gain)
         return True
+
+    def _correct_block(self, innovation: np.ndarray, H: np.ndarray, R: np.ndarray, gate: float,
+                       considered: Sequence[int] = ()) -> float | None:
+        """A vector update (Joseph form: right for any gain); the normalised innovation squared
+        where it fails ``gate`` (state untouched), else None. ``considered`` states keep their
+        values (a Schmidt update: their uncertainty counts, they learn nothing from it)."""
+        P = self._P
+        PH = P @ H.T
+        S = H @ PH + R
+        score = float(innovation @ np.linalg.solve(S, innovation))
+        if not score <= gate:
+            return score
+        K = np.linalg.solve(S, PH.T).T
+        K[list(considered)] = 0.0
+        self._x += K @ innovation
+        A = self._eye - K @ H
+        self._P = A @ P @ A.T + K @ R @ K.T
+        return None
+
+    def _use_position(self, aid: PositionAid) -> str | None:
+        """An absolute position: used, or refused and said; a reason to start again from it
+        when it is the latest of ``max_position_rejections`` refused positions that agree."""
+        dims = self.config.dims
+        H = np.zeros((dims, len(self._x)))
+        H[:, :dims] = np.eye(dims)
+        innovation = aid.position_enu[:dims] - self._x[:dims]
+        score = self._correct_block(innovation, H, aid.covariance[:dims, :dims], self._gate_position)
+        if score is None:
+            self._last_accepted = aid.time_s
+            self._refused_positions.clear()
+            if self._held_since is not None:
+                self._held_since = aid.time_s  # the track rests on this position now
+            return None
+        distance = float(np.hypot(*innovation[:2]))
+        self._notes.append(f"{aid.source} at {aid.time_s:.1f} s refused: {distance:.0f} m from the track "
+                           f"(normalised innovation {score:.1f} beyond the gate {self._gate_position:.1f})")
+        self._refused_positions.append(aid)
+        run = self._refused_positions[-self.config.max_position_rejections:]
+        if len(run) == self.config.max_position_rejections and _agree(run, self.config.initial_speed_std_mps):
+            return (f"{len(run)} {aid.source}s in a row, agreeing with each other, were {distance:.0f} m from the "
+                    "track: the track, not the fixes, was wrong")
+        return None
+
+    def _use_velocity(self, aid: VelocityAid) -> None:
+        """An odometry velocity: in ``map``, a direct measurement; in an odometry frame, with the
+        frame's yaw and scale once aligned, only a standstill before (and a step of the stretch
+        that aligns it); refused and said beyond the gate."""
+        dims = self.config.dims
+        velocity = np.arange(dims, dims + 2)
+        v = self._x[velocity]
+        z, R = aid.velocity, aid.covariance
+        speed = float(np.hypot(*z))
+        if not aid.in_map_frame and self._odometry is None:
+            self._stretch_to(aid)  # may grow the state: size H after
+        H = np.zeros((2, len(self._x)))
+        if aid.in_map_frame or speed <= STANDSTILL_SIGMAS * math.sqrt(float(np.linalg.eigvalsh(R)[-1])):
+            # a standstill reads 0 in any frame: what it read is folded into the noise
+            H[:, velocity] = np.eye(2)
+            if not aid.in_map_frame:
+                z, R = np.zeros(2), np.eye(2) * (speed**2 + float(np.linalg.eigvalsh(R)[-1]))
+            self._velocity_outcome(aid, self._correct_block(z - v, H, R, self._gate2), speed)
+            return
+        if self._odometry is None:
+            self._align_odometry(aid)
+            return
+        psi, scale = self._x[self._odometry], self._x[self._odometry + 1]
+        seen, by_v, by_psi, by_scale = odometry_velocity(v, psi, scale)
+        H[:, velocity] = by_v
+        H[:, self._odometry] = by_psi
+        H[:, self._odometry + 1] = by_scale
+        # the yaw and scale are considered, not updated, here: the odometry alone cannot tell a
+        # turned or scaled velocity from a scaled odometry (z = (1 + s) R(-psi) v), and an EKF
+        # linearised on its own estimate walks along that direction, ever more sure of it
+        # (simulated: the scale from -0.02 to -0.27 in two minutes); positions teach them
+        odometry = (self._odometry, self._odometry + 1)
+        score = self._correct_block(z - seen, H, R, self._gate2, odometry)
+        if score is not None and self._velocity_refusals + 1 >= MAX_VELOCITY_REFUSALS:
+            # the odometry said it again: the track's velocity is what is wrong (a turn the motion
+            # model did not expect); it is given the odometry's word, its own uncertainty widened
+            missed = float(np.sum((rotation(psi) @ z / (1 + scale) - v) ** 2))
+            self._P[velocity, velocity] += missed
+            self._notes.append(f"odometry at {aid.time_s:.1f} s disagreed with the track's velocity "
+                               f"{self._velocity_refusals + 1} times in a row: the track's velocity was wrong "
+                               f"({math.sqrt(missed):.1f} m/s off), taken from the odometry")
+            score = self._correct_block(z - seen, H, R, math.inf, odometry)
+        self._velocity_outcome(aid, score, speed)
+
+    def _velocity_outcome(self, aid: VelocityAid, score: float | None, speed: float) -> None:
+        if score is None:
+            self._last_accepted = aid.time_s
+            self._velocity_refusals = 0
+            return
+        self._velocity_refusals += 1
+        self._notes.append(f"odometry velocity at {aid.time_s:.1f} s refused: {speed:.1f} m/s read, the track "
+                           f"disagrees (normalised innovation {score:.1f})")
+
+    def _stretch_to(self, aid: VelocityAid) -> None:
+        """Integrate the odometry frame's displacement since the stretch began, where the track's
+        position was cloned into the state (its covariance with everything kept as the filter
+        runs on); a gap in the odometry starts a new stretch."""
+        stretch = self._stretch
+        if self._clone is not None and aid.time_s - stretch.last_s > ODOMETRY_GAP_S:
+            self._remove(range(self._clone, self._clone + 2))
+        if self._clone is None:
+            n = len(self._x)
+            P = np.zeros((n + 2, n + 2))
+            P[:n, :n] = self._P
+            P[n:, :n] = self._P[:2, :]
+            P[:n, n:] = self._P[:, :2]
+            P[n:, n:] = self._P[:2, :2]
+            self._x, self._P, self._clone = np.append(self._x, self._x[:2]), P, n
+            self._stretch = _Stretch(aid.time_s, aid.time_s, aid.velocity, aid.covariance)
+            self._model()
+            return
+        dt = aid.time_s - stretch.last_s
+        stretch.displacement = stretch.displacement + 0.5 * (stretch.velocity + aid.velocity) * dt
+        stretch.covariance = stretch.covariance + 0.25 * (stretch.velocity_covariance + aid.covariance) * dt**2
+        stretch.last_s, stretch.velocity, stretch.velocity_covariance = aid.time_s, aid.velocity, aid.covariance
+
+    def _align_odometry(self, aid: VelocityAid) -> None:
+        """Once the odometry's stretch is long enough and the track's displacement over it points
+        well enough, the odometry frame's yaw (the angle between the two, with its covariance to
+        every state kept) and scale (its prior) join the state and the clone goes; the yaw a
+        track before this one learned is taken again at once."""
+        stretch, c = self._stretch, self._clone
+        displacement = self._x[:2] - self._x[c: c + 2]
+        if float(np.hypot(*stretch.displacement)) < ALIGN_MIN_M or not float(np.hypot(*displacement)) > 0:
+            return
+        spread = (self._P[:2, :2] + self._P[c: c + 2, c: c + 2] - self._P[:2, c: c + 2] - self._P[c: c + 2, :2])
+        if float(np.linalg.eigvalsh(spread)[-1]) > (ALIGN_DIRECTION_STD_RAD * float(np.hypot(*displacement))) ** 2:
+            return
+        psi, by_track, odometry_variance = heading_offset(displacement, stretch.displacement, stretch.covariance)
+        n = len(self._x)
+        cross = by_track @ (self._P[:2, :] - self._P[c: c + 2, :])  # (n,): psi's covariance with every state
+        wander = self.config.heading_drift_rad_per_sqrt_s**2 * (stretch.last_s - stretch.first_s)
+        P = np.zeros((n + 2, n + 2))
+        P[:n, :n] = self._P
+        P[n, :n] = P[:n, n] = cross
+        P[n, n] = float(by_track @ spread @ by_track) + odometry_variance + wander
+        P[n + 1, n + 1] = self.config.odometry_scale_std**2
+        self._x, self._P, self._odometry = np.append(self._x, [psi, 0.0]), P, n
+        self._remove(range(c, c + 2))
+        self._last_accepted = aid.time_s
+
+    def _remove(self, states: Sequence[int]) -> None:
+        """Marginalise ``states`` out (their rows and columns go), every index moved along."""
+        keep = np.ones(len(self._x), dtype=bool)
+        keep[list(states)] = False
+        moved = np.cumsum(keep) - 1  # each kept state's new index
+        for site in self._sites.values():
+            site.index = int(moved[site.index])
+        self._odometry = None if self._odometry is None or not keep[self._odometry] else int(moved[self._odometry])
+        self._clone = None if self._clone is None or not keep[self._clone] else int(moved[self._clone])
+        self._x, self._P = self._x[keep], self._P[np.ix_(keep, keep)]
+        self._model()
+
+    def _stale(self, measurement: SiteArrival | PositionAid | VelocityAid) -> None:
+        if isinstance(measurement, SiteArrival):
+            self.stale_arrivals += 1
+            return
+        kind = "odometry velocity" if isinstance(measurement, VelocityAid) else measurement.source
+        self._notes.append(f"{kind} at {measurement.time_s:.2f} s refused: older than the track "
+                           f"({self._t:.2f} s); give it before the stacks that come after it")
+
+    def _due_aids(self, time_s: float) -> list[PositionAid | VelocityAid]:
+        """The queued positions and velocities up to ``time_s``, in time order."""
+        due = []
+        while self._aids and self._aids[0][0] <= time_s:
+            due.append(heapq.heappop(self._aids)[2])
+        return due
 
     def _bias_variance(self, arrival: SiteArrival) -> float:
         """The stationary variance of the site's bias state: multipath, and without site clock
@@ -406,7 +732,7 @@ class Tracker:
         site = self._sites.get(arrival.site)
         if site is None:
             return self._add_site(arrival)
-        site.heard_s = arrival.time_s
+        site.heard_fade = self._faded
         variance = self._bias_variance(arrival)
         if variance != site.variance_m2:
             self._P[site.index, site.index] += max(variance - site.variance_m2, 0.0)
@@ -418,7 +744,7 @@ class Tracker:
         """A newly heard site: its bias state (with site clocks, offset and drift states too) at 0,
         with the arrival's sigmas as priors, independent of the rest."""
         c, n = self.config, len(self._x)
-        site = self._sites[arrival.site] = _Site(n, self._bias_variance(arrival), arrival.time_s)
+        site = self._sites[arrival.site] = _Site(n, self._bias_variance(arrival), self._faded)
         prior = [site.variance_m2]
         if c.site_clocks:
             prior += [arrival.clock_std_m**2, arrival.clock_drift_std_mps**2]
@@ -431,21 +757,13 @@ class Tracker:
         return site
 
     def _drop_unheard(self) -> None:
-        """Forget the states of sites unheard for ``FORGET_CORRELATIONS`` bias correlation times
-        (marginalised: their rows and columns go); heard again, they start afresh."""
-        oldest = self._t - FORGET_CORRELATIONS * self.config.bias_correlation_s
-        gone = [name for name, site in self._sites.items() if site.heard_s < oldest]
-        if not gone:
-            return
-        keep = np.ones(len(self._x), dtype=bool)
-        for name in gone:
-            index = self._sites.pop(name).index
-            keep[index: index + self._width] = False
-        moved = np.cumsum(keep) - 1  # each kept state's new index
-        for site in self._sites.values():
-            site.index = int(moved[site.index])
-        self._x, self._P = self._x[keep], self._P[np.ix_(keep, keep)]
-        self._model()
+        """Forget the states of sites whose bias has faded ``FORGET_CORRELATIONS`` correlations
+        since they were last heard (marginalised: their rows and columns go); heard again, they
+        start afresh."""
+        gone = [name for name, site in self._sites.items() if self._faded - site.heard_fade > FORGET_CORRELATIONS]
+        if gone:
+            indices = [self._sites.pop(name).index for name in gone]
+            self._remove([i + k for i in indices for k in range(self._width)])
 
     def _position(self, x: np.ndarray) -> np.ndarray:
         if self.config.dims == 2:
@@ -482,16 +800,28 @@ class Tracker:
             self._window.popleft()
 
     def _restart(self, why: str, stamp_ns: int, time_s: float, clock_rate: float | None,
-                 rejected: tuple[str, ...]) -> Fix | NoFix:
+                 rejected: tuple[str, ...], anchor: PositionAid | None = None) -> Fix | NoFix:
         """Forget the state and start again at once from the arrivals it could not explain (those
-        before them agreed with the state given up); ``last_restart`` keeps why, a NoFix says it."""
+        before them agreed with the state given up), from ``anchor`` where one says where the
+        receiver is; ``last_restart`` keeps why, a NoFix says it."""
         self._window = deque(a for a in self._window if a.time_s > self._last_accepted)
         self.last_restart = why
         self._forget()
+        if anchor is not None:
+            self._prior, self._prior_since = _prior_of(anchor), anchor.time_s
         outcome = self._start(stamp_ns, time_s, clock_rate, [])
         if isinstance(outcome, NoFix):
             return NoFix(stamp_ns, outcome.reason, f"restarted: {why}; {outcome.message}", rejected)
         return outcome
+
+    def _start_aided(self, stamp_ns: int, time_s: float, clock_rate: float | None, arrivals: list[SiteArrival],
+                     aids: list[PositionAid | VelocityAid]) -> Fix | NoFix:
+        """A start, the latest position among ``aids`` standing in for an initial position
+        (velocities need a track to align with: they wait for none)."""
+        positions = [aid for aid in aids if isinstance(aid, PositionAid)]
+        if positions:
+            self._prior, self._prior_since = _prior_of(positions[-1]), positions[-1].time_s
+        return self._start(stamp_ns, time_s, clock_rate, arrivals)
 
     def _start(self, stamp_ns: int, time_s: float, clock_rate: float | None,
                arrivals: list[SiteArrival]) -> Fix | NoFix:
@@ -501,18 +831,19 @@ class Tracker:
         # a prior is about the receiver now: every recent arrival tells the clock something
         candidates = [arrivals] if prior is None and len({a.site for a in arrivals}) >= dims + 1 else []
         candidates.append(sorted(self._window, key=lambda a: a.time_s))
-        outcome: _Start | str = ""
+        outcome: Start | str = ""
         for candidate in candidates:
-            outcome = _batch_start(candidate, self.config, clock_rate, prior)
-            if isinstance(outcome, _Start):
+            outcome = batch_start(candidate, self.config, clock_rate, prior)
+            if isinstance(outcome, Start):
                 break
         if isinstance(outcome, str):
-            hint = "" if prior is not None else "; an initial position (start_from; /initialpose in ROS) would start from one site"
+            hint = ("" if prior is not None else "; an initial position (start_from; /initialpose or a GNSS fix in "
+                    "ROS) would start from one site")
             return NoFix(stamp_ns, NoFixReason.NOT_INITIALISED, f"waiting for a start: {outcome}{hint}{dropped}")
         self._begin(outcome, candidate)
         if prior is not None:  # the prior's hold counts from when it was given, its wait included
             self._prior, self._held_since = None, self._prior_since
-        return self._fix_at(time_s, stamp_ns, outcome.sites, outcome.rejected)
+        return self._reported(self._fix_at(time_s, stamp_ns, outcome.sites, outcome.rejected))
 
     def _pending_prior(self, time_s: float) -> tuple[PositionPrior | None, str]:
         """The initial position waiting for a start, widened by what the receiver may have
@@ -526,18 +857,18 @@ class Tracker:
         if age > c.prior_hold_s:
             self._prior = None
             return None, (f"; the initial position waited {age:.1f} s for a site (prior_hold_s "
-                          f"{c.prior_hold_s:g} s) and was dropped: the receiver may have walked away from it")
+                          f"{c.prior_hold_s:g} s) and was dropped: the receiver may have moved away from it")
         if age <= 0:
             return self._prior, ""
         # per horizontal axis: an unknown velocity (the start's speed prior) and the acceleration walk
         walked = (c.initial_speed_std_mps * age) ** 2 + c.acceleration_std_mps2**2 * age**3 / 3
         return PositionPrior(self._prior.position_enu, self._prior.covariance + np.diag([walked, walked, 0.0])), ""
 
-    def _begin(self, start: _Start, arrivals: Sequence[SiteArrival]) -> None:
+    def _begin(self, start: Start, arrivals: Sequence[SiteArrival]) -> None:
         """The filter from a batch solution: velocity 0 with the speed prior, predicted to the
-        latest arrival used (which widens the position by the distance walked meanwhile); then
-        the bias states of the sites it used, with the priors of their latest arrivals (the batch
-        took those biases as noise: their correlation with its position is not kept)."""
+        latest arrival used (which widens the position by the distance travelled meanwhile);
+        then the bias states of the sites it used, with the priors of their latest arrivals (the
+        batch took those biases as noise: their correlation with its position is not kept)."""
         dims = self.config.dims
         n = dims + 4
         solved = np.array([*range(dims), self._bias, self._bias + 1])
@@ -553,163 +884,32 @@ class Tracker:
         latest = {a.site: a for a in arrivals if a.site in start.sites}  # in time order: the last stays
         for name in start.sites:
             self._add_site(latest[name])
+        if self._odometry_known is not None:  # the odometry's yaw and scale, as the last track left them
+            values, covariance = self._odometry_known
+            n = len(self._x)
+            P = np.zeros((n + 2, n + 2))
+            P[:n, :n], P[n:, n:] = self._P, covariance
+            self._x, self._P, self._odometry = np.append(self._x, values), P, n
+            self._model()
 
 
-def _batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
-                 prior: PositionPrior | None = None) -> _Start | str:
-    """Position, clock bias and drift from arrivals spread over a few seconds (the receiver taken
-    as static), or a sentence saying why not. ``arrivals`` must be in time order. With a
-    ``prior`` (the position's, at the arrivals' mean time) one site is enough: it measures the
-    clock, and along its range the position, by as much as the prior leaves open."""
-    dims = config.dims
-    names = sorted({a.site for a in arrivals})
-    rate_known = clock_rate is not None
-    needed = 1 if prior is not None else dims + 1
-    if len(names) < needed:
-        what = "clock bias; the initial position given" if prior is not None else "position and clock bias"
-        return (f"{len(names)} site(s) heard in the last {config.init_window_s:g} s ({', '.join(names) or 'none'}); "
-                f"{needed} needed in {dims}-D ({what})")
-    if len(arrivals) < (2 if prior is not None else dims + 3) - rate_known:
-        return f"{len(arrivals)} arrivals from {len(names)} sites: one more needed to solve the unknown clock drift"
-    problem = _BatchProblem(arrivals, config, clock_rate, prior)
-    start = problem.start()
-    if isinstance(start, str):
-        return start
-    keep = np.ones(len(arrivals), dtype=bool)
-    theta = problem.fit(start, keep, robust=True)
-    # a false lock or a reflection among them: out (once), and the rest solved without it
-    keep = np.abs(problem.residuals(theta, keep)[: keep.sum()]) ** 2 <= chi_square_limit(config.gate_probability, 1)
-    kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
-    if len(kept) < needed:  # before solving again: fewer would leave the solve underdetermined
-        return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {needed} needed"
-    if not keep.all():
-        theta = problem.fit(theta, keep, robust=False)
-    residuals = problem.residuals(theta, keep)
-    chi_square = float(residuals @ residuals)
-    dof = len(residuals) - len(theta)
-    if dof > 0 and chi_square > chi_square_limit(config.snapshot.outlier_probability, dof):
-        return (f"the {int(keep.sum())} arrivals of {', '.join(kept)} contradict their sigmas taken as static "
-                f"(chi-square {chi_square:.1f} with {dof} degrees of freedom)")
-    jacobian = problem.jacobian(theta, keep)
-    try:
-        covariance = np.linalg.inv(jacobian.T @ jacobian)
-    except np.linalg.LinAlgError:
-        covariance = np.full((len(theta), len(theta)), math.inf)
-    horizontal = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0))
-    typical = float(np.median(problem.sigma[keep]))
-    if prior is None and not horizontal <= config.snapshot.max_gdop * typical:  # a prior bounds it
-        return (f"the geometry of {', '.join(kept)} does not fix the position ({horizontal:.0f} m 1-sigma from "
-                f"{typical:.0f} m ranges)")
-    mean = theta.copy()
-    mean[dims] = (mean[dims] + problem.reference_m) % FRAME_RANGE_M
-    rejected = tuple(sorted({a.site for a, k in zip(arrivals, keep) if not k} - set(kept)))
-    return _Start(problem.t_ref, mean, covariance, float(problem.t[keep].max()), tuple(kept), rejected)
+def _prior_of(aid: PositionAid) -> PositionPrior:
+    """An absolute position as an initial position (its up axis unmeasured in 2-D)."""
+    covariance = np.array(aid.covariance, dtype=np.float64)
+    covariance[2, :2] = covariance[:2, 2] = 0.0
+    covariance[2, 2] = max(covariance[2, 2], UNMEASURED_VARIANCE)
+    return PositionPrior(tuple(aid.position_enu), covariance)
 
 
-class _BatchProblem:
-    """Arrivals over a window as one least-squares problem in [position (D), b, d] at the mean
-    arrival time, ``b`` counted from the earliest arrival's range (``reference_m``); a position
-    prior, whitened by its covariance's Cholesky factor, adds ``D`` rows."""
-
-    def __init__(self, arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
-                 prior: PositionPrior | None = None) -> None:
-        self.config = config
-        dims = config.dims
-        self.prior_mean = None if prior is None else np.array(prior.position_enu[:dims])
-        # rows W (x - mean) with W = L^-1, C = L L^T: unit-variance residuals of the prior
-        self.prior_root = None if prior is None else np.linalg.inv(np.linalg.cholesky(prior.covariance[:dims, :dims]))
-        self.arrivals = list(arrivals)
-        self.t = np.array([a.time_s for a in arrivals])
-        self.t_ref = float(self.t.mean())
-        if clock_rate is None:
-            self.drift_prior, self.drift_std = 0.0, config.max_clock_ppm * 1e-6 * SPEED_OF_LIGHT_M_S
-        else:
-            self.drift_prior = clock_rate * SPEED_OF_LIGHT_M_S
-            self.drift_std = config.clock_rate_std_ppm * 1e-6 * SPEED_OF_LIGHT_M_S
-        first = self.arrivals[0]
-        self.reference_m = first.range_mod_m
-        # a 20 ppm clock moves the ranges 18 km in 3 s: well within the half frame unwrapping allows
-        predicted = [first.range_mod_m + self.drift_prior * (a.time_s - first.time_s) for a in arrivals]
-        self.rho = np.array([unwrap_range(a.range_mod_m, p) for a, p in zip(arrivals, predicted)]) - self.reference_m
-        motion = config.initial_speed_std_mps * np.abs(self.t - self.t_ref)  # the static assumption's error
-        self.sigma = np.hypot([a.std_m for a in arrivals], motion)
-        self.sites = np.array([a.position_enu for a in arrivals], dtype=np.float64)
-        self.names = np.array([a.site for a in arrivals])
-
-    def position(self, theta: np.ndarray) -> np.ndarray:
-        if self.config.dims == 2:
-            return np.array([theta[0], theta[1], self.config.snapshot.receiver_height_m])
-        return theta[:3]
-
-    def start(self) -> np.ndarray | str:
-        """A first guess: the drift from how repeated sites' ranges move, then one range per
-        site at ``t_ref`` (the median: a single false lock does not move it) solved as a snapshot,
-        or with a prior, its position (the sites may be too few for a snapshot)."""
-        dt = self.t - self.t_ref
-        dims = self.config.dims
-        numerator = denominator = 0.0
-        for name in set(self.names):
-            mine = self.names == name
-            t = dt[mine] - dt[mine].mean()
-            numerator += float(t @ (self.rho[mine] - self.rho[mine].mean()))
-            denominator += float(t @ t)
-        # the slope's information (denominator / sigma^2) against the prior's: repeats 10 ms
-        # apart say little about a drift, seconds apart almost everything
-        weight = float(np.median(self.sigma)) ** 2 / self.drift_std**2
-        drift = (numerator + weight * self.drift_prior) / (denominator + weight)
-        collapsed = self.rho - drift * dt
-        if self.prior_mean is not None:
-            bias = float(np.median(collapsed - np.linalg.norm(self.sites - self.position(self.prior_mean), axis=1)))
-            return np.array([*self.prior_mean, bias, drift])
-        stack = []
-        for name in sorted(set(self.names)):
-            mine = np.flatnonzero(self.names == name)
-            stack.append(SiteArrival(str(name), self.sites[mine[0]], self.t_ref,
-                                     float(np.median(collapsed[mine])) % FRAME_RANGE_M,
-                                     float(np.median(self.sigma[mine])), ()))
-        snapshot = solve_snapshot(stack, self.config.snapshot)
-        if isinstance(snapshot, NoFix):
-            return f"the sites' ranges do not solve ({snapshot.reason.value}): {snapshot.message}"
-        position = np.asarray(snapshot.position_enu)
-        distances = np.linalg.norm(self.sites - position, axis=1)
-        bias = float(np.median(collapsed - distances))
-        return np.array([*position[:dims], bias, drift])
-
-    def residuals(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
-        """Arrivals (measured minus modelled, over sigma), then the drift prior (and height prior)."""
-        dims = self.config.dims
-        distance = np.linalg.norm(self.sites[keep] - self.position(theta), axis=1)
-        model = distance + theta[dims] + theta[dims + 1] * (self.t[keep] - self.t_ref)
-        priors = [(theta[dims + 1] - self.drift_prior) / self.drift_std]
-        if dims == 3:
-            priors.append((theta[2] - self.config.snapshot.receiver_height_m) / self.config.snapshot.height_prior_std_m)
-        if self.prior_root is not None:
-            priors.extend(self.prior_root @ (theta[:dims] - self.prior_mean))
-        return np.concatenate([(self.rho[keep] - model) / self.sigma[keep], priors])
-
-    def jacobian(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
-        dims = self.config.dims
-        diff = self.position(theta) - self.sites[keep]
-        unit = diff / np.maximum(np.linalg.norm(diff, axis=1, keepdims=True), 1e-9)
-        rows = np.hstack([unit[:, :dims], np.ones((len(unit), 1)), (self.t[keep] - self.t_ref)[:, None]])
-        priors = np.zeros((1 + (dims == 3), dims + 2))
-        priors[0, dims + 1] = -1 / self.drift_std
-        if dims == 3:
-            priors[1, 2] = -1 / self.config.snapshot.height_prior_std_m
-        if self.prior_root is not None:
-            position = np.zeros((dims, dims + 2))
-            position[:, :dims] = -self.prior_root
-            priors = np.vstack([priors, position])
-        return -np.vstack([rows / self.sigma[keep, None], priors])
-
-    def fit(self, theta: np.ndarray, keep: np.ndarray, robust: bool) -> np.ndarray:
-        """Levenberg-Marquardt; ``robust``: then again with a Huber loss (3 sigma) where a
-        residual lies beyond it, which bounds what a wild arrival can pull."""
-        result = least_squares(self.residuals, theta, jac=self.jacobian, args=(keep,), method="lm", max_nfev=100)
-        if robust and np.max(np.abs(result.fun)) > 3.0:
-            result = least_squares(self.residuals, result.x, jac=self.jacobian, args=(keep,), loss="huber",
-                                   f_scale=3.0, x_scale="jac", max_nfev=100)
-        return result.x
+def _agree(positions: Sequence[PositionAid], speed_std_mps: float) -> bool:
+    """Whether consecutive positions are within 3 sigma of each other, counting what the
+    receiver may have moved between them (the start's speed prior)."""
+    for earlier, later in zip(positions, positions[1:]):
+        moved = speed_std_mps * (later.time_s - earlier.time_s)
+        spread = np.trace(earlier.covariance[:2, :2] + later.covariance[:2, :2]) + 2 * moved**2
+        if np.sum((later.position_enu[:2] - earlier.position_enu[:2]) ** 2) > 9 * spread:
+            return False
+    return True
 
 
 def _checked(arrivals: Sequence[SiteArrival], time_s: float, clock_rate: float | None) -> list[SiteArrival]:

@@ -61,8 +61,6 @@ from __future__ import annotations
 import enum
 import json
 import math
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
@@ -75,6 +73,7 @@ from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import SyncTemplates, code_template, cosited_pair, sync_code_offset_seconds
+from deepsync.jobs import JobRunner
 from deepsync.lte.cell import CellConfig
 from deepsync.sync.sites import fit_site
 from deepsync.sync.stacking import FrameStacker, StackConfig
@@ -380,8 +379,7 @@ def _config_json(config: DatasetConfig) -> str:
     return json.dumps(asdict(config), sort_keys=True, default=choice_name)
 
 
-def _write_shard(job: tuple[DatasetConfig, Path, str, int]) -> int:
-    config, root, split, index = job
+def _write_shard(config: DatasetConfig, root: Path, split: str, index: int) -> int:
     path = shard_path(root, split, index)
     arrays = make_shard(config, split, index)
     # atomic: an interrupted write leaves no shard, so a rerun makes it again
@@ -404,9 +402,12 @@ def _check_made_with(path: Path, config: DatasetConfig) -> None:
                          f"{path.parent.parent} or choose another data directory")
 
 
-def generate(root: Path, shards: dict[str, int], config: DatasetConfig | None = None, workers: int = 1) -> int:
+def generate(root: Path, shards: dict[str, int], config: DatasetConfig | None = None, workers: int = 1,
+             ray: str | None = None) -> int:
     """Make every missing shard of ``shards`` (split -> count) under ``root``; returns how many
-    examples were made. Existing shards are kept: an interrupted run resumes."""
+    examples were made. Existing shards are kept: an interrupted run resumes. Shards are made
+    in ``workers`` local processes, or as tasks on the Ray cluster ``ray`` names
+    (``deepsync.jobs``): the same shards either way, each written atomically by its job."""
     config = config or DatasetConfig()
     jobs = []
     for split, count in shards.items():
@@ -418,20 +419,9 @@ def generate(root: Path, shards: dict[str, int], config: DatasetConfig | None = 
                 jobs.append((config, Path(root), split, k))
     made = 0
     with tqdm(total=len(jobs) * config.examples_per_shard, desc="timing examples", unit="ex") as bar:
-        if workers <= 1:
-            for job in jobs:
-                made += _write_shard(job)
-                bar.update(config.examples_per_shard)
-            return made
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_write_shard, job) for job in jobs]
-            try:
-                for future in as_completed(futures):
-                    made += future.result()
-                    bar.update(config.examples_per_shard)
-            except BaseException:  # Ctrl-C or a failure: finished shards stay, queued ones go
-                pool.shutdown(wait=True, cancel_futures=True)
-                raise
+        for count in JobRunner(workers, ray).map(_write_shard, jobs):
+            made += count
+            bar.update(config.examples_per_shard)
     return made
 
 

@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
+from deepsync.frontend.portable import elementwise
+
 
 @dataclass(frozen=True)
 class SectorPattern:
@@ -66,7 +68,8 @@ class SectorAntenna:
     def gain_db(self, direction_enu: ArrayLike) -> np.ndarray:
         """Gain (dB re boresight) towards ENU direction vectors (trailing axis of 3)."""
         d = np.asarray(direction_enu, dtype=np.float64)
-        bearing = np.degrees(np.arctan2(d[..., 0], d[..., 1]))
-        zenith = np.degrees(np.arctan2(np.hypot(d[..., 0], d[..., 1]), d[..., 2]))
+        bearing = np.degrees(elementwise(math.atan2, d[..., 0], d[..., 1]))
+        zenith = np.degrees(elementwise(math.atan2, np.hypot(d[..., 0], d[..., 1]), d[..., 2]))
         return self.pattern.attenuation_db(bearing - self.azimuth_deg,
                                            zenith - 90.0 - self.downtilt_deg)
+

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deepsync.frontend.portable import phasor
+
 
 @dataclass(frozen=True)
 class SumOfSinusoids:
@@ -29,7 +31,7 @@ class SumOfSinusoids:
             raise ValueError(f"n_sinusoids must be >= 1, got {n_sinusoids}")
         size = (*shape, n_sinusoids)
         alpha = rng.uniform(0.0, 2.0 * np.pi, size)
-        return cls(np.cos(alpha), rng.uniform(0.0, 2.0 * np.pi, size))
+        return cls(phasor(alpha).real, rng.uniform(0.0, 2.0 * np.pi, size))
 
     @property
     def n_sinusoids(self) -> int:
@@ -42,7 +44,7 @@ class SumOfSinusoids:
     def components(self, t: float, max_doppler_hz: float) -> np.ndarray:
         """Complex value of every sinusoid at time ``t`` (s); they sum to the fading gain."""
         phase = self.phase + 2.0 * np.pi * self.doppler_hz(max_doppler_hz) * t
-        return np.exp(1j * phase) / np.sqrt(self.n_sinusoids)
+        return phasor(phase) / np.sqrt(self.n_sinusoids)
 
     def gain(self, t: float, max_doppler_hz: float) -> np.ndarray:
         """Fading gain (complex amplitude, unit mean power) of each process at time ``t``."""

@@ -16,9 +16,12 @@ Approximations, all documented by the standard's own notes:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike
 
+from deepsync.frontend.portable import elementwise
 from deepsync.types import SPEED_OF_LIGHT_M_S
 
 MODELS = ("UMa", "UMi")
@@ -27,6 +30,10 @@ MIN_DISTANCE_M = 1.0  # the shortest straight-line distance the path-loss formul
 # Shadow-fading standard deviation (dB), Table 7.4.1-1: (model, los) -> sigma_SF.
 _SHADOW_STD_DB = {("UMa", True): 4.0, ("UMa", False): 6.0,
                   ("UMi", True): 4.0, ("UMi", False): 7.82}
+
+
+def _log10(values: ArrayLike) -> np.ndarray:
+    return elementwise(math.log10, values)
 
 
 def _check_model(model: str) -> None:
@@ -46,14 +53,13 @@ def path_loss_los_db(model: str, d2d: ArrayLike, d3d: ArrayLike, h_bs: float, h_
     d2d, d3d = np.asarray(d2d, dtype=np.float64), np.asarray(d3d, dtype=np.float64)
     fc_ghz = carrier_hz / 1e9
     d_bp = breakpoint_distance_m(h_bs, h_ut, carrier_hz)
+    lg_d, lg_fc = _log10(d3d), math.log10(fc_ghz)
     if model == "UMa":
-        pl1 = 28.0 + 22.0 * np.log10(d3d) + 20.0 * np.log10(fc_ghz)
-        pl2 = (28.0 + 40.0 * np.log10(d3d) + 20.0 * np.log10(fc_ghz)
-               - 9.0 * np.log10(d_bp**2 + (h_bs - h_ut) ** 2))
+        pl1 = 28.0 + 22.0 * lg_d + 20.0 * lg_fc
+        pl2 = 28.0 + 40.0 * lg_d + 20.0 * lg_fc - 9.0 * math.log10(d_bp**2 + (h_bs - h_ut) ** 2)
     else:
-        pl1 = 32.4 + 21.0 * np.log10(d3d) + 20.0 * np.log10(fc_ghz)
-        pl2 = (32.4 + 40.0 * np.log10(d3d) + 20.0 * np.log10(fc_ghz)
-               - 9.5 * np.log10(d_bp**2 + (h_bs - h_ut) ** 2))
+        pl1 = 32.4 + 21.0 * lg_d + 20.0 * lg_fc
+        pl2 = 32.4 + 40.0 * lg_d + 20.0 * lg_fc - 9.5 * math.log10(d_bp**2 + (h_bs - h_ut) ** 2)
     return np.where(d2d <= d_bp, pl1, pl2)
 
 
@@ -63,9 +69,9 @@ def path_loss_nlos_db(model: str, d2d: ArrayLike, d3d: ArrayLike, h_bs: float, h
     d3d = np.asarray(d3d, dtype=np.float64)
     fc_ghz = carrier_hz / 1e9
     if model == "UMa":
-        nlos = 13.54 + 39.08 * np.log10(d3d) + 20.0 * np.log10(fc_ghz) - 0.6 * (h_ut - 1.5)
+        nlos = 13.54 + 39.08 * _log10(d3d) + 20.0 * math.log10(fc_ghz) - 0.6 * (h_ut - 1.5)
     else:
-        nlos = 22.4 + 35.3 * np.log10(d3d) + 21.3 * np.log10(fc_ghz) - 0.3 * (h_ut - 1.5)
+        nlos = 22.4 + 35.3 * _log10(d3d) + 21.3 * math.log10(fc_ghz) - 0.3 * (h_ut - 1.5)
     return np.maximum(path_loss_los_db(model, d2d, d3d, h_bs, h_ut, carrier_hz), nlos)
 
 
@@ -86,11 +92,12 @@ def los_probability(model: str, d2d: ArrayLike, h_ut: float) -> np.ndarray:
     _check_model(model)
     d = np.maximum(np.asarray(d2d, dtype=np.float64), 18.0)
     if model == "UMi":
-        probability = 18.0 / d + np.exp(-d / 36.0) * (1.0 - 18.0 / d)
+        probability = 18.0 / d + elementwise(math.exp, -d / 36.0) * (1.0 - 18.0 / d)
     else:
         c_prime = 0.0 if h_ut <= 13.0 else ((h_ut - 13.0) / 10.0) ** 1.5
-        probability = ((18.0 / d + np.exp(-d / 63.0) * (1.0 - 18.0 / d))
-                       * (1.0 + c_prime * 1.25 * (d / 100.0) ** 3 * np.exp(-d / 150.0)))
+        cube = (d / 100.0) * (d / 100.0) * (d / 100.0)
+        probability = ((18.0 / d + elementwise(math.exp, -d / 63.0) * (1.0 - 18.0 / d))
+                       * (1.0 + c_prime * 1.25 * cube * elementwise(math.exp, -d / 150.0)))
     return np.minimum(probability, 1.0)
 
 
@@ -109,11 +116,11 @@ def delay_spread_lognormal(model: str, los: bool, carrier_hz: float) -> tuple[fl
     _check_model(model)
     fc_ghz = carrier_hz / 1e9
     if model == "UMa":
-        lg_fc = float(np.log10(max(fc_ghz, 6.0)))
+        lg_fc = math.log10(max(fc_ghz, 6.0))
         if los:
             return -6.955 - 0.0963 * lg_fc, 0.66
         return -6.28 - 0.204 * lg_fc, 0.39
-    lg_1fc = float(np.log10(1.0 + max(fc_ghz, 2.0)))
+    lg_1fc = math.log10(1.0 + max(fc_ghz, 2.0))
     if los:
         return -0.24 * lg_1fc - 7.14, 0.38
     return -0.24 * lg_1fc - 6.83, 0.16 * lg_1fc + 0.28

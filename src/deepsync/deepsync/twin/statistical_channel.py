@@ -45,6 +45,7 @@ Approximations (beyond those of :mod:`deepsync.twin.propagation`):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -52,6 +53,7 @@ import numpy as np
 import scipy.signal
 
 from deepsync.frontend.channel import Paths
+from deepsync.frontend.portable import elementwise, phasor
 from deepsync.twin.antenna import SectorAntenna
 from deepsync.twin.fading import SumOfSinusoids
 from deepsync.twin.propagation import (
@@ -162,6 +164,7 @@ class StatisticalChannel:
                 raise ValueError(f"cells of site {tx.site!r} must share position and height")
             links.append(self._make_link(tx, sites[tx.site], len(links)))
         self._links: tuple[_Link, ...] = tuple(links)
+        self._fixed: dict[int, tuple] = {}  # a receiver that never moves: each link's geometry, once
 
     def _draw_site(self, tx: Transmitter) -> _SiteDraw:
         rng = site_rng(self._seed, tx.site, "large_scale")
@@ -194,7 +197,7 @@ class StatisticalChannel:
             mu, sigma = delay_spread_lognormal(self.environment.model, site.los, tx.carrier_hz)
             delay_spread = 10.0 ** (mu + sigma * site.delay_spread_normal)
             if site.delay_spread_normal_along is not None:
-                delay_spread_along = 10.0 ** (mu + sigma * site.delay_spread_normal_along)
+                delay_spread_along = elementwise(math.pow, 10.0, mu + sigma * site.delay_spread_normal_along)
         if site.shadow_fading_along is not None and self.settings.shadow_fading:
             shadow_std_db = shadow_fading_std_db(self.environment.model, site.los)
             shadow_fading_along = shadow_std_db * site.shadow_fading_along
@@ -229,16 +232,32 @@ class StatisticalChannel:
     def geometric_delay_s(self, emitter_index: int, t: float) -> float:
         """Straight-line propagation delay d(t)/c from the cell's antenna to the receiver (s)."""
         tx = self._links[emitter_index].transmitter
-        return float(np.linalg.norm(self.receiver.position_enu(t) - tx.position_enu)
-                     / SPEED_OF_LIGHT_M_S)
+        return math.hypot(*(self.receiver.position_enu(t) - tx.position_enu)) / SPEED_OF_LIGHT_M_S
 
     def paths(self, emitter_index: int, t: float) -> Paths:
         """Paths from emitter ``emitter_index`` to the receiver at true time ``t`` (s)."""
         link = self._links[emitter_index]
+        delays, scale, doppler, specular_phase = self._geometry(emitter_index, t)
+        phase = link.phase + (2.0 * np.pi * t) * link.doppler_hz
+        if link.has_specular:
+            phase[0] = specular_phase
+        return Paths(
+            delays_s=delays.copy(),
+            gains=scale * link.amplitude * phasor(phase + link.chain_phase),
+            doppler_hz=doppler.copy(),  # the Paths must not alias what is kept here
+        )
+
+    def _geometry(self, emitter_index: int, t: float) -> tuple[np.ndarray, float, np.ndarray, float]:
+        """What the receiver's place decides: delays, amplitude scale, Doppler shifts and the
+        specular path's phase; a receiver that never moves has them once."""
+        if emitter_index in self._fixed:
+            return self._fixed[emitter_index]
+        link = self._links[emitter_index]
         tx, parameters = link.transmitter, link.parameters
         offset = self.receiver.position_enu(t) - tx.position_enu
-        d3d = float(np.linalg.norm(offset))
-        d2d = float(np.hypot(offset[0], offset[1]))
+        east, north, up = offset.tolist()
+        d3d = math.hypot(east, north, up)
+        d2d = math.hypot(east, north)
         loss_db = path_loss_db(self.environment.model, parameters.los, d2d, d3d, tx.height_m,
                                self.receiver_height_m, tx.carrier_hz)
         excess = link.excess_delay_s
@@ -249,20 +268,18 @@ class StatisticalChannel:
                 shadow_fading_db = _interpolated(link.shadow_fading_along_db, along)
             if link.delay_spread_along_s is not None:
                 excess = excess * _interpolated(link.delay_spread_along_s, along)
-        loss_db = loss_db + shadow_fading_db - tx.antenna.gain_db(offset)
-        scale = 10.0 ** (-loss_db / 20.0)
-        phase = link.phase + (2.0 * np.pi * t) * link.doppler_hz
-        doppler = link.doppler_hz.copy()  # the Paths must not alias the link's constants
+        loss_db = float(loss_db) + shadow_fading_db - float(tx.antenna.gain_db(offset))
+        doppler, specular_phase = link.doppler_hz.copy(), 0.0
         if link.has_specular:
             # (at the antenna itself, a receiver has no direction to move along)
-            radial_speed = float(np.dot(self.receiver.velocity_enu(t), offset)) / d3d if d3d > 0 else 0.0
+            velocity = self.receiver.velocity_enu(t).tolist()
+            radial_speed = (velocity[0] * east + velocity[1] * north + velocity[2] * up) / d3d if d3d > 0 else 0.0
             doppler[0] = -radial_speed * tx.carrier_hz / SPEED_OF_LIGHT_M_S
-            phase[0] = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT_M_S
-        return Paths(
-            delays_s=d3d / SPEED_OF_LIGHT_M_S + excess,
-            gains=scale * link.amplitude * np.exp(1j * (phase + link.chain_phase)),
-            doppler_hz=doppler,
-        )
+            specular_phase = -2.0 * np.pi * tx.carrier_hz * d3d / SPEED_OF_LIGHT_M_S
+        geometry = d3d / SPEED_OF_LIGHT_M_S + excess, 10.0 ** (-loss_db / 20.0), doppler, specular_phase
+        if self.receiver.speed_mps == 0:
+            self._fixed[emitter_index] = geometry
+        return geometry
 
 
 def correlated_normal_along(rng: np.random.Generator, start: float, length_m: float,
@@ -271,7 +288,7 @@ def correlated_normal_along(rng: np.random.Generator, start: float, length_m: fl
     ``start``, with the exponential autocorrelation exp(-d / ``correlation_m``) of 38.901
     §7.6.3.1: the first-order autoregression that has it exactly on the grid."""
     n = int(np.ceil(length_m / ALONG_ROUTE_STEP_M)) + 1
-    rho = float(np.exp(-ALONG_ROUTE_STEP_M / correlation_m))
+    rho = math.exp(-ALONG_ROUTE_STEP_M / correlation_m)
     innovations = np.sqrt(1.0 - rho**2) * rng.standard_normal(n - 1)
     # x[k] = rho x[k-1] + innovation: a one-pole filter of the start followed by the innovations
     return scipy.signal.lfilter([1.0], [1.0, -rho], np.concatenate(([start], innovations)))

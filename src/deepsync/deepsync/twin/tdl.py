@@ -35,7 +35,7 @@ class TdlProfile:
 
     def normalized_powers(self) -> tuple[np.ndarray, float]:
         """(linear powers of the Rayleigh taps, linear LOS power), scaled to sum to 1."""
-        scattered = 10.0 ** (np.asarray(self.powers_db) / 10.0)
+        scattered = np.array([10.0 ** (p / 10.0) for p in self.powers_db])
         los = 0.0 if self.los_power_db is None else 10.0 ** (self.los_power_db / 10.0)
         total = scattered.sum() + los
         return scattered / total, los / total

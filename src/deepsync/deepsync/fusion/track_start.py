@@ -1,0 +1,205 @@
+"""The tracker's start: position, clock bias and drift from a few seconds of arrivals at once.
+
+From the last ``init_window_s`` of arrivals, or the current stack alone when it holds enough
+sites: ranges unwrapped against the earliest with the drift prior, a drift guessed from how each
+repeated site's range moves, one range per site at the window's mid-time solved by
+:func:`solve_snapshot`, then all arrivals at once (position, ``b`` and ``d``; the receiver
+assumed static) with ``scipy.optimize.least_squares``: a Huber loss first, then the arrivals
+beyond the gate left out (named) and the rest solved plainly. The drift's prior is the sync
+stage's clock rate (sigma ``clock_rate_std_ppm``) when known, else 0 +- ``max_clock_ppm``. A
+start needs ``D + 1`` distinct sites (position and bias; a site more lets the residual test
+check them, and where two positions fit equally the snapshot step refuses), and one arrival
+more when the clock rate is unknown (the drift is then solved from the data); it must pass the
+same residual test as a snapshot. Its covariance comes from the Jacobian; the motion the static
+assumption ignores enters each arrival's sigma, which grows by ``initial_speed_std_mps`` times
+its distance in time from the mid-time. With a :class:`PositionPrior` (an operator's pose, a
+GNSS fix) the batch gets ``D`` whitened rows more and needs one site: it measures the clock,
+and along its range the position, by as much as the prior leaves open.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
+from deepsync.fusion.snapshot import chi_square_limit, solve_snapshot
+from deepsync.types import SPEED_OF_LIGHT_M_S, NoFix, PositionPrior
+
+if TYPE_CHECKING:  # the tracker's config; the tracker imports this module
+    from deepsync.fusion.tracker import TrackerConfig
+
+
+@dataclass(frozen=True)
+class Start:
+    """A batch solution: ``mean`` = [position (D), b, d] at ``time_s``, its covariance, the time
+    of the latest arrival it used, and the sites it used and left out."""
+
+    time_s: float
+    mean: np.ndarray
+    covariance: np.ndarray
+    latest_s: float
+    sites: tuple[str, ...]
+    rejected: tuple[str, ...]
+
+
+def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
+                 prior: PositionPrior | None = None) -> Start | str:
+    """Position, clock bias and drift from arrivals spread over a few seconds (the receiver taken
+    as static), or a sentence saying why not. ``arrivals`` must be in time order. With a
+    ``prior`` (the position's, at the arrivals' mean time) one site is enough: it measures the
+    clock, and along its range the position, by as much as the prior leaves open."""
+    dims = config.dims
+    names = sorted({a.site for a in arrivals})
+    rate_known = clock_rate is not None
+    needed = 1 if prior is not None else dims + 1
+    if len(names) < needed:
+        what = "clock bias; the initial position given" if prior is not None else "position and clock bias"
+        return (f"{len(names)} site(s) heard in the last {config.init_window_s:g} s ({', '.join(names) or 'none'}); "
+                f"{needed} needed in {dims}-D ({what})")
+    if len(arrivals) < (2 if prior is not None else dims + 3) - rate_known:
+        return f"{len(arrivals)} arrivals from {len(names)} sites: one more needed to solve the unknown clock drift"
+    problem = _BatchProblem(arrivals, config, clock_rate, prior)
+    start = problem.start()
+    if isinstance(start, str):
+        return start
+    keep = np.ones(len(arrivals), dtype=bool)
+    theta = problem.fit(start, keep, robust=True)
+    # a false lock or a reflection among them: out (once), and the rest solved without it
+    keep = np.abs(problem.residuals(theta, keep)[: keep.sum()]) ** 2 <= chi_square_limit(config.gate_probability, 1)
+    kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
+    if len(kept) < needed:  # before solving again: fewer would leave the solve underdetermined
+        return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {needed} needed"
+    if not keep.all():
+        theta = problem.fit(theta, keep, robust=False)
+    residuals = problem.residuals(theta, keep)
+    chi_square = float(residuals @ residuals)
+    dof = len(residuals) - len(theta)
+    if dof > 0 and chi_square > chi_square_limit(config.snapshot.outlier_probability, dof):
+        return (f"the {int(keep.sum())} arrivals of {', '.join(kept)} contradict their sigmas taken as static "
+                f"(chi-square {chi_square:.1f} with {dof} degrees of freedom)")
+    jacobian = problem.jacobian(theta, keep)
+    try:
+        covariance = np.linalg.inv(jacobian.T @ jacobian)
+    except np.linalg.LinAlgError:
+        covariance = np.full((len(theta), len(theta)), math.inf)
+    horizontal = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0))
+    typical = float(np.median(problem.sigma[keep]))
+    if prior is None and not horizontal <= config.snapshot.max_gdop * typical:  # a prior bounds it
+        return (f"the geometry of {', '.join(kept)} does not fix the position ({horizontal:.0f} m 1-sigma from "
+                f"{typical:.0f} m ranges)")
+    mean = theta.copy()
+    mean[dims] = (mean[dims] + problem.reference_m) % FRAME_RANGE_M
+    rejected = tuple(sorted({a.site for a, k in zip(arrivals, keep) if not k} - set(kept)))
+    return Start(problem.t_ref, mean, covariance, float(problem.t[keep].max()), tuple(kept), rejected)
+
+
+class _BatchProblem:
+    """Arrivals over a window as one least-squares problem in [position (D), b, d] at the mean
+    arrival time, ``b`` counted from the earliest arrival's range (``reference_m``); a position
+    prior, whitened by its covariance's Cholesky factor, adds ``D`` rows."""
+
+    def __init__(self, arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
+                 prior: PositionPrior | None = None) -> None:
+        self.config = config
+        dims = config.dims
+        self.prior_mean = None if prior is None else np.array(prior.position_enu[:dims])
+        # rows W (x - mean) with W = L^-1, C = L L^T: unit-variance residuals of the prior
+        self.prior_root = None if prior is None else np.linalg.inv(np.linalg.cholesky(prior.covariance[:dims, :dims]))
+        self.arrivals = list(arrivals)
+        self.t = np.array([a.time_s for a in arrivals])
+        self.t_ref = float(self.t.mean())
+        if clock_rate is None:
+            self.drift_prior, self.drift_std = 0.0, config.max_clock_ppm * 1e-6 * SPEED_OF_LIGHT_M_S
+        else:
+            self.drift_prior = clock_rate * SPEED_OF_LIGHT_M_S
+            self.drift_std = config.clock_rate_std_ppm * 1e-6 * SPEED_OF_LIGHT_M_S
+        first = self.arrivals[0]
+        self.reference_m = first.range_mod_m
+        # a 20 ppm clock moves the ranges 18 km in 3 s: well within the half frame unwrapping allows
+        predicted = [first.range_mod_m + self.drift_prior * (a.time_s - first.time_s) for a in arrivals]
+        self.rho = np.array([unwrap_range(a.range_mod_m, p) for a, p in zip(arrivals, predicted)]) - self.reference_m
+        motion = config.initial_speed_std_mps * np.abs(self.t - self.t_ref)  # the static assumption's error
+        self.sigma = np.hypot([a.std_m for a in arrivals], motion)
+        self.sites = np.array([a.position_enu for a in arrivals], dtype=np.float64)
+        self.names = np.array([a.site for a in arrivals])
+
+    def position(self, theta: np.ndarray) -> np.ndarray:
+        if self.config.dims == 2:
+            return np.array([theta[0], theta[1], self.config.snapshot.receiver_height_m])
+        return theta[:3]
+
+    def start(self) -> np.ndarray | str:
+        """A first guess: the drift from how repeated sites' ranges move, then one range per
+        site at ``t_ref`` (the median: a single false lock does not move it) solved as a snapshot,
+        or with a prior, its position (the sites may be too few for a snapshot)."""
+        dt = self.t - self.t_ref
+        dims = self.config.dims
+        numerator = denominator = 0.0
+        for name in set(self.names):
+            mine = self.names == name
+            t = dt[mine] - dt[mine].mean()
+            numerator += float(t @ (self.rho[mine] - self.rho[mine].mean()))
+            denominator += float(t @ t)
+        # the slope's information (denominator / sigma^2) against the prior's: repeats 10 ms
+        # apart say little about a drift, seconds apart almost everything
+        weight = float(np.median(self.sigma)) ** 2 / self.drift_std**2
+        drift = (numerator + weight * self.drift_prior) / (denominator + weight)
+        collapsed = self.rho - drift * dt
+        if self.prior_mean is not None:
+            bias = float(np.median(collapsed - np.linalg.norm(self.sites - self.position(self.prior_mean), axis=1)))
+            return np.array([*self.prior_mean, bias, drift])
+        stack = []
+        for name in sorted(set(self.names)):
+            mine = np.flatnonzero(self.names == name)
+            stack.append(SiteArrival(str(name), self.sites[mine[0]], self.t_ref,
+                                     float(np.median(collapsed[mine])) % FRAME_RANGE_M,
+                                     float(np.median(self.sigma[mine])), ()))
+        snapshot = solve_snapshot(stack, self.config.snapshot)
+        if isinstance(snapshot, NoFix):
+            return f"the sites' ranges do not solve ({snapshot.reason.value}): {snapshot.message}"
+        position = np.asarray(snapshot.position_enu)
+        distances = np.linalg.norm(self.sites - position, axis=1)
+        bias = float(np.median(collapsed - distances))
+        return np.array([*position[:dims], bias, drift])
+
+    def residuals(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """Arrivals (measured minus modelled, over sigma), then the drift prior (and height prior)."""
+        dims = self.config.dims
+        distance = np.linalg.norm(self.sites[keep] - self.position(theta), axis=1)
+        model = distance + theta[dims] + theta[dims + 1] * (self.t[keep] - self.t_ref)
+        priors = [(theta[dims + 1] - self.drift_prior) / self.drift_std]
+        if dims == 3:
+            priors.append((theta[2] - self.config.snapshot.receiver_height_m) / self.config.snapshot.height_prior_std_m)
+        if self.prior_root is not None:
+            priors.extend(self.prior_root @ (theta[:dims] - self.prior_mean))
+        return np.concatenate([(self.rho[keep] - model) / self.sigma[keep], priors])
+
+    def jacobian(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        dims = self.config.dims
+        diff = self.position(theta) - self.sites[keep]
+        unit = diff / np.maximum(np.linalg.norm(diff, axis=1, keepdims=True), 1e-9)
+        rows = np.hstack([unit[:, :dims], np.ones((len(unit), 1)), (self.t[keep] - self.t_ref)[:, None]])
+        priors = np.zeros((1 + (dims == 3), dims + 2))
+        priors[0, dims + 1] = -1 / self.drift_std
+        if dims == 3:
+            priors[1, 2] = -1 / self.config.snapshot.height_prior_std_m
+        if self.prior_root is not None:
+            position = np.zeros((dims, dims + 2))
+            position[:, :dims] = -self.prior_root
+            priors = np.vstack([priors, position])
+        return -np.vstack([rows / self.sigma[keep, None], priors])
+
+    def fit(self, theta: np.ndarray, keep: np.ndarray, robust: bool) -> np.ndarray:
+        """Levenberg-Marquardt; ``robust``: then again with a Huber loss (3 sigma) where a
+        residual lies beyond it, which bounds what a wild arrival can pull."""
+        result = least_squares(self.residuals, theta, jac=self.jacobian, args=(keep,), method="lm", max_nfev=100)
+        if robust and np.max(np.abs(result.fun)) > 3.0:
+            result = least_squares(self.residuals, result.x, jac=self.jacobian, args=(keep,), loss="huber",
+                                   f_scale=3.0, x_scale="jac", max_nfev=100)
+        return result.x

@@ -1,0 +1,370 @@
+"""The tracker with anchors and odometry: GNSS fixes make the site biases observable and are tested
+against the track; odometry in a frame of unknown yaw is aligned and carries the track; the site
+biases fade with the distance travelled; motion models set the stacks and the tracker.
+
+Routes are simulated as in test_fusion_tracker (a walker among six sites 300-1100 m away), with
+each site's range long by its own constant bias, GNSS fixes drawn from the truth, and odometry
+seen from a frame turned by a yaw the tracker is not told.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from deepsync.fusion.aiding import PositionAid, VelocityAid, heading_offset, odometry_velocity, rotation
+from deepsync.fusion.stage import FusionConfig, FusionStage
+from deepsync.fusion.tracker import Tracker, TrackerConfig
+from deepsync.motion import MOTION_MODELS, motion_model
+from deepsync.pipeline import PipelineConfig
+from deepsync.types import (
+    UNMEASURED_VARIANCE,
+    Fix,
+    GnssFix,
+    HealthKind,
+    NoFix,
+    NoFixReason,
+    OdometryVelocity,
+    PositionPrior,
+)
+from test_fusion_tracker import SITES, Route, horizontal_error, nees, random_sites
+
+BIASES_M = {"A": 35.0, "B": -20.0, "C": 60.0, "D": 0.0, "E": -45.0, "F": 25.0}
+
+
+def biased_route(seed: int, duration_s: float, velocity: tuple[float, float] = (1.0, 1.0), **kwargs) -> Route:
+    return Route(np.random.default_rng(seed), duration_s, random_sites(2, 3), noise_m=lambda t: 10.0, sigma_m=10.0,
+                 site_errors={name: (bias, 0.0) for name, bias in BIASES_M.items()}, bias_std_m=40.0,
+                 velocity=velocity, **kwargs)
+
+
+def fix_at(route: Route, k: int, std_m: float, rng: np.random.Generator) -> PositionAid:
+    truth = route.truth[k]
+    position = truth + np.array([*rng.normal(0.0, std_m, 2), 0.0])
+    return PositionAid(float(route.ends[k]), position, np.diag([std_m**2, std_m**2, UNMEASURED_VARIANCE]))
+
+
+def run(route: Route, tracker: Tracker, aids: dict[int, list] | None = None) -> list[Fix | NoFix]:
+    """The route through ``tracker``, each stack's aids queued before it."""
+    outcomes = []
+    for k, (arrivals, end) in enumerate(zip(route.stacks, route.ends)):
+        for aid in (aids or {}).get(k, []):
+            (tracker.add_position if isinstance(aid, PositionAid) else tracker.add_velocity)(aid)
+        outcomes.append(tracker.update(arrivals, round(end * 1e9), float(end)))
+    return outcomes
+
+
+# --------------------------------------------------------------------------- anchors
+
+
+def test_with_gnss_fixes_the_site_biases_converge_to_the_truth_within_their_sigma():
+    """Observability: with the position pinned, what is left of each range is its site's bias
+    (less what every site shares, the receiver clock's): each learned bias, against the mean of
+    them all, lands within 3 of its sigmas of the true bias against the true mean."""
+    rng = np.random.default_rng(3)
+    route = biased_route(3, 60.0, velocity=(0.0, 0.0), moving=False)
+    config = TrackerConfig(bias_correlation_s=1e6)  # a receiver that stands: its biases stay
+    tracker = Tracker(config)
+    aids = {k: [fix_at(route, k, 3.0, rng)] for k in range(0, len(route.ends), 20)}  # every 2 s
+    outcomes = run(route, tracker, aids)
+    assert isinstance(outcomes[-1], Fix)
+    learned, stds = centred_biases(tracker)
+    assert set(learned) == set(SITES)
+    mean_true = np.mean([BIASES_M[name] for name in learned])
+    for name, bias in learned.items():
+        error = bias - (BIASES_M[name] - mean_true)
+        assert abs(error) < 3 * stds[name], (name, error, stds[name])
+        assert stds[name] < 10.0  # learned, not the 40 m prior
+    # without the fixes the same biases stay near their prior: nothing pins them
+    unanchored = Tracker(config)
+    run(route, unanchored)
+    assert np.median(list(centred_biases(unanchored)[1].values())) > 2 * np.median(list(stds.values()))
+
+
+def centred_biases(tracker: Tracker) -> tuple[dict[str, float], dict[str, float]]:
+    """Each site's learned bias less the mean of them all, and its 1-sigma: what the sites can
+    tell (the mean goes with the receiver clock)."""
+    names = list(tracker._sites)
+    index = [tracker._sites[name].index for name in names]
+    centre = np.eye(len(names)) - 1.0 / len(names)
+    values = centre @ tracker._x[index]
+    covariance = centre @ tracker._P[np.ix_(index, index)] @ centre.T
+    return dict(zip(names, values)), dict(zip(names, np.sqrt(np.diag(covariance))))
+
+
+def test_a_fix_far_from_a_confident_track_is_refused_said_and_two_that_agree_restart_the_track():
+    rng = np.random.default_rng(4)
+    route = biased_route(4, 40.0)
+    tracker = Tracker()
+    far = np.array([1000.0, 0.0, 0.0])
+    aids = {k: [fix_at(route, k, 3.0, rng)] for k in (20, 40)}
+    stray = fix_at(route, 150, 3.0, rng)
+    aids[150] = [PositionAid(stray.time_s, stray.position_enu + far, stray.covariance)]
+    outcomes = run(route, tracker, aids)
+    notes = tracker.take_notes()
+    assert len(notes) == 1 and f"GNSS fix at {route.ends[150]:.1f} s refused: " in notes[0]
+    assert 900 < float(notes[0].split("refused: ")[1].split(" m from the track")[0]) < 1100
+    assert all(horizontal_error(fix, truth) < 60.0 for fix, truth in zip(outcomes[150:], route.truth[150:]))
+    # a track that is confidently wrong (held by a wrong initial position, one site heard, which
+    # cannot tell): the first fix is refused, the second agrees with it and the track goes to them
+    lonely = Route(np.random.default_rng(5), 20.0, random_sites(1, 1, "A"))
+    tracker = Tracker()
+    tracker.start_from(PositionPrior(tuple(lonely.truth[0] + [300.0, 0.0, 0.0]), np.diag([25.0, 25.0, 1e6])))
+    aids = {k: [fix_at(lonely, k, 3.0, rng)] for k in (50, 70)}
+    outcomes = run(lonely, tracker, aids)
+    assert horizontal_error(outcomes[49], lonely.truth[49]) > 250.0
+    assert "refused" in " ".join(tracker.take_notes())
+    assert tracker.last_restart is not None and "the track, not the fixes, was wrong" in tracker.last_restart
+    assert horizontal_error(outcomes[80], lonely.truth[80]) < 30.0
+
+
+def test_a_gnss_fix_starts_the_tracker_from_one_site():
+    route = Route(np.random.default_rng(6), 5.0, random_sites(1, 1, "A"))
+    tracker = Tracker()
+    assert isinstance(tracker.update(route.stacks[0], 1, float(route.ends[0])), NoFix)
+    aids = {1: [fix_at(route, 1, 5.0, np.random.default_rng(0))]}
+    outcomes = run(route, tracker, aids)
+    assert isinstance(outcomes[1], Fix) and horizontal_error(outcomes[1], route.truth[1]) < 20.0
+
+
+def test_stale_aiding_is_refused_and_said():
+    route = biased_route(7, 5.0)
+    tracker = Tracker()
+    run(route, tracker)
+    tracker.add_position(fix_at(route, 5, 3.0, np.random.default_rng(0)))
+    tracker.update([], 1, float(route.ends[-1]) + 0.1)
+    (note,) = tracker.take_notes()
+    assert "older than the track" in note
+
+
+# --------------------------------------------------------------------------- bias decorrelation
+
+
+def bias_variance_after(speed_mps: float, seconds: float, config: TrackerConfig) -> float:
+    """A site bias state learned exactly, then left unheard while the receiver moves at ``speed_mps``."""
+    tracker = Tracker(config)
+    route = Route(np.random.default_rng(8), 3.0, random_sites(3, 3, "ABC"), velocity=(speed_mps, 0.0), moving=False,
+                  bias_std_m=40.0)
+    run(route, tracker)
+    tracker._x[2:4] = [speed_mps, 0.0]
+    tracker._P[2:4, :] = tracker._P[:, 2:4] = 0.0  # the velocity known exactly
+    site = tracker._sites["A"]
+    tracker._P[site.index, :] = tracker._P[:, site.index] = 0.0
+    tracker._predict(seconds)
+    return float(tracker._P[site.index, site.index])
+
+
+@pytest.mark.parametrize("speed_mps, seconds", [(1.4, 10.0), (14.0, 1.0), (0.0, 60.0), (1.4, 60.0)])
+def test_a_site_bias_fades_over_the_distance_travelled_and_its_time(speed_mps, seconds):
+    config = TrackerConfig(acceleration_std_mps2=1e-6)  # the velocity stays known over the step
+    sigma2 = 40.0**2
+    fade = seconds / config.bias_correlation_s + speed_mps * seconds / config.bias_decorrelation_m
+    expected = sigma2 * -math.expm1(-2 * fade)
+    assert bias_variance_after(speed_mps, seconds, config) == pytest.approx(expected, rel=0.02)
+
+
+def test_a_car_forgets_a_bias_in_the_time_a_walker_keeps_it():
+    config = TrackerConfig(acceleration_std_mps2=1e-6)
+    walker, car = bias_variance_after(1.4, 3.0, config), bias_variance_after(14.0, 3.0, config)
+    assert walker < 0.2 * 40.0**2 < 0.8 * 40.0**2 < car
+
+
+# --------------------------------------------------------------------------- odometry
+
+
+def odometry(route: Route, yaw: float, scale: float, rng: np.random.Generator, std: float = 0.05,
+             every: int = 1) -> dict[int, list[VelocityAid]]:
+    """Velocity aids at stack ends, seen from a frame turned by ``yaw`` and scaled by ``scale``."""
+    aids = {}
+    velocities = np.diff(route.truth[:, :2], axis=0) / np.diff(route.ends)[:, None]
+    for k in range(1, len(route.ends) - 1, every):
+        v = velocities[k]
+        sigma = math.hypot(std * float(np.hypot(*v)), 0.02)
+        seen = (1 + scale) * rotation(-yaw) @ v + rng.normal(0.0, sigma, 2)
+        aids[k] = [VelocityAid(float(route.ends[k]), seen, np.eye(2) * sigma**2)]
+    return aids
+
+
+def test_odometry_in_a_turned_frame_is_aligned_and_carries_the_track():
+    """Odometry in a frame turned 2 rad from map, 3 % short: the yaw is found within its sigma
+    from the stretch the track and the odometry both measured, and with it the track between
+    two fixes 60 s apart is better than without it."""
+    rng = np.random.default_rng(9)
+    route = biased_route(9, 70.0, velocity=(1.4, 0.3))
+    fixes = {k: [fix_at(route, k, 3.0, rng)] for k in (5, 600)}
+    with_odometry = Tracker()
+    aids = odometry(route, 2.0, -0.03, rng)
+    for k, fix in fixes.items():
+        aids.setdefault(k, []).extend(fix)
+    outcomes = run(route, with_odometry, aids)
+    index = with_odometry._odometry
+    assert index is not None, "the odometry frame was never aligned"
+    psi, psi_std = with_odometry._x[index], math.sqrt(with_odometry._P[index, index])
+    assert abs((psi - 2.0 + math.pi) % (2 * math.pi) - math.pi) < 3 * psi_std < 0.3
+    without = run(route, Tracker(), fixes)
+    span = slice(300, 600)
+    errors = [np.median([horizontal_error(fix, truth) for fix, truth in zip(outs[span], route.truth[span])])
+              for outs in (outcomes, without)]
+    assert errors[0] < errors[1]
+    assert np.mean([nees(fix, truth) for fix, truth in zip(outcomes[span], route.truth[span])]) < 6.0
+
+
+def test_odometry_standing_still_says_so_before_any_alignment():
+    route = Route(np.random.default_rng(10), 20.0, random_sites(2, 3), moving=False, velocity=(0.0, 0.0))
+    aids = {k: [VelocityAid(float(route.ends[k]), np.zeros(2), np.eye(2) * 0.02**2)] for k in range(5, 200)}
+    still, free = Tracker(), Tracker()
+    run(route, still, aids)
+    run(route, free)
+    assert still._odometry is None
+    assert np.trace(still._P[2:4, 2:4]) < 0.01 * np.trace(free._P[2:4, 2:4])
+
+
+def test_odometry_that_keeps_disagreeing_turns_the_tracks_velocity():
+    """A turn the motion model does not expect: the odometry says it three times, and the track's
+    velocity follows it instead of refusing it for ever."""
+    tracker = Tracker()
+    route = biased_route(11, 30.0, velocity=(1.4, 0.0))
+    rng = np.random.default_rng(11)
+    aids = odometry(route, 0.5, 0.0, rng)
+    aids.setdefault(3, []).append(fix_at(route, 3, 3.0, rng))
+    aids.setdefault(250, []).append(fix_at(route, 250, 3.0, rng))
+    run(route, tracker, aids)
+    assert tracker._odometry is not None
+    # the receiver now reports 1.4 m/s north where it went east: after a few refusals, taken
+    t = float(route.ends[-1])
+    for k in range(10):
+        tracker.add_velocity(VelocityAid(t + 0.1 * (k + 1), rotation(-0.5) @ np.array([0.0, 1.4]), np.eye(2) * 0.05**2))
+    tracker.update([], 1, t + 1.05)
+    notes = " ".join(tracker.take_notes())
+    assert "refused" in notes and "the track's velocity was wrong" in notes
+    assert tracker._x[3] > 1.0 and abs(tracker._x[2]) < 0.5
+
+
+def test_odometry_model_and_heading_gradients_match_finite_differences():
+    v, psi, scale = np.array([1.3, -0.4]), 0.7, 0.02
+    seen, by_v, by_psi, by_scale = odometry_velocity(v, psi, scale)
+    step = 1e-6
+    for k in range(2):
+        dv = np.zeros(2)
+        dv[k] = step
+        assert np.allclose((odometry_velocity(v + dv, psi, scale)[0] - seen) / step, by_v[:, k], atol=1e-5)
+    assert np.allclose((odometry_velocity(v, psi + step, scale)[0] - seen) / step, by_psi, atol=1e-5)
+    assert np.allclose((odometry_velocity(v, psi, scale + step)[0] - seen) / step, by_scale, atol=1e-5)
+    odometry_frame = rotation(-psi) @ v
+    found, by_track, _ = heading_offset(v, odometry_frame, np.eye(2) * 1e-4)
+    assert found == pytest.approx(psi)
+    dv = np.array([0.0, step])
+    assert (heading_offset(v + dv, odometry_frame, np.eye(2))[0] - found) / step == pytest.approx(by_track[1], rel=1e-4)
+
+
+# --------------------------------------------------------------------------- motion models and bad input
+
+
+def test_each_motion_model_sets_the_stacks_and_the_tracker():
+    for model in MOTION_MODELS.values():
+        config = PipelineConfig.for_motion(model.name)
+        assert (config.sync.stack.n_frames, config.sync.stack.hop) == (model.n_frames, model.hop_frames)
+        assert config.fusion.tracker.acceleration_std_mps2 == model.acceleration_std_mps2
+        assert config.fusion.tracker.initial_speed_std_mps == model.initial_speed_std_mps
+        assert config.fusion.tracker.stack_overlap == model.n_frames / model.hop_frames
+        # a command line's explicit stacks win over the model's
+        assert PipelineConfig().with_choices(motion=model.name, n_frames=10).sync.stack.hop == 10
+    assert PipelineConfig() == PipelineConfig.for_motion("pedestrian")
+    with pytest.raises(ValueError, match="'bicycle' is not one of pedestrian, vehicle, static"):
+        motion_model("bicycle")
+
+
+@pytest.mark.parametrize("field, value", [
+    ("bias_decorrelation_m", 0.0), ("max_std_m", math.inf), ("max_position_rejections", 0),
+    ("heading_drift_rad_per_sqrt_s", -1.0), ("odometry_scale_std", 0.0), ("odometry_scale_wander_per_sqrt_s", 2.0)])
+def test_new_tracker_settings_are_checked_by_name(field, value):
+    with pytest.raises(ValueError, match=field):
+        TrackerConfig(**{field: value})
+
+
+@pytest.mark.parametrize("field, value", [("gnss_std_m", 0.0), ("gnss_min_std_m", math.nan),
+                                          ("aiding_clock_window_s", -1.0)])
+def test_new_fusion_settings_are_checked_by_name(field, value):
+    with pytest.raises(ValueError, match=field):
+        FusionConfig(**{field: value})
+
+
+@pytest.mark.parametrize("build, says", [
+    (lambda: GnssFix(0, math.nan, 0.0, 0.0), "latitude_deg"),
+    (lambda: GnssFix(0, 10.0, 200.0, 0.0), "longitude_deg"),
+    (lambda: GnssFix(-1, 10.0, 20.0, 0.0), "stamp_ns"),
+    (lambda: GnssFix(0, 10.0, 20.0, 0.0, np.diag([1.0, -1.0, 1.0])), "positive definite"),
+    (lambda: OdometryVelocity(0, (math.inf, 0.0), np.eye(2)), "velocity"),
+    (lambda: OdometryVelocity(0, (1.0, 0.0), np.zeros((2, 2))), "positive definite"),
+])
+def test_aiding_that_is_not_a_measurement_is_refused_naming_the_field(build, says):
+    with pytest.raises(ValueError, match=says):
+        build()
+
+
+def sites_stage(**config) -> FusionStage:
+    """A fusion stage for a database of the simulated sites A-F (timing offsets 0 at the origin's epoch)."""
+    from deepsync.geo import LocalFrame
+    from deepsync.towers import parse_tower_database
+
+    origin = {"latitude_deg": 38.98690, "longitude_deg": -76.94260, "height_m": 10.0}
+    frame = LocalFrame(origin["latitude_deg"], origin["longitude_deg"], origin["height_m"])
+    sites = []
+    for k, (name, enu) in enumerate(SITES.items()):
+        latitude, longitude, _ = frame.enu_to_geodetic(np.array([enu[0], enu[1], 0.0]))
+        sites.append({"name": name, "latitude_deg": float(latitude), "longitude_deg": float(longitude),
+                      "height_m": float(enu[2]), "timing_offset_us": 100.0 * (k + 1), "cells": [{"pci": k}]})
+    towers = parse_tower_database({"name": "sites", "origin": origin, "timing_epoch_utc": "2026-01-01T00:00:00Z",
+                                   "sites": sites})
+    return FusionStage(towers, FusionConfig(**config))
+
+
+def test_the_stage_refuses_aiding_back_in_time_on_another_clock_or_without_a_tracker():
+    stage = sites_stage()
+    fix = GnssFix(2_000_000_000, 38.98690, -76.94260, 10.0)
+    assert stage.add_gnss(fix) is None
+    refused = stage.add_gnss(GnssFix(1_000_000_000, 38.98690, -76.94260, 10.0))
+    assert refused.kind is HealthKind.AIDING_REFUSED and "not after the one before" in refused.message
+    velocity = OdometryVelocity(3_000_000_000, (1.0, 0.0), np.eye(2) * 0.01)
+    assert stage.add_odometry(velocity) is None
+    assert "not after" in stage.add_odometry(velocity).message  # the same stamp again
+    assert "tracking is off" in sites_stage(track=False).add_gnss(fix).message
+
+
+def test_a_fix_without_a_covariance_takes_the_configured_sigma_and_none_is_tighter_than_the_floor():
+    stage = sites_stage(gnss_std_m=12.0, gnss_min_std_m=4.0)
+    plain = stage._position_aid(GnssFix(0, 38.98690, -76.94260, 10.0), 0.0)
+    assert np.allclose(np.diag(plain.covariance)[:2], 144.0)
+    tight = stage._position_aid(GnssFix(0, 38.98690, -76.94260, 10.0, np.diag([0.01, 0.01, 0.04])), 0.0)
+    assert np.allclose(np.diag(tight.covariance)[:2], 16.0)
+    assert np.allclose(plain.position_enu[:2], 0.0, atol=1e-6)
+
+
+def test_the_learned_database_holds_the_learned_biases_as_site_timing():
+    """Biases learned on one run are the next run's site timing: a range that was long by the
+    learned bias reads right with the learned database."""
+    from deepsync.towers import parse_tower_database, tower_database_to_dict
+
+    stage = sites_stage()
+    assert stage.learned_database() is None  # nothing learned before a track
+    stage.reference_ns = stage.anchors.epoch_ns
+    tracker = stage.tracker
+    run(biased_route(12, 5.0), tracker)
+    learned = stage.learned_database()
+    again = parse_tower_database(tower_database_to_dict(learned), "learned")
+    for name, bias in tracker.site_biases().items():
+        before = next(site for site in stage.anchors.towers.sites if site.name == name)
+        after = next(site for site in again.sites if site.name == name)
+        moved_m = (after.timing_offset_us - before.timing_offset_us) * 1e-6 * 299_792_458.0
+        assert moved_m == pytest.approx(bias.bias_m, abs=0.5)
+        assert after.timing_offset_std_us * 1e-6 * 299_792_458.0 == pytest.approx(bias.std_m, rel=1e-3)
+
+
+def test_a_track_vaguer_than_max_std_m_is_reported_lost():
+    route = Route(np.random.default_rng(13), 40.0, lambda k, rng: random_sites(3, 3)(k, rng) if k < 50 else ["A"])
+    outcomes = route.track(TrackerConfig(max_std_m=60.0, max_coast_s=1000.0))
+    lost = [o for o in outcomes if isinstance(o, NoFix) and o.reason is NoFixReason.TRACK_LOST]
+    assert lost and "max_std_m 60 m" in lost[0].message
+    assert all(o.horizontal_std_m <= 60.0 for o in outcomes if isinstance(o, Fix))
