@@ -79,7 +79,6 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
         mode = 0o666 & ~umask
     temporary: Path | None = None
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         remove_abandoned(path)
         handle, name = tempfile.mkstemp(prefix=partial_prefix(path), suffix=".partial", dir=path.parent)
         os.close(handle)

@@ -90,6 +90,7 @@ def save_checkpoint(path: str | Path, model: TimingNet, training_range: Training
         "optimiser": optimiser,
         "meta": dict(meta or {}),
     }
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     with replacing(path) as temporary:
         torch.save(payload, temporary)
 

@@ -382,6 +382,7 @@ def _config_json(config: DatasetConfig) -> str:
 def _write_shard(config: DatasetConfig, root: Path, split: str, index: int) -> int:
     path = shard_path(root, split, index)
     arrays = make_shard(config, split, index)
+    path.parent.mkdir(parents=True, exist_ok=True)
     # atomic: an interrupted write leaves no shard, so a rerun makes it again
     with replacing(path) as temporary, temporary.open("wb") as handle:
         np.savez(handle, **arrays)
