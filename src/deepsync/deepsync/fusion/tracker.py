@@ -192,7 +192,7 @@ class TrackerConfig:
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
     stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (PipelineConfig sets it)
     prior_hold_s: float = 30.0  # how long an initial position is used, from when it is given, while D + 1 sites are not heard
-    max_std_m: float = 100.0  # horizontal 1-sigma (DRMS) beyond which the track is reported lost
+    max_std_m: float = 150.0  # horizontal 1-sigma (DRMS) beyond which the track is reported lost
     max_position_rejections: int = 2  # refused positions in a row, agreeing, that say the track is wrong
     heading_drift_rad_per_sqrt_s: float = 0.003  # odometry frame's yaw random walk (a gyro's drift)
     odometry_scale_std: float = 0.05  # odometry scale error, prior 1-sigma (fraction)
