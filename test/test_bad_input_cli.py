@@ -483,3 +483,19 @@ def test_a_ground_truth_pose_holding_nan_is_refused(tmp_path, capsys, command):
     out = tmp_path / ("out.yaml" if command == "calibrate" else "out")
     fails([command, "--bag", str(bag), "--towers", str(TOWERS), "--out", str(out), "--quiet"], capsys,
           "ns holds NaN or inf")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seeds", "0-1000000000000"], "argument --seeds: '0-1000000000000': 1000000000001 seeds; give 1..10000"),
+    (["--seeds", f"1-{2**64}"], "seeds must be in [0, 9223372036854775807]"),
+    (["--seeds", "5-3"], "0 seeds; give 1..10000"),
+    (["--seeds", "1", "--seconds", "1e308"], "argument --seconds: '1e308' s is more than a day"),
+], ids=["a-trillion-seeds", "beyond-int64", "none", "seconds-1e308"])
+def test_a_route_set_of_what_cannot_be_made_is_refused_before_any_list_is_built(tmp_path, capsys, args, message):
+    """A route set's seeds were built as a list before anything was checked (a range of 10^12
+    seeds filled the memory); its --seconds took 1e308, which simulate refuses."""
+    base = {"--seeds": "1", "--seconds": "0.05"}
+    for flag, value in zip(args[::2], args[1::2]):
+        base[flag] = value
+    fails(["simulate-set", "--scenario", str(SCENARIO), "--out", str(tmp_path / "set"),
+           *[item for pair in base.items() for item in pair]], capsys, message)

@@ -71,18 +71,27 @@ def _non_negative_float(text: str) -> float:
     return _bounded_float(text, positive=False)
 
 
+MAX_SEEDS = 10_000  # bags a route set makes (a range of 10^12 seeds was built as a list)
+
+
 def _seeds(text: str) -> list[int]:
-    """``1-12`` or ``3,5,9`` (or both, comma-separated) as a list of seeds."""
-    seeds: list[int] = []
+    """``1-12`` or ``3,5,9`` (or both, comma-separated) as a list of seeds: each an int64 (as a
+    bag's provenance holds it), at most ``MAX_SEEDS`` of them, counted before any list is made."""
+    from deepsync.twin.scenario import SEED_RANGE
+
+    ranges = []
     try:
         for part in text.split(","):
             low, _, high = part.partition("-")
-            seeds += range(int(low), int(high or low) + 1)
+            ranges.append((int(low), int(high or low)))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give seeds as 1-12 or 3,5,9") from None
-    if not seeds or min(seeds) < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: give at least one seed, none negative")
-    return seeds
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)}: give seeds as 1-12 or 3,5,9") from None
+    if any(not SEED_RANGE[0] <= value <= SEED_RANGE[1] for pair in ranges for value in pair):
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)}: seeds must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}]")
+    count = sum(max(0, high - low + 1) for low, high in ranges)
+    if not 1 <= count <= MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)}: {count} seeds; give 1..{MAX_SEEDS}")
+    return [seed for low, high in ranges for seed in range(low, high + 1)]
 
 
 def _aiding_arguments(command: argparse.ArgumentParser) -> None:
@@ -675,7 +684,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "local processes or on a Ray cluster")
     route_set.add_argument("--scenario", required=True, action="append", help="scenario YAML (repeat for more)")
     route_set.add_argument("--seeds", required=True, type=_seeds, help="seeds, e.g. 1-12 or 3,5,9")
-    route_set.add_argument("--seconds", required=True, type=_positive_float, help="length of each recording")
+    route_set.add_argument("--seconds", required=True, type=_seconds, help="length of each recording")
     route_set.add_argument("--out", required=True, help="directory of the bags (<scenario>_seed<seed>)")
     route_set.add_argument("--overwrite", action="store_true", help="replace bags already there (default: keep them)")
     _job_arguments(route_set, workers)
@@ -714,7 +723,7 @@ def build_parser() -> argparse.ArgumentParser:
                                  "Ray cluster: a report per bag and route_set.json")
     _replay_arguments(routes, "bags with /deepsync/envelope and /deepsync/truth/pose (e.g. --bag bags/set/*)",
                       "tower database YAML with origin, positions and timing", many_bags=True)
-    routes.add_argument("--out", required=True, help="where the reports (one directory per bag) go")
+    routes.add_argument("--out", required=True, type=_output_file, help="where the reports (one directory per bag) go")
     _aiding_arguments(routes)
     _job_arguments(routes, workers)
     routes.set_defaults(run=_cmd_evaluate_routes)
