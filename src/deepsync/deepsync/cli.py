@@ -774,7 +774,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--data", default="data/timing", help="timing data directory (deepsync train makes it)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test"))
     evaluate.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
-    evaluate.add_argument("--frames", type=_frame_counts, default="5,10,12", help="stacked frames to evaluate, comma-separated "
+    evaluate.add_argument("--frames", type=_frame_counts, default="5,10,12",
+                          help="stacked frames to evaluate, comma-separated "
                           "(with --bag: the first)")
     evaluate.add_argument("--bag", help="instead of the test set: a simulated bag with ground truth")
     evaluate.add_argument("--towers", help="with --bag: tower database YAML (known-PCI cell search)")

@@ -207,7 +207,8 @@ def record_scenario(
     stats = SimulationStats()
     started = time.perf_counter()
     chunks = truth_messages = 0
-    with BagWriter(out_dir, overwrite=overwrite, provenance=_provenance(scenario_path, scenario_bytes, seed, seconds, twin)) as bag:
+    provenance = _provenance(scenario_path, scenario_bytes, seed, seconds, twin)
+    with BagWriter(out_dir, overwrite=overwrite, provenance=provenance) as bag:
         bar = tqdm(total=n_samples, unit="S", unit_scale=True, disable=not progress, desc="simulate")
         for envelope in simulator.stream(seconds, chunk_samples=chunk, workers=workers, stats=stats):
             first, end = envelope.first_sample_index, envelope.end_sample_index

@@ -241,7 +241,8 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
             bandwidth = cell.get("bandwidth_mhz")
             if bandwidth is not None:
                 if isinstance(bandwidth, bool) or not isinstance(bandwidth, (int, float)):
-                    raise ConfigError(f"{cell_at}.bandwidth_mhz: expected a number of MHz, got {reprlib.repr(bandwidth)}")
+                    raise ConfigError(f"{cell_at}.bandwidth_mhz: expected a number of MHz, "
+                                      f"got {reprlib.repr(bandwidth)}")
                 try:
                     bandwidth = check_bandwidth(bandwidth)
                 except ValueError as error:
@@ -352,13 +353,15 @@ def _epoch_ns(value: object, where: str) -> int | None:
         try:
             instant = datetime.datetime.fromisoformat(value.replace("Z", "+00:00"))
         except ValueError:
-            raise ConfigError(f"{where}: {reprlib.repr(value)} is not an ISO 8601 time (e.g. 2026-01-01T00:00:00Z)") from None
+            raise ConfigError(f"{where}: {reprlib.repr(value)} is not an ISO 8601 time "
+                              "(e.g. 2026-01-01T00:00:00Z)") from None
     else:
         raise ConfigError(f"{where}: expected an ISO 8601 time string, got {reprlib.repr(value)}")
     if instant.tzinfo is None:
         raise ConfigError(f"{where}: {reprlib.repr(value)} has no time zone (end it with Z for UTC)")
     if not EPOCH_RANGE[0] <= instant <= EPOCH_RANGE[1]:
-        raise ConfigError(f"{where}: {reprlib.repr(value)} lies outside {EPOCH_RANGE[0]:%Y-%m-%d}..{EPOCH_RANGE[1]:%Y-%m-%d} "
+        raise ConfigError(f"{where}: {reprlib.repr(value)} lies outside "
+                          f"{EPOCH_RANGE[0]:%Y-%m-%d}..{EPOCH_RANGE[1]:%Y-%m-%d} "
                           "(LTE site clocks are set from GPS time)")
     delta = instant - datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc)
     return (delta.days * 86_400 + delta.seconds) * 10**9 + delta.microseconds * 1000

@@ -315,7 +315,8 @@ class BagReader:
         filled = [one for one in ordered if one.metadata.message_count]
         for before, after in zip(filled, filled[1:]):
             if after.metadata.start_time < before.metadata.end_time:
-                raise self._fail(f"{Path(before.path).name} ({before.metadata.start_time}..{before.metadata.end_time - 1} "
+                span = f"{before.metadata.start_time}..{before.metadata.end_time - 1}"
+                raise self._fail(f"{Path(before.path).name} ({span} "
                                  f"ns) and {Path(after.path).name} (from {after.metadata.start_time} ns) overlap in "
                                  "time: two recordings in one bag, not one recording split in parts; open each alone")
         return ordered
@@ -331,8 +332,9 @@ class BagReader:
                 continue
             notes.append(BagInconsistency(
                 f"{Path(storage.path).name}: chunk index", None, None,
-                note=f"{sum(1 for at in indexed if at not in found)} of its {len(indexed)} entries point where no chunk "
-                     f"lies (the file has {len(found)} chunks): the messages are read from the chunks in file order",
+                note=f"{sum(1 for at in indexed if at not in found)} of its {len(indexed)} entries point where no "
+                     f"chunk lies (the file has {len(found)} chunks): the messages are read from the chunks in "
+                     "file order",
             ))
             storage.chunks.clear()
 

@@ -159,7 +159,8 @@ class BagWriter:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             remove_abandoned(self.path)  # what a killed writer of this bag left
-            self._tmp = Path(tempfile.mkdtemp(prefix=partial_prefix(self.path), suffix=".partial", dir=self.path.parent))
+            self._tmp = Path(tempfile.mkdtemp(prefix=partial_prefix(self.path), suffix=".partial",
+                                              dir=self.path.parent))
         except OSError as error:
             raise BagError(f"{self.path}: cannot write a bag there ({error.strerror})") from None
         try:

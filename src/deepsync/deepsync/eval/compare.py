@@ -62,7 +62,8 @@ def _poses(bag: str | Path, topic: str) -> tuple[dict[int, tuple[np.ndarray, flo
             if not (np.isfinite(covariance).all() and np.isfinite(position).all()
                     and np.isfinite([q.x, q.y, q.z, q.w]).all()):
                 position, covariance = np.full(3, math.nan), np.full((6, 6), math.nan)
-            sigma = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0)) if np.isfinite(covariance).all() else math.nan
+            finite = np.isfinite(covariance).all()
+            sigma = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0)) if finite else math.nan
             poses[stamp_to_ns(item.message.header.stamp)] = (position, sigma)
             frames.add(item.message.header.frame_id)
     return poses, frames

@@ -149,7 +149,8 @@ class _Archive:
                 self._member = lambda name: self._tar.extractfile(found[name])
         except (tarfile.TarError, zipfile.BadZipFile, OSError, EOFError, ValueError) as error:
             first = (str(error).strip().splitlines() or [type(error).__name__])[0].rstrip(":")
-            raise ValueError(f"{path}: not a readable SigMF recording: {first} (an archive is a tar or zip file)") from None
+            raise ValueError(f"{path}: not a readable SigMF recording: {first} "
+                             "(an archive is a tar or zip file)") from None
         metas = sorted(name for name in members if name.endswith(".sigmf-meta"))
         if len(metas) != 1:
             raise ValueError(f"{path}: the archive holds {len(metas)} SigMF metadata files"
@@ -316,8 +317,8 @@ def capture_segments(captures: list[dict], offset: object, n_samples: int, sampl
                 tolerance = (max(0.5, (last_resolution + _datetime_resolution_ns(when)) * sample_rate / 1e9)
                              + CLOCK_TOLERANCE * expected)
                 if abs(missing) > tolerance and "core:global_index" in capture:
-                    raise ValueError(f"{at}: its core:datetime and core:global_index disagree by {missing:+.0f} samples "
-                                     "about what was lost before it")
+                    raise ValueError(f"{at}: its core:datetime and core:global_index disagree by {missing:+.0f} "
+                                     "samples about what was lost before it")
                 if missing < -tolerance:
                     raise ValueError(f"{at}: core:datetime {when!r} is {-missing / sample_rate * 1e3:.3f} ms earlier "
                                      "than the samples recorded before it take: the clock goes back")
@@ -399,8 +400,8 @@ class SigmfSource(FileSource):
             raise ValueError(f"{name}: the dataset is empty: no samples to read")
         segments = capture_segments(captures, glob.get("core:offset", 0), n, rate, name)
         self._handle = handle
-        self._setup(name, fmt, rate, n, read or _handle_reader(handle, fmt), scale, segments[0].stamp_ns, None if center is None else float(center),
-                    segments)
+        self._setup(name, fmt, rate, n, read or _handle_reader(handle, fmt), scale, segments[0].stamp_ns,
+                    None if center is None else float(center), segments)
 
     @property
     def description(self) -> str:

@@ -112,7 +112,8 @@ class TimingNetConfig:
             value = getattr(self, name)
             values = value if isinstance(value, tuple) else (value,)
             if not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
-                raise ValueError(f"{name}: {value!r} must be {'whole numbers' if isinstance(value, tuple) else 'a whole number'}")
+                what = "whole numbers" if isinstance(value, tuple) else "a whole number"
+                raise ValueError(f"{name}: {value!r} must be {what}")
         if len(self.channels) != 3 or len(self.kernels) != 3 or len(self.hidden) != 2:
             raise ValueError(f"channels {self.channels!r} and kernels {self.kernels!r}: three positive integers each; "
                              f"hidden {self.hidden!r}: two")
