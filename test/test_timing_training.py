@@ -65,7 +65,8 @@ def test_generation_resumes_without_remaking_shards(tmp_path):
     assert generate(tmp_path, {"val": 2}, TINY) == 3
     assert path.stat().st_mtime_ns == before and path_1.exists()
     assert len(load_split(tmp_path, "val")["offset"]) == 6
-    assert not list((tmp_path / "val").glob("*.tmp"))
+    assert len(load_split(tmp_path, "val", 1)["offset"]) == 3  # a run loads the shards it counts (and bounds)
+    assert not list((tmp_path / "val").glob("*.tmp")) and not list((tmp_path / "val").glob(".*.partial"))
     with pytest.raises(ValueError, match="another dataset config .*max_frames 4 -> 5"):
         generate(tmp_path, {"val": 2}, DatasetConfig(max_frames=5, examples_per_shard=3))
 

@@ -426,10 +426,11 @@ def generate(root: Path, shards: dict[str, int], config: DatasetConfig | None = 
     return made
 
 
-def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
-    """Every shard of a split, concatenated (``SHARD_KEYS``, and the mean frames every shard
+def load_split(root: Path, split: str, shards: int | None = None) -> dict[str, np.ndarray]:
+    """Every shard of a split (the first ``shards`` of them: what a run config counted on, and
+    bounded the memory of), concatenated (``SHARD_KEYS``, and the mean frames every shard
     holds: ``frame_key``); ValueError when there is none."""
-    paths = sorted((Path(root) / split).glob("shard_*.npz"))
+    paths = sorted((Path(root) / split).glob("shard_*.npz"))[:shards]
     if not paths:
         raise ValueError(f"no shards in {Path(root) / split}: `deepsync train` makes them")
     parts = []

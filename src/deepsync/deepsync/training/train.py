@@ -289,7 +289,9 @@ def train(run: RunConfig, config_path: str = "") -> Path:
                  workers=cfg.workers)
     if distributed:
         torch.distributed.barrier()
-    train_set, val_set = Examples(load_split(root, "train")), Examples(load_split(root, "val"))
+    # the shards the config counts (and MAX_DATASET_BYTES bounds), whatever else the folder holds
+    train_set = Examples(load_split(root, "train", cfg.train_shards))
+    val_set = Examples(load_split(root, "val", cfg.val_shards))
     normalisation = measure_normalisation(train_set, min(10, cfg.max_frames))
     trained_on = training_range(run, train_set)
 
