@@ -368,3 +368,45 @@ def test_a_track_vaguer_than_max_std_m_is_reported_lost():
     lost = [o for o in outcomes if isinstance(o, NoFix) and o.reason is NoFixReason.TRACK_LOST]
     assert lost and "max_std_m 60 m" in lost[0].message
     assert all(o.horizontal_std_m <= 60.0 for o in outcomes if isinstance(o, Fix))
+
+
+def test_odometry_that_stops_gives_the_velocity_back_to_the_sites():
+    """While odometry comes, the sites do not move the velocity (the odometry measures it); once
+    it has stopped for longer than a gap, they do again: the tracker runs on the sites and its
+    motion model."""
+    rng = np.random.default_rng(14)
+    route = biased_route(14, 40.0, velocity=(1.4, 0.0))
+    aids = {k: v for k, v in odometry(route, 1.0, 0.0, rng).items() if k < 200}
+    for k in (3, 190):
+        aids.setdefault(k, []).append(fix_at(route, k, 3.0, rng))
+    tracker = Tracker()
+    outcomes = run(route, tracker, aids)
+    assert tracker._odometry is not None
+    # the track goes on after the odometry stopped at 20 s, and stays within its claim
+    late = [nees(fix, truth) for fix, truth in zip(outcomes[300::20], route.truth[300::20]) if isinstance(fix, Fix)]
+    assert late and np.mean(late) < 6.0
+
+
+def test_a_plan_draws_the_same_fixes_for_the_same_seed_and_one_at_the_start_for_interval_0():
+    from deepsync.eval.aiding import AidingPlan
+    from deepsync.geo import LocalFrame
+
+    frame = LocalFrame(38.98690, -76.94260, 10.0)
+    stamps = np.arange(0, 61) * 1_000_000_000
+    positions = np.column_stack([1.4 * np.arange(61.0), np.zeros(61), np.full(61, 1.5)])
+
+    def position_at(stamp: int) -> np.ndarray:
+        return positions[int(stamp // 1_000_000_000)]
+
+    every = AidingPlan(20.0, 5.0, seed=3).gnss_fixes(0, 60_000_000_000, position_at, frame)
+    assert [fix.stamp_ns // 1_000_000_000 for fix in every] == [0, 20, 40, 60]
+    assert every == AidingPlan(20.0, 5.0, seed=3).gnss_fixes(0, 60_000_000_000, position_at, frame)
+    assert every != AidingPlan(20.0, 5.0, seed=4).gnss_fixes(0, 60_000_000_000, position_at, frame)
+    assert len(AidingPlan(0.0).gnss_fixes(0, 60_000_000_000, position_at, frame)) == 1
+    velocities = AidingPlan(odometry_std=0.05).odometry(0, 60_000_000_000, stamps, positions)
+    speeds = [math.hypot(*v.velocity) for v in velocities]
+    assert len(velocities) == 600 and abs(np.median(speeds) - 1.4) < 0.15  # 1.4 m/s, a 5 % scale at most ~2 sigma
+    with pytest.raises(ValueError, match="gnss_interval_s"):
+        AidingPlan(-1.0)
+    with pytest.raises(ValueError, match="odometry_std"):
+        AidingPlan(odometry_std=2.0)

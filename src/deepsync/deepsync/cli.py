@@ -632,11 +632,21 @@ def _print_route(summary: dict) -> None:
     bound = summary["position_bound"]
     print(f"  {'bound':10s} {bound['stacks']:8d} {_metres(bound['median_m'])} {_metres(bound['p90_m'])}   "
           "(position Cramer-Rao bound where >= 3 sites were heard)")
+    learned = summary["learned_site_biases_m"]
     for site, row in summary["sites"].items():
         median = row["median_error_samples"]
         text = "no truth" if median is None else (f"timing error median {median:+.2f}, RMS {row['rms_error_samples']:.2f} "
                                                   f"samples, {row['beyond_1_sample']:.0%} beyond 1 sample")
-        print(f"    site {site}: {row['stacks']} stacks, {text}; claimed sigma {row['median_claimed_std_samples']:.2f}")
+        bias = "" if site not in learned else (f"; the tracker's bias at the end {learned[site]['bias_m']:+.0f} +- "
+                                               f"{learned[site]['std_m']:.0f} m")
+        print(f"    site {site}: {row['stacks']} stacks, {text}; claimed sigma "
+              f"{row['median_claimed_std_samples']:.2f}{bias}")
+    if summary["anchors"]:
+        since = ", ".join(f"{row['from_s']:g}-{'' if row['to_s'] is None else format(row['to_s'], 'g')} s: "
+                          f"{row['median_m']:.1f} m" for row in summary["tracked_by_time_since_anchor"])
+        print(f"  {summary['anchors']} GNSS fixes given; tracked median by time since the last: {since}")
+    if summary["aiding_refused"]:
+        print(f"  aiding refused {summary['aiding_refused']} times (route.json: aiding_refused per stack)")
 
 
 def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_help: str, *,

@@ -432,7 +432,7 @@ class GnssFix:
     latitude_deg: float
     longitude_deg: float
     height_m: float
-    covariance_enu: np.ndarray | None = None
+    covariance_enu: np.ndarray | None = field(default=None, compare=False)
     frame_id: str = ""
 
     def __post_init__(self) -> None:
@@ -457,7 +457,7 @@ class OdometryVelocity:
 
     stamp_ns: int
     velocity: tuple[float, float]
-    covariance: np.ndarray
+    covariance: np.ndarray = field(compare=False)
     in_map_frame: bool = False
 
     def __post_init__(self) -> None:

@@ -357,6 +357,7 @@ class Tracker:
         self._rejection_run: list[str] = []
         self._refused_positions: list[PositionAid] = []
         self._velocity_refusals = 0  # odometry velocities refused in a row
+        self._odometry_heard_s = -math.inf  # the latest odometry velocity used
         if getattr(self, "_odometry", None) is not None:  # the odometry's yaw and scale outlive the track
             block = slice(self._odometry, self._odometry + 2)
             self._odometry_known = (self._x[block].copy(), self._P[block, block].copy())
@@ -539,13 +540,14 @@ class Tracker:
             x += gain * innovation
             P -= np.outer(gain, ph)
             return True
-        # the velocity and the odometry's yaw and scale are considered, not updated, by the sites
-        # (a Schmidt update): the odometry measures the velocity, and a bias drifting along the
-        # route would pass for a velocity or scale error it then carries on (simulated walk:
+        # the odometry's yaw and scale are considered, not updated, by the sites (a Schmidt
+        # update), and so is the velocity while the odometry measures it: a bias drifting along
+        # the route would pass for a velocity or scale error it then carries on (simulated walk:
         # scale -0.27 for a true -0.02, the track drifting 0.5 m/s)
-        dims = self.config.dims
-        gain[dims: dims + 2] = 0.0
         gain[self._odometry: self._odometry + 2] = 0.0
+        if arrival.time_s - self._odometry_heard_s <= ODOMETRY_GAP_S:
+            dims = self.config.dims
+            gain[dims: dims + 2] = 0.0
         x += gain * innovation
         self._P = P - np.outer(gain, ph) - np.outer(ph, gain) + variance * np.outer(gain, gain)
         return True
@@ -638,7 +640,7 @@ class Tracker:
 
     def _velocity_outcome(self, aid: VelocityAid, score: float | None, speed: float) -> None:
         if score is None:
-            self._last_accepted = aid.time_s
+            self._last_accepted = self._odometry_heard_s = aid.time_s
             self._velocity_refusals = 0
             return
         self._velocity_refusals += 1
