@@ -41,6 +41,7 @@ def fails(args: list[str], capsys, message: str) -> None:
     assert status == 2, err
     assert message in err, err
     assert "Traceback" not in err
+    assert len(err) < 2000, f"{len(err)} characters"  # argparse's usage, and one line
 
 
 @pytest.fixture
@@ -57,11 +58,13 @@ def cu8(tmp_path) -> Path:
     (["--seconds", "1e-9"], "at least one 10 ms frame"),
     (["--seconds", "nan"], "must be a positive number"),
     (["--seconds", "-1"], "must be a positive number"),
-    (["--seed", "x"], "invalid int value"),
-    (["--seed=-1"], "--seed must be in [0, 9223372036854775807]"),
-    (["--seed", str(2**64)], "--seed must be in [0, 9223372036854775807]"),
-], ids=["workers_0", "workers_1000", "workers_word", "seconds_tiny", "seconds_nan", "seconds_negative", "seed_word",
-        "seed_negative", "seed_beyond_int64"])
+    (["--seconds", "1e308"], "argument --seconds: '1e308' s is more than a day"),  # OverflowError on main
+    (["--seed", "x"], "argument --seed: 'x' is not a whole number"),
+    (["--seed=-1"], "argument --seed: must be in [0, 9223372036854775807]"),
+    (["--seed", str(2**64)], "argument --seed: must be in [0, 9223372036854775807]"),
+    (["--seed", str(10**308)], "], got 100000000000000000...0000000000000000000"),  # on main: all 309 digits
+], ids=["workers_0", "workers_1000", "workers_word", "seconds_tiny", "seconds_nan", "seconds_negative",
+        "seconds_1e308", "seed_word", "seed_negative", "seed_beyond_int64", "seed_309_digits"])
 def test_simulate_flags(tmp_path, capsys, args, message):
     out = tmp_path / "bag"
     fails(["simulate", "--scenario", str(SCENARIO), "--seconds", "0.1", "--out", str(out), "--quiet", *args],
@@ -70,11 +73,12 @@ def test_simulate_flags(tmp_path, capsys, args, message):
 
 
 def test_simulate_a_run_that_cannot_fit_on_disk_is_refused_before_it_starts(tmp_path, capsys):
-    """On main, --seconds 1e6 spent minutes before any progress showed (and would fill the disk)."""
-    if shutil.disk_usage(tmp_path).free > 2e12:
-        pytest.skip("more than 2 TB free here: a 1e6 s bag would fit")
+    """On main, --seconds 1e6 spent minutes before any progress showed (and would fill the disk);
+    a day, the most --seconds takes, is a 250 GB bag."""
+    if shutil.disk_usage(tmp_path).free > 2.4e11:
+        pytest.skip("more than 240 GB free here: a day-long bag would fit")
     started = time.monotonic()
-    fails(["simulate", "--scenario", str(SCENARIO), "--seconds", "1e6", "--out", str(tmp_path / "bag")], capsys,
+    fails(["simulate", "--scenario", str(SCENARIO), "--seconds", "86400", "--out", str(tmp_path / "bag")], capsys,
           "is free there")
     assert time.monotonic() - started < 10 and not any(tmp_path.iterdir())
 
@@ -359,3 +363,139 @@ def test_compare_poses_of_a_topic_without_covariance_says_so(capsys):
     fails(["compare-poses", "--reference", str(BAG), "--other", str(BAG), "--topic", "/deepsync/truth/pose"],
           capsys, "/deepsync/truth/pose holds geometry_msgs/msg/PoseStamped, not "
                   "geometry_msgs/msg/PoseWithCovarianceStamped")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["demo", "--simulate", "1e308"], "argument --simulate: '1e308' s is more than a day"),  # OverflowError on main
+    (["evaluate-timing", "--frames", "abc"], "argument --frames: 'abc' is not a comma-separated list"),
+    (["evaluate-timing", "--frames", "5,0"], "argument --frames: '5,0': frame counts must be 1..1000"),
+    (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--initial-pose-std", "1e-320"],
+     "argument --initial-pose-std: '1e-320' m: give 0.01...10000 m"),  # found by the fuzzing pass
+    (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--initial-pose-std", "1e308"],
+     "argument --initial-pose-std: '1e308' m: give 0.01...10000 m"),
+    (["detect", "--bag", str(BAG), "--scale", "9" * 400], "argument --scale: '9999999999"),
+], ids=["demo_simulate_1e308", "evaluate_timing_frames_word", "evaluate_timing_frames_0", "initial_std_1e-320",
+        "initial_std_1e308", "scale_400_digits"])
+def test_flags_out_of_range_are_refused_naming_the_flag(capsys, args, message):
+    fails(args, capsys, message)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+def test_simulate_reads_its_scenario_once_so_a_fifo_works(tmp_path):
+    """On main the scenario was read, then opened again to hash it for the provenance: on a FIFO
+    the second open waited forever (a process substitution recorded the hash of nothing)."""
+    import hashlib
+    import json
+    import threading
+
+    from deepsync.bag import BagReader
+
+    fifo = tmp_path / "scenario.yaml"
+    os.mkfifo(fifo)
+    text = SCENARIO.read_bytes()
+
+    def write_once() -> None:
+        with open(fifo, "wb") as handle:
+            handle.write(text)
+
+    writer = threading.Thread(target=write_once, daemon=True)
+    writer.start()
+    run = subprocess.run([str(DEEPSYNC), "simulate", "--scenario", str(fifo), "--seconds", "0.05", "--out",
+                          str(tmp_path / "bag"), "--quiet", "--workers", "1"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    with BagReader(tmp_path / "bag") as bag:
+        provenance = json.loads(bag.provenance)
+    assert provenance["scenario_sha256"] == hashlib.sha256(text).hexdigest()
+
+
+@pytest.mark.parametrize("command", ["evaluate-route", "calibrate", "replay"])
+def test_a_tower_database_in_another_frame_than_the_bag_is_refused(tmp_path, capsys, command):
+    """A database whose origin lies 50 km from the bag's (simulated) one: on main evaluate-route
+    reported a 49,971 m median error for fixes 7 m off, and calibrate wrote site offsets of -2.9
+    and -3.7 us into a database, exit 0. Both frames are "map"; only their origins tell them apart."""
+    moved = tmp_path / "moved.yaml"
+    text = TOWERS.read_text()
+    assert "latitude_deg: 38.98690, longitude_deg: -76.94260" in text
+    moved.write_text(text.replace("latitude_deg: 38.98690, longitude_deg: -76.94260",
+                                  "latitude_deg: 39.43690, longitude_deg: -76.94260", 1))
+    out = tmp_path / ("out.yaml" if command == "calibrate" else "out")
+    bag_flag = "--in" if command == "replay" else "--bag"
+    fails([command, bag_flag, str(BAG), "--towers", str(moved), "--out", str(out), "--quiet"], capsys,
+          "m apart: the ground truth and the fixes would be compared in two frames")
+    assert not out.exists()
+    # the same origin, written otherwise, is the same frame
+    moved.write_text(text.replace("height_m: 10.0}", "height_m: 10.000001}", 1))
+    from deepsync.sources import BagSource
+    from deepsync.towers import load_tower_database
+
+    BagSource(BAG).check_frame(load_tower_database(moved))
+
+
+@pytest.mark.parametrize("command", [["export-onnx"], ["calibrate", "--bag", str(BAG), "--towers", str(TOWERS)]],
+                         ids=["export-onnx", "calibrate"])
+def test_an_output_that_cannot_be_written_is_refused_before_the_work(capsys, command):
+    """On main export-onnx failed after 50 s naming a torch temporary file, and calibrate after
+    the whole replay: the folder is tried first (a file made there and removed)."""
+    started = time.monotonic()
+    fails([*command, "--out", "/proc/deepsync_test/out.yaml"], capsys,
+          "/proc/deepsync_test/out.yaml: cannot write the")
+    assert time.monotonic() - started < 30
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads worker processes from /proc")
+def test_what_a_killed_simulate_left_is_removed_by_the_next_write_of_that_bag(tmp_path):
+    """SIGKILL (no handler runs) left a hidden .NAME.*.partial folder that nobody removed; the
+    next writer of the bag removes those of writers that no longer run, and only those."""
+    out = tmp_path / "bag"
+    process = subprocess.Popen([str(DEEPSYNC), "simulate", "--scenario", str(SCENARIO), "--seconds", "60", "--out",
+                                str(out), "--workers", "1", "--quiet"], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(tmp_path.glob(".bag.*.partial")) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(1.0)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait(timeout=30)
+    (left,) = tmp_path.glob(".bag.*.partial")
+    alive = tmp_path / f".bag.{os.getpid()}.someone-writing.partial"  # a live writer's (this process)
+    alive.mkdir()
+    assert main(["simulate", "--scenario", str(SCENARIO), "--seconds", "0.05", "--out", str(out), "--quiet",
+                 "--workers", "1"]) == 0
+    assert not left.exists() and alive.exists() and (out / "metadata.yaml").is_file()
+
+
+@pytest.mark.parametrize("command", ["evaluate-route", "calibrate"])
+def test_a_ground_truth_pose_holding_nan_is_refused(tmp_path, capsys, command):
+    """A NaN in the truth made every error NaN, which passes every comparison that scores a route
+    (the comparisons family's other member): refused naming the pose."""
+    from deepsync.bag import TRUTH_POSE_TOPIC, BagReader, BagWriter
+
+    bag = tmp_path / "nan_truth"
+    with BagReader(BAG) as reader, BagWriter(bag, provenance=reader.provenance) as writer:
+        for k, item in enumerate(reader.messages(["/deepsync/envelope", TRUTH_POSE_TOPIC])):
+            if item.topic == TRUTH_POSE_TOPIC and k > 50:
+                item.message.pose.position.x = float("nan")
+            writer.write(item.topic, item.message)
+            if k > 120:
+                break
+    out = tmp_path / ("out.yaml" if command == "calibrate" else "out")
+    fails([command, "--bag", str(bag), "--towers", str(TOWERS), "--out", str(out), "--quiet"], capsys,
+          "ns holds NaN or inf")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seeds", "0-1000000000000"], "argument --seeds: '0-1000000000000': 1000000000001 seeds; give 1..10000"),
+    (["--seeds", f"1-{2**64}"], "seeds must be in [0, 9223372036854775807]"),
+    (["--seeds", "5-3"], "0 seeds; give 1..10000"),
+    (["--seeds", "1", "--seconds", "1e308"], "argument --seconds: '1e308' s is more than a day"),
+], ids=["a-trillion-seeds", "beyond-int64", "none", "seconds-1e308"])
+def test_a_route_set_of_what_cannot_be_made_is_refused_before_any_list_is_built(tmp_path, capsys, args, message):
+    """A route set's seeds were built as a list before anything was checked (a range of 10^12
+    seeds filled the memory); its --seconds took 1e308, which simulate refuses."""
+    base = {"--seeds": "1", "--seconds": "0.05"}
+    for flag, value in zip(args[::2], args[1::2]):
+        base[flag] = value
+    fails(["simulate-set", "--scenario", str(SCENARIO), "--out", str(tmp_path / "set"),
+           *[item for pair in base.items() for item in pair]], capsys, message)

@@ -11,6 +11,7 @@ pass. Later work (fusion, the timing network, the ROS nodes) adds its own files 
 """
 
 import copy
+import re
 import typing
 from pathlib import Path
 
@@ -19,6 +20,10 @@ import yaml
 
 from deepsync.configio import ConfigError
 from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
+from deepsync.sync.search import SearchConfig
+from deepsync.sync.stacking import StackConfig
+from deepsync.sync.stage import SyncConfig
+from deepsync.timing.stage import TimingConfig
 from deepsync.towers import load_tower_database, parse_tower_database
 from deepsync.twin.scenario import Scenario, load_scenario, parse_scenario
 
@@ -306,6 +311,44 @@ BAD_TOWERS = [
 ]
 
 
+CAMPUS_A = {"latitude_deg": 38.985851, "longitude_deg": -76.947617}  # a campus site, 0.5 km from its origin
+CAMPUS_ORIGIN = {"latitude_deg": 38.9869, "longitude_deg": -76.9426, "height_m": 10.0}
+
+
+def _placed(*sites: dict, origin: dict | None = None, **top: object) -> dict:
+    """A database of ``sites`` (name, position, cells) around the campus origin."""
+    return {"name": "bad-input", "origin": origin or CAMPUS_ORIGIN, **top,
+            "sites": [{"timing_offset_us": 100.0, **site} for site in sites]}
+
+
+# on main each of these was accepted, and fusion then said only "too_few_sites" or
+# "degenerate_geometry", with no word about the site or the cause
+BAD_TOWERS += [
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120, "earfcn": 2000}]},
+                         {"name": "B", "latitude_deg": 38.99, "longitude_deg": -76.94,
+                          "cells": [{"pci": 120, "earfcn": 2000}]}),
+                 "towers.sites[1].cells[0].pci", "PCI 120 on EARFCN 2000 is also on site 'A' (towers.sites[0].cells[0])",
+                 id="pci-reused-on-another-site"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}, {"pci": 121}]},
+                         {"name": "A-copy", **CAMPUS_A, "cells": [{"pci": 120}, {"pci": 121}]}),
+                 "towers.sites[1].cells[0].pci", "PCI 120 is also on site 'A'", id="site-duplicated"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}]},
+                         {"name": "far", "latitude_deg": 47.9869, "longitude_deg": -76.9426, "cells": [{"pci": 7}]}),
+                 "towers.sites[1]", "site 'far' is 999 km from the origin, beyond the 100 km a cell reaches",
+                 id="site-1000km-away"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}]},
+                         {"name": "B", "latitude_deg": -76.947617, "longitude_deg": 38.985851, "cells": [{"pci": 7}]}),
+                 "towers.sites[1]", "(with latitude and longitude swapped it would lie within reach: swapped?)",
+                 id="latitude-longitude-swapped"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}]},
+                         {"name": "B", "latitude_deg": 38.99, "longitude_deg": -76.94, "cells": [{"pci": 7}]},
+                         origin={"latitude_deg": -38.9869, "longitude_deg": 103.0574, "height_m": 10.0}),
+                 "towers.origin", "every site lies 12,7", id="origin-at-the-antipode"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120}]}, timing_epoch_utc="9999-01-01T00:00:00Z"),
+                 "towers.timing_epoch_utc", "lies outside 1980-01-06..2100-01-01", id="epoch-year-9999"),
+]
+
+
 @pytest.mark.parametrize(("data", "field", "expected"), BAD_TOWERS)
 def test_bad_tower_database_names_the_field(data, field, expected):
     with pytest.raises(ConfigError) as error:
@@ -322,6 +365,12 @@ def test_bad_tower_database_names_the_field(data, field, expected):
                  id="same-pci-on-two-carriers"),
     pytest.param(_towers({"pci": 1}, latitude_deg=-90, longitude_deg=180, height_m=0,
                          timing_offset_us=0), [], id="position-edges"),
+    pytest.param(_placed({"name": "A", **CAMPUS_A, "cells": [{"pci": 120, "earfcn": 2000}]},
+                         {"name": "B", "latitude_deg": 38.99, "longitude_deg": -76.94,
+                          "cells": [{"pci": 120, "earfcn": 2300}]},
+                         {"name": "C", "latitude_deg": 38.0869, "longitude_deg": -76.9426, "cells": [{"pci": 9}]},
+                         timing_epoch_utc="2099-12-31T23:59:59Z"),
+                 [], id="pci-on-two-carriers-a-site-99km-away-epoch-2099"),
 ])
 def test_valid_tower_databases_pass(data, pairs):
     assert parse_tower_database(data).cosited_pairs() == pairs
@@ -382,3 +431,114 @@ def test_ordinary_yaml_anchors_still_load(tmp_path):
     path.write_text("name: t\nsites:\n  - &a {name: A, cells: [{pci: 1}]}\n"
                     "  - {<<: *a, name: B, cells: [{pci: 2}]}\n")
     assert [s.name for s in load_tower_database(path).sites] == ["A", "B"]
+
+
+# -- the timing network's training run (config/timing/*.yaml) ------------------------------------
+
+TRAINING_YAML = CONFIG / "timing" / "timing_net.yaml"
+
+
+def _run_yaml(tmp_path, section: str, key: str, value: object) -> Path:
+    data = yaml.safe_load(TRAINING_YAML.read_text())
+    data[section][key] = value
+    path = tmp_path / "run.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.mark.parametrize(("section", "key", "value", "message"), [
+    pytest.param("training", "steps", 1e308, "steps must be within [1, 1e+07] steps", id="steps-1e308"),
+    pytest.param("training", "huber_delta", 0, "huber_delta must be within [0.001, 1000] samples", id="huber-0"),
+    pytest.param("training", "huber_delta", -1, "huber_delta must be within", id="huber-negative"),
+    pytest.param("training", "threads", -1, "threads must be within [0, 1024] threads", id="threads-negative"),
+    pytest.param("training", "learning_rate", 1e308, "learning_rate must be within [1e-09, 1]", id="lr-1e308"),
+    pytest.param("training", "batch_size", 100_000_000, "batch_size must be within [1, 65536]", id="batch-1e8"),
+    pytest.param("training", "batch_size", 20_000, "a batch would take about", id="batch-beyond-memory"),
+    pytest.param("training", "train_shards", 90_000, "in memory, beyond the 16 GiB bound", id="dataset-beyond-memory"),
+    pytest.param("training", "seed", 2**64, "seed must be within", id="seed-beyond-int64"),
+    pytest.param("training", "workers", 0, "workers must be within [1, 64]", id="workers-0"),
+    pytest.param("model", "hidden", [2e6, 32], "hidden must be within [1, 65536]", id="hidden-2e6"),
+    pytest.param("model", "hidden", [60000, 32], "weights, more than the 16,000,000 allowed", id="hidden-params"),
+    pytest.param("model", "channels", [8, 16, 2048], "channels must be within [1, 1024]", id="channels-2048"),
+    pytest.param("dataset", "examples_per_shard", 10**9, "examples_per_shard must be within", id="examples-1e9"),
+    pytest.param("dataset", "carrier_hz", 1e15, "carrier_hz must be within", id="carrier-1PHz"),
+    pytest.param("dataset", "re_power_dbm", [-110, 1e300], "re_power_dbm must be within", id="power-1e300"),
+])
+def test_a_training_run_that_cannot_work_is_refused_when_read(tmp_path, section, key, value, message):
+    """On main these trained for minutes (steps 1e308: 137 s), then ended in a traceback, or
+    allocated 10 GB first (batch_size 1e8): every number of the run now has its range."""
+    from deepsync.training.train import load_run_config
+
+    with pytest.raises(ConfigError) as error:
+        load_run_config(_run_yaml(tmp_path, section, key, value))
+    assert message in str(error.value) and str(tmp_path / "run.yaml") in str(error.value)
+
+
+def test_the_shipped_training_run_is_inside_every_range():
+    from deepsync.training.train import load_run_config
+
+    assert load_run_config(TRAINING_YAML).training.steps == 8000
+
+
+@pytest.mark.parametrize("module, cls, ranges", [
+    ("deepsync.training.train", "TrainConfig", "TRAIN_RANGES"),
+    ("deepsync.training.dataset", "DatasetConfig", "DATASET_RANGES"),
+    ("deepsync.timing.model", "TimingNetConfig", "NET_RANGES"),
+])
+def test_every_number_of_a_training_run_has_a_range(module, cls, ranges):
+    import importlib
+
+    loaded = importlib.import_module(module)
+    hints = typing.get_type_hints(getattr(loaded, cls))
+    numbers = {name for name, hint in hints.items()
+               if {int, float} & {hint, *typing.get_args(hint), *(a for arg in typing.get_args(hint)
+                                                                  for a in typing.get_args(arg))}}
+    numbers -= {"frame_means"}  # counts checked against max_frames instead
+    assert numbers == set(getattr(loaded, ranges))
+
+
+def test_a_network_config_counts_its_weights_without_building_them():
+    """The bound on a network's size is judged before it is built: the count must be the
+    network's own, for every fusion and head."""
+    torch = pytest.importorskip("torch")
+    from deepsync.timing.model import Fusion, Head, TimingNet, TimingNetConfig
+
+    for fusion in Fusion:
+        for head in Head:
+            for config in (TimingNetConfig(fusion=fusion, head=head),
+                           TimingNetConfig(fusion=fusion, head=head, channels=(4, 8, 16), heads=2, pool=3,
+                                           window_length=300, template_length=250, hidden=(10, 7))):
+                assert config.parameter_count == sum(p.numel() for p in TimingNet(config).parameters())
+    del torch
+
+
+# -- the stages' own configs: every number bounded ------------------------------------------------
+
+
+@pytest.mark.parametrize("cls, values, message", [
+    (SearchConfig, {"refine_lags": 10**9}, "refine_lags must be within [1, 64] samples"),
+    (SearchConfig, {"max_examined": 0}, "max_examined must be within [1, 1024] peaks"),
+    (SyncConfig, {"confirm_tolerance": float("nan")}, "confirm_tolerance must be within [0, 1000] samples, got nan"),
+    (SyncConfig, {"search_every": 10**30}, "search_every must be within [1, 100000] stacks"),
+    (SyncConfig, {"search_every": 10**400}, "search_every must be within [1, 100000] stacks"),  # past a float
+    (StackConfig, {"clip_fraction": 2.0}, "clip_fraction must be a fraction in [0, 1]"),
+    (TimingConfig, {"weak_std_samples": 1e300}, "weak_std_samples must be a positive number up to 1e6"),
+], ids=["refine-lags-1e9", "max-examined-0", "confirm-tolerance-nan", "search-every-1e30", "search-every-1e400",
+        "clip-fraction-2",
+        "weak-std-1e300"])
+def test_a_stage_config_number_outside_its_range_names_it(cls, values, message):
+    """On main these were taken (a billion lags sized the search's arrays; NaN compared false)."""
+    with pytest.raises(ValueError, match=re.escape(message)):
+        cls(**values)
+
+
+def test_a_huge_value_is_quoted_short_in_the_error(tmp_path):
+    """Found by the fuzzing pass: a 10,000-character value was quoted whole in the one-line error."""
+    data = _towers({"pci": 1}, latitude_deg="x" * 10_000, longitude_deg=0)
+    with pytest.raises(ConfigError) as error:
+        parse_tower_database(data)
+    assert "towers.sites[0].latitude_deg: expected a number in [-90, 90], got 'xxxxxx" in str(error.value)
+    assert len(str(error.value)) < 200
+    with pytest.raises(ConfigError) as error:
+        parse_scenario(_scenario((("receiver", "position", "longitude_deg"), "y" * 10_000)))
+    assert len(str(error.value)) < 200

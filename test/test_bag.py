@@ -347,7 +347,7 @@ def test_garbage_metadata_is_reported_and_the_mcap_read(tmp_path: Path, bag: Pat
     (broken / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed\n")
     with BagReader(broken) as reader:  # the .mcap is the truth; metadata.yaml only a copy
         (issue,) = reader.inconsistencies
-        assert str(issue).startswith("metadata.yaml: not YAML") and "example.mcap alone" in str(issue)
+        assert str(issue).startswith("metadata.yaml: unusable (invalid YAML") and "example.mcap alone" in str(issue)
     assert len(list(read_messages(broken))) == len(list(read_messages(bag)))
 
 

@@ -331,7 +331,7 @@ def test_a_failed_write_leaves_the_old_file_whole(tmp_path, monkeypatch):
     def broken_replace(src, dst):
         raise OSError("disk full")
 
-    monkeypatch.setattr("deepsync.towers.os.replace", broken_replace)
+    monkeypatch.setattr("deepsync.outputs.os.replace", broken_replace)  # where the database is written whole
     with pytest.raises(OSError, match="disk full"):
         write_tower_database(replace(TOWERS, name="changed"), path)
     assert path.read_text() == before

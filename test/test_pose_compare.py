@@ -62,3 +62,50 @@ def test_the_command_says_same_or_not_by_its_exit_status(tmp_path, capsys):
     assert "NOT the same" in capsys.readouterr().out
     assert main(["compare-poses", "--reference", str(tmp_path / "a"), "--other", str(tmp_path / "b"),
                  "--tolerance", "1"]) == 0
+
+
+def nan_poses(path, field: str, at: int = 2) -> None:
+    """Five poses, the one at ``at`` with NaN in its position, covariance or orientation."""
+    with BagWriter(path) as bag:
+        for i in range(5):
+            message = fix_to_pose_msg(fix(i), store=bag.store)
+            if i == at:
+                if field == "position":
+                    message.pose.pose.position.x = float("nan")
+                elif field == "covariance":
+                    message.pose.covariance[:] = np.nan
+                elif field == "one_variance":
+                    message.pose.covariance[14] = np.inf
+                else:
+                    message.pose.pose.orientation.w = float("nan")
+            bag.write(POSE_TOPIC, message)
+
+
+@pytest.mark.parametrize("field", ["position", "covariance", "one_variance", "orientation"])
+@pytest.mark.parametrize("side", ["reference", "other", "both"])
+def test_a_nan_pose_is_never_the_same(tmp_path, capsys, field, side):
+    """On main a NaN pose or covariance compared false with the tolerance only where it came
+    first: elsewhere ``max`` skipped it, and the command said "the same poses", exit 0."""
+    from deepsync.cli import main
+
+    write(tmp_path / "good", [fix(i) for i in range(5)])
+    nan_poses(tmp_path / "nan", field)
+    reference, other = {"reference": ("nan", "good"), "other": ("good", "nan"), "both": ("nan", "nan")}[side]
+    result = compare_poses(tmp_path / reference, tmp_path / other)
+    assert result.matched == 5 and result.not_finite == 1 and not result.same()
+    assert main(["compare-poses", "--reference", str(tmp_path / reference), "--other", str(tmp_path / other)]) == 1
+    out = capsys.readouterr().out
+    assert "1 of them hold NaN or inf" in out and "NOT the same poses" in out
+
+
+def test_poses_in_two_frames_are_refused(tmp_path):
+    """Poses published in another frame (another map, an odom frame) were compared metre for
+    metre: the frames family's other member."""
+    write(tmp_path / "a", [fix(i) for i in range(3)])
+    with BagWriter(tmp_path / "b") as bag:
+        for i in range(3):
+            message = fix_to_pose_msg(fix(i), store=bag.store)
+            message.header.frame_id = "odom"
+            bag.write(POSE_TOPIC, message)
+    with pytest.raises(ValueError, match="the poses of .*a are in frame map, those of .*b in odom"):
+        compare_poses(tmp_path / "a", tmp_path / "b")

@@ -393,7 +393,7 @@ def test_sigmf_refuses_what_it_cannot_stream(tmp_path):
     with pytest.raises(ValueError, match="tampered.sigmf-meta: not a readable SigMF recording: .*hash"):
         SigmfSource(tmp_path / "tampered.sigmf-meta")
     _write_sigmf(tmp_path, "when", np.zeros(64, np.int8), "ci8", **{"core:datetime": "yesterday"})
-    with pytest.raises(ValueError, match="when.sigmf-meta: core:datetime 'yesterday' is not an ISO 8601"):
+    with pytest.raises(ValueError, match="when.sigmf-meta: the capture at sample 0: core:datetime 'yesterday' is not an ISO 8601"):
         SigmfSource(tmp_path / "when.sigmf-meta")
     retuned = _write_sigmf(tmp_path, "retune", np.zeros(64, np.int8), "ci8", **{"core:frequency": 1860e6})
     retuned.add_capture(16, metadata={"core:frequency": 2140e6})

@@ -76,8 +76,14 @@ def test_a_file_that_would_run_code_is_refused_without_running_it(tmp_path, caps
     (lambda p: p.update(step="many"), "step"),
     (lambda p: p["normalisation"].update(window_scale=-1.0), "window_scale"),
     (lambda p: p.pop("normalisation"), "normalisation"),
+    # on main the network was built before its sizes were judged: 3.3 GB, and a 14 GB traceback
+    (lambda p: p["config"].update(hidden=[2e6, 32]), "hidden: .* must be whole numbers"),
+    (lambda p: p["config"].update(hidden=[10**7, 1000]), "hidden must be within"),
+    (lambda p: p["config"].update(hidden=[60000, 32]), "16,000,000 allowed"),
+    (lambda p: p["config"].update(window_length=10**9), "window_length must be within"),
 ], ids=["format", "version", "shapes", "config_value", "config_field", "fusion_name", "fusion_other", "range_field", "weight_missing",
-        "weight_nan", "step_type", "normalisation_value", "normalisation_missing"])
+        "weight_nan", "step_type", "normalisation_value", "normalisation_missing", "hidden_2e6", "hidden_1e7",
+        "too_many_weights", "window_1e9"])
 def test_a_mismatched_or_tampered_checkpoint_is_refused_by_name(tmp_path, tamper, message):
     path = tmp_path / "net.pt"
     save_checkpoint(path, trained_looking(), RANGE, SCALE)

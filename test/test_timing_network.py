@@ -187,7 +187,8 @@ def test_the_onnx_export_computes_what_torch_computes(checkpoint, tmp_path):
     from deepsync.timing.export import check_onnx, export_onnx
 
     loaded = load_checkpoint(checkpoint)
-    path = export_onnx(loaded, tmp_path / "net.onnx")
+    path = export_onnx(loaded, tmp_path / "out" / "net.onnx")
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["net.onnx"]  # on main a stray net.onnx.data too
     assert check_onnx(path, loaded, trials=4) < 1e-4
     metadata = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
     assert float(metadata["window_scale"]) == 1.3 and metadata["training_range.max_frames"] == "12"

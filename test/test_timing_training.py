@@ -65,7 +65,8 @@ def test_generation_resumes_without_remaking_shards(tmp_path):
     assert generate(tmp_path, {"val": 2}, TINY) == 3
     assert path.stat().st_mtime_ns == before and path_1.exists()
     assert len(load_split(tmp_path, "val")["offset"]) == 6
-    assert not list((tmp_path / "val").glob("*.tmp"))
+    assert len(load_split(tmp_path, "val", 1)["offset"]) == 3  # a run loads the shards it counts (and bounds)
+    assert not list((tmp_path / "val").glob("*.tmp")) and not list((tmp_path / "val").glob(".*.partial"))
     with pytest.raises(ValueError, match="another dataset config .*max_frames 4 -> 5"):
         generate(tmp_path, {"val": 2}, DatasetConfig(max_frames=5, examples_per_shard=3))
 
@@ -350,3 +351,38 @@ def test_validation_picks_by_the_examples_with_a_code_and_by_all_where_none_has_
     mixed = Examples({**arrays, "snr_db": np.array([-40.0, -40.0, -40.0, 0.0, 0.0, 0.0])})
     scores = evaluate(model, mixed, Normalisation(1.0), 4, torch.device("cpu"), min_stacked_snr_db=-5.0)
     assert scores["rmse_with_code"] != scores["rmse"]
+
+
+def test_an_interrupted_run_keeps_the_file_it_would_replace_and_a_cut_history_names_itself(tmp_path, monkeypatch, capsys):
+    """On main SIGTERM mid-run said "nothing was written" though last.pt and the model had been
+    written, the model over the file at model_path (with the shipped config, the shipped
+    network); history.json was written in place, and a cut one broke resuming with an error
+    naming no file."""
+    from deepsync.cli import main
+    from deepsync.timing.checkpoint import load_checkpoint
+    from deepsync.training import train as training
+
+    shipped = tmp_path / "net.pt"
+    shipped.write_bytes(b"the network that was there")
+    config = run_yaml(tmp_path, steps=10)
+    plot = training.plot_history
+
+    def interrupt_after_the_first_evaluation(history, path):
+        plot(history, path)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(training, "plot_history", interrupt_after_the_first_evaluation)
+    assert main(["train", "--config", config]) == 130
+    err = capsys.readouterr().err
+    assert f"interrupted; {tmp_path / 'run'} keeps the run so far (the same command resumes it), {shipped} is as it was" in err
+    assert shipped.read_bytes() == b"the network that was there"
+    assert load_checkpoint(tmp_path / "run" / "best.pt").step == 5 and load_checkpoint(tmp_path / "run" / "last.pt").step == 5
+    assert not list((tmp_path / "run").glob(".*.partial"))
+    monkeypatch.setattr(training, "plot_history", plot)
+    history = tmp_path / "run" / "history.json"
+    history.write_text(history.read_text()[:20])  # as a crash mid-write left it on main
+    assert main(["train", "--config", config]) == 2
+    assert f"{history}: unreadable" in capsys.readouterr().err
+    history.unlink()
+    assert main(["train", "--config", config]) == 0
+    assert load_checkpoint(shipped).step == 10

@@ -7,9 +7,9 @@ over a source (``deepsync.sources``), and reported by ``deepsync.eval``."""
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
+import reprlib
 import signal
 import sys
 import threading
@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deepsync.bag import POSE_TOPIC, TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg
+from deepsync.bag import (POSE_TOPIC, TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg,
+                          provenance_document)
 from deepsync.bag.writer import PROVENANCE_KEY
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import stack_record, summarize
@@ -38,6 +39,7 @@ DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus_route.yaml"
 DEMO_BAG = REPO / "bags" / "campus_route"
 DEMO_TOWERS = REPO / "config" / "towers" / "campus.yaml"
 MAX_WORKERS = 64
+INITIAL_STD_RANGE_M = (0.01, 1e4)  # evaluate-route --initial-pose-std
 
 
 def _workers(text: str) -> int:
@@ -55,9 +57,9 @@ def _bounded_float(text: str, *, positive: bool) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} is not a number") from None
     if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
-        raise argparse.ArgumentTypeError(f"{text!r} must be {what}")
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} must be {what}")
     return value
 
 
@@ -69,18 +71,27 @@ def _non_negative_float(text: str) -> float:
     return _bounded_float(text, positive=False)
 
 
+MAX_SEEDS = 10_000  # bags a route set makes (a range of 10^12 seeds was built as a list)
+
+
 def _seeds(text: str) -> list[int]:
-    """``1-12`` or ``3,5,9`` (or both, comma-separated) as a list of seeds."""
-    seeds: list[int] = []
+    """``1-12`` or ``3,5,9`` (or both, comma-separated) as a list of seeds: each an int64 (as a
+    bag's provenance holds it), at most ``MAX_SEEDS`` of them, counted before any list is made."""
+    from deepsync.twin.scenario import SEED_RANGE
+
+    ranges = []
     try:
         for part in text.split(","):
             low, _, high = part.partition("-")
-            seeds += range(int(low), int(high or low) + 1)
+            ranges.append((int(low), int(high or low)))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give seeds as 1-12 or 3,5,9") from None
-    if not seeds or min(seeds) < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: give at least one seed, none negative")
-    return seeds
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)}: give seeds as 1-12 or 3,5,9") from None
+    if any(not SEED_RANGE[0] <= value <= SEED_RANGE[1] for pair in ranges for value in pair):
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)}: seeds must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}]")
+    count = sum(max(0, high - low + 1) for low, high in ranges)
+    if not 1 <= count <= MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)}: {count} seeds; give 1..{MAX_SEEDS}")
+    return [seed for low, high in ranges for seed in range(low, high + 1)]
 
 
 def _aiding_arguments(command: argparse.ArgumentParser) -> None:
@@ -105,6 +116,62 @@ def _job_arguments(command: argparse.ArgumentParser, workers: int) -> None:
     command.add_argument("--workers", type=_workers, default=workers, help=f"local processes (default {workers})")
     command.add_argument("--ray", metavar="ADDRESS", help="run the jobs on a Ray cluster instead: auto (the cluster "
                          "this machine belongs to), local, or ray://HOST:10001 (needs deepsync[ray])")
+
+
+def _initial_std(text: str) -> float:
+    """An initial pose's sigma: from a centimetre (a variance that does not vanish) to 10 km."""
+    value = _positive_float(text)
+    if not INITIAL_STD_RANGE_M[0] <= value <= INITIAL_STD_RANGE_M[1]:
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} m: give {INITIAL_STD_RANGE_M[0]:g}..."
+                                         f"{INITIAL_STD_RANGE_M[1]:g} m")
+    return value
+
+
+def _seconds(text: str) -> float:
+    """A length of signal to simulate: positive, and at most a day (a bag that large already
+    takes 250 GB; 1e308 s overflowed)."""
+    from deepsync.recording import MAX_SECONDS
+
+    value = _positive_float(text)
+    if value > MAX_SECONDS:
+        raise argparse.ArgumentTypeError(f"{text!r} s is more than a day ({MAX_SECONDS:g} s): record less")
+    return value
+
+
+def _seed(text: str) -> int:
+    """A seed for the simulator's draws: an int64, as bag provenance and ROS parameters hold it."""
+    from deepsync.twin.scenario import SEED_RANGE
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} is not a whole number") from None
+    if not SEED_RANGE[0] <= value <= SEED_RANGE[1]:
+        raise argparse.ArgumentTypeError(f"must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}], got {reprlib.repr(value)}")
+    return value
+
+
+def _output_file(text: str) -> str:
+    """A file (or folder of files) to write at the end of a long run: where it goes is tried at
+    the door."""
+    from deepsync.outputs import check_writable
+
+    try:
+        check_writable(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
+def _frame_counts(text: str) -> tuple[int, ...]:
+    """Comma-separated frame counts (``5,10,12``)."""
+    try:
+        counts = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of whole numbers") from None
+    if not all(1 <= count <= 1000 for count in counts):
+        raise argparse.ArgumentTypeError(f"{text!r}: frame counts must be 1..1000")
+    return counts
 
 
 def _print_recording(summary) -> None:
@@ -140,10 +207,10 @@ def describe_bag(path: Path) -> None:
         provenance = bag.custom_data.get(PROVENANCE_KEY)
         if provenance:
             try:
-                info = json.loads(provenance)
+                info = provenance_document(provenance, path)
                 print(f"  made by {info.get('generator')} from {info.get('scenario')} (seed {info.get('seed')})")
-            except json.JSONDecodeError:
-                print(f"  provenance: {provenance}")
+            except BagError as error:
+                print(f"  provenance: {_one_line(error)}")
         if TRUTH_CELL_TIMING_TOPIC in bag.topics:
             codes: dict[int, int] = {}
             for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
@@ -220,18 +287,35 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
           f"found in {config.sync.confirm_stacks} stacks in a row; timing: {config.timing.estimator.value}")
     stacks, samples = [], 0
+    alike: list[dict] = []  # stacks not printed: like the last printed one, with no cell and no event
+    printed: list | None = None  # the flags of the last stack printed
     for chunk in source.chunks():
         samples += len(chunk.samples)
         for result in pipeline.process(chunk):
             stacks.append(stack_record(result, truth, source.frontend.adc_rate_hz))
-            if verbose:
-                _print_stack(result, stacks[-1], truth)
+            if not verbose:
+                continue
+            kinds = [flag.kind for flag in result.sync.flags]
+            if not (stacks[-1]["cells"] or stacks[-1]["events"] or result.sync.tentative) and kinds == printed:
+                alike.append(stacks[-1])  # a silent file's 56,000 identical lines, said once
+                continue
+            _print_alike(alike)
+            _print_stack(result, stacks[-1], truth)
+            printed = None if (stacks[-1]["cells"] or stacks[-1]["events"] or result.sync.tentative) else kinds
+    _print_alike(alike)
     if not stacks:
         frame = round(source.frontend.adc_rate_hz * FRAME_SECONDS)
         reason = (f"it holds {samples} samples ({samples / frame:.1f} frames), less than one {frames}-frame stack"
                   if samples < frames * frame else "no stretch of it was clean for a whole stack (see the events)")
         raise ValueError(f"no stack to search in {source.description}: {reason}")
     return stacks
+
+
+def _print_alike(alike: list[dict]) -> None:
+    """One line for the run of stacks like the last one printed (and the run emptied)."""
+    if alike:
+        print(f"  ... {len(alike)} more stack(s) like it, to {alike[-1]['time_s']:.3f} s")
+        alike.clear()
 
 
 def _print_stack(result: StackResult, record: dict, truth: dict[int, np.ndarray]) -> None:
@@ -458,7 +542,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     run = load_run_config(args.config)
     print(f"training the timing network from {args.config}: {run.training.steps} steps of "
           f"{run.training.batch_size}, run directory {run.training.run_dir}")
-    path = train(run, args.config)
+    try:
+        path = train(run, args.config)
+    except KeyboardInterrupt:
+        print(f"deepsync train: interrupted; {run.training.run_dir} keeps the run so far (the same command resumes "
+              f"it), {run.training.model_path} is as it was", file=sys.stderr)
+        return 130
     print(f"  best checkpoint: {path}")
     return 0
 
@@ -466,7 +555,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_evaluate_timing(args: argparse.Namespace) -> int:
     from deepsync.eval.timing import evaluate_timing
 
-    frames = tuple(int(f) for f in args.frames.split(","))
+    frames = args.frames
     if args.bag:
         from deepsync.eval.timing import evaluate_timing_bag
 
@@ -510,7 +599,9 @@ def _cmd_compare_poses(args: argparse.Namespace) -> int:
     result = compare_poses(args.reference, args.other, args.topic)
     print(f"{args.topic}: {result.matched} poses at the same stamps, {result.only_reference} only in "
           f"{args.reference}, {result.only_other} only in {args.other}")
-    if result.matched:
+    if result.not_finite:
+        print(f"  {result.not_finite} of them hold NaN or inf (position, orientation or covariance) on either side")
+    if result.matched > result.not_finite:
         print(f"  position difference: median {result.median_difference_m:.3g} m, largest "
               f"{result.max_difference_m:.3g} m; horizontal sigmas within a factor {result.max_sigma_ratio:.4g}")
     same = result.same(args.tolerance)
@@ -591,9 +682,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = commands.add_parser("simulate", help="simulate a scenario into an MCAP bag")
     sim.add_argument("--scenario", required=True, help="scenario YAML (see config/scenarios)")
-    sim.add_argument("--seconds", required=True, type=_positive_float, help="length of the recording")
+    sim.add_argument("--seconds", required=True, type=_seconds, help="length of the recording")
     sim.add_argument("--out", required=True, help="bag directory to create")
-    sim.add_argument("--seed", type=int, help="override the scenario's seed")
+    sim.add_argument("--seed", type=_seed, help="override the scenario's seed")
     sim.add_argument("--workers", type=_workers, default=workers, help=f"processes (default {workers})")
     sim.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     sim.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -603,7 +694,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "local processes or on a Ray cluster")
     route_set.add_argument("--scenario", required=True, action="append", help="scenario YAML (repeat for more)")
     route_set.add_argument("--seeds", required=True, type=_seeds, help="seeds, e.g. 1-12 or 3,5,9")
-    route_set.add_argument("--seconds", required=True, type=_positive_float, help="length of each recording")
+    route_set.add_argument("--seconds", required=True, type=_seconds, help="length of each recording")
     route_set.add_argument("--out", required=True, help="directory of the bags (<scenario>_seed<seed>)")
     route_set.add_argument("--overwrite", action="store_true", help="replace bags already there (default: keep them)")
     _job_arguments(route_set, workers)
@@ -629,8 +720,9 @@ def build_parser() -> argparse.ArgumentParser:
                                 "(snapshot, tracked, RSSI, the position bound): table, JSON and figures")
     _replay_arguments(route, "bag with /deepsync/envelope and /deepsync/truth/pose",
                       "tower database YAML with origin, positions and timing")
-    route.add_argument("--out", default=str(REPO / "out" / "route"), help="where route.json and the PNGs go")
-    route.add_argument("--initial-pose-std", type=_positive_float, metavar="M",
+    route.add_argument("--out", default=str(REPO / "out" / "route"), type=_output_file,
+                       help="where route.json and the PNGs go")
+    route.add_argument("--initial-pose-std", type=_initial_std, metavar="M",
                        help="start the tracker from an initial position: the true start, off by a draw of "
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
                        "sites are heard to start)")
@@ -641,7 +733,7 @@ def build_parser() -> argparse.ArgumentParser:
                                  "Ray cluster: a report per bag and route_set.json")
     _replay_arguments(routes, "bags with /deepsync/envelope and /deepsync/truth/pose (e.g. --bag bags/set/*)",
                       "tower database YAML with origin, positions and timing", many_bags=True)
-    routes.add_argument("--out", required=True, help="where the reports (one directory per bag) go")
+    routes.add_argument("--out", required=True, type=_output_file, help="where the reports (one directory per bag) go")
     _aiding_arguments(routes)
     _job_arguments(routes, workers)
     routes.set_defaults(run=_cmd_evaluate_routes)
@@ -664,7 +756,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "from a recording with ground truth; write the updated tower database")
     _replay_arguments(calibrate, "bag with /deepsync/envelope and /deepsync/truth/pose",
                       "tower database YAML to start from")
-    calibrate.add_argument("--out", required=True, help="calibrated tower database YAML to write")
+    calibrate.add_argument("--out", required=True, type=_output_file, help="calibrated tower database YAML to write")
     calibrate.set_defaults(run=_cmd_calibrate)
 
     compare = commands.add_parser("compare-poses", help="do two bags hold the same poses (matched by stamp)? "
@@ -692,17 +784,19 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--data", default="data/timing", help="timing data directory (deepsync train makes it)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test"))
     evaluate.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
-    evaluate.add_argument("--frames", default="5,10,12", help="stacked frames to evaluate, comma-separated "
+    evaluate.add_argument("--frames", type=_frame_counts, default="5,10,12",
+                          help="stacked frames to evaluate, comma-separated "
                           "(with --bag: the first)")
     evaluate.add_argument("--bag", help="instead of the test set: a simulated bag with ground truth")
     evaluate.add_argument("--towers", help="with --bag: tower database YAML (known-PCI cell search)")
-    evaluate.add_argument("--out", default=str(REPO / "out" / "timing"), help="where timing.json and timing.png go")
+    evaluate.add_argument("--out", default=str(REPO / "out" / "timing"), type=_output_file,
+                          help="where timing.json and timing.png go")
     evaluate.add_argument("--quiet", action="store_true", help="no progress bar")
     evaluate.set_defaults(run=_cmd_evaluate_timing)
 
     onnx = commands.add_parser("export-onnx", help="write the timing network as ONNX and check it against torch")
     onnx.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
-    onnx.add_argument("--out", required=True, help="the .onnx file to write")
+    onnx.add_argument("--out", required=True, type=_output_file, help="the .onnx file to write")
     onnx.set_defaults(run=_cmd_export_onnx)
 
     info = commands.add_parser("info", help="describe a bag")
@@ -713,12 +807,25 @@ def build_parser() -> argparse.ArgumentParser:
                                "every stage into an MCAP bag, a route map, an error CDF and a table")
     demo.add_argument("--out", default=str(REPO / "out" / "demo"), help="where the demo writes")
     demo.add_argument("--verbose", action="store_true", help="print every stack: cells, sites, fix errors")
-    demo.add_argument("--simulate", type=_positive_float, metavar="SECONDS",
+    demo.add_argument("--simulate", type=_seconds, metavar="SECONDS",
                       help="simulate a fresh recording of the demo's scenario this long and use it instead")
     demo.add_argument("--workers", type=_workers, default=workers)
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(run=_cmd_demo)
     return parser
+
+
+MAX_ERROR_CHARACTERS = 1000
+
+
+def _one_line(error: object) -> str:
+    """An error as the one line the command promises: whitespace runs (a library's multi-line
+    message) made single spaces, and a message past ``MAX_ERROR_CHARACTERS`` (a value quoted
+    whole) cut with how much was left out."""
+    text = " ".join(str(error).split())
+    if len(text) > MAX_ERROR_CHARACTERS:
+        text = f"{text[:MAX_ERROR_CHARACTERS]}... ({len(text) - MAX_ERROR_CHARACTERS} characters more)"
+    return text
 
 
 def _interrupt(signum: int, frame: object) -> None:
@@ -733,7 +840,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with one_blas_thread():
             return args.run(args)
     except (ConfigError, BagError, ValueError) as error:
-        print(f"deepsync {args.command}: error: {error}", file=sys.stderr)
+        print(f"deepsync {args.command}: error: {_one_line(error)}", file=sys.stderr)
         return 2
     except BrokenPipeError:
         # the reader went away (`deepsync info | head`): stop quietly, and keep Python from
@@ -743,7 +850,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except OSError as error:
         where = f"{error.filename}: " if error.filename else ""
-        print(f"deepsync {args.command}: error: {where}{error.strerror or error}", file=sys.stderr)
+        print(f"deepsync {args.command}: error: {_one_line(f'{where}{error.strerror or error}')}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"deepsync {args.command}: interrupted; nothing was written", file=sys.stderr)

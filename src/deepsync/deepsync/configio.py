@@ -27,19 +27,49 @@ class ConfigError(ValueError):
     """A configuration value is missing, malformed or out of range; the message names it."""
 
 
-def load_yaml(path: str | Path, where: str | None = None) -> dict[str, Any]:
-    """Load a YAML mapping with ``yaml.safe_load``; raise :class:`ConfigError` on any problem."""
-    path = Path(path)
+MAX_CONFIG_BYTES = 16 * 2**20  # a config file larger than this is no config (ours are a few kB)
+
+
+def read_config_bytes(path: str | Path, where: str | None = None) -> bytes:
+    """The bytes of a config file, read once (a FIFO or a process substitution cannot be read
+    twice: whatever else needs them, a hash for the provenance, takes these), at most
+    :data:`MAX_CONFIG_BYTES`; ConfigError naming the file on any problem."""
     where = where or str(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_CONFIG_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{where}: file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{where}: a directory, not a file") from None
     except OSError as error:
-        raise ConfigError(f"{where}: cannot read ({error.strerror})") from None
-    except UnicodeDecodeError as error:
-        raise ConfigError(f"{where}: not UTF-8 text (byte {error.object[error.start]:#04x} at offset "
-                          f"{error.start}): not a YAML file?") from None
+        raise ConfigError(f"{where}: cannot read ({error.strerror or error})") from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{where}: larger than {MAX_CONFIG_BYTES // 2**20} MiB: not a config file")
+    return data
+
+
+def load_yaml(path: str | Path, where: str | None = None) -> dict[str, Any]:
+    """Load a YAML mapping with ``yaml.safe_load``; raise :class:`ConfigError` on any problem."""
+    where = where or str(path)
+    return parse_yaml(read_config_bytes(path, where), where)
+
+
+def parse_yaml(data: bytes | str, where: str) -> dict[str, Any]:
+    """A YAML mapping from a config's bytes or text (what :func:`load_yaml` reads), through every
+    guard: ``safe_load``, UTF-8, a mapping at the top, string keys, bounded nesting and alias
+    expansion (:func:`check_tree`). The one way the project parses YAML: ConfigError naming
+    ``where`` on any problem."""
+    if isinstance(data, bytes):
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as error:
+            raise ConfigError(f"{where}: not UTF-8 text (byte {error.object[error.start]:#04x} at offset "
+                              f"{error.start}): not a YAML file?") from None
+    else:
+        text = data
+    if len(text) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{where}: larger than {MAX_CONFIG_BYTES // 2**20} MiB: not a config file")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as error:
@@ -51,12 +81,19 @@ def load_yaml(path: str | Path, where: str | None = None) -> dict[str, Any]:
         raise ConfigError(f"{where}: nested too deeply to read (more than Python's recursion limit)") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a mapping at the top level, got {type(data).__name__}")
-    _check_tree(data, where, 0, {})
+    check_tree(data, where)
     return data
 
 
 MAX_DEPTH = 64  # levels of nesting a config may have (ours use 5)
 MAX_VALUES = 1_000_000  # values a config may expand to through YAML aliases (ours hold a few hundred)
+
+
+def check_tree(value: object, where: str) -> int:
+    """How many values a parsed document (YAML, JSON) expands to; ConfigError naming ``where``
+    and the place for a key that is not a string, nesting deeper than ``MAX_DEPTH`` or more
+    than ``MAX_VALUES`` values (see :func:`_check_tree`)."""
+    return _check_tree(value, where, 0, {})
 
 
 def _check_tree(value: object, where: str, depth: int, sizes: dict[int, int]) -> int:
@@ -88,6 +125,28 @@ def _check_tree(value: object, where: str, depth: int, sizes: dict[int, int]) ->
 
 
 
+Ranges = Mapping[str, tuple[float, float, str]]
+"""Field name -> (lowest, highest, unit): the inclusive physical or practical range of a
+config's number (a tuple field: of each of its values)."""
+
+
+def check_ranges(config: object, ranges: Ranges) -> None:
+    """ValueError naming the first field of ``config`` outside its range in ``ranges`` (a
+    number, or every value of a tuple of numbers), or a number that is not finite. Run from a
+    frozen config's ``__post_init__``, so that no value that cannot work gets past its door."""
+    for name, (low, high, unit) in ranges.items():
+        value = getattr(config, name)
+        values = value if isinstance(value, tuple) else (value,)
+        for item in values:
+            if item is None:
+                continue
+            if isinstance(item, bool) or not isinstance(item, (int, float)):
+                raise ValueError(f"{name} must be a number, got {reprlib.repr(value)}")
+            if not low <= item <= high:  # NaN compares false; a huge int compares exactly (no float conversion)
+                allowed = f"[{low:g}, {high:g}] {unit}".rstrip()
+                raise ValueError(f"{name} must be within {allowed}, got {reprlib.repr(value)}")
+
+
 def require_mapping(value: object, where: str) -> Mapping[str, Any]:
     if not isinstance(value, Mapping):
         raise ConfigError(f"{where}: expected a mapping, got {type(value).__name__}")
@@ -115,7 +174,7 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
                 return _coerce(value, option, where)
             except ConfigError as error:
                 errors.append(str(error))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{where}: {value!r} has the wrong type")
+        raise ConfigError(errors[0] if len(errors) == 1 else f"{where}: {reprlib.repr(value)} has the wrong type")
     if origin is tuple:
         items = typing.get_args(annotation)
         if not isinstance(value, (list, tuple)):
@@ -127,25 +186,25 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
         return tuple(_coerce(v, t, f"{where}[{i}]") for i, (v, t) in enumerate(zip(value, items)))
     if annotation is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+            raise ConfigError(f"{where}: expected true or false, got {reprlib.repr(value)}")
         return value
     if annotation is int:
         if isinstance(value, bool) or not isinstance(value, int):
             if isinstance(value, float) and value.is_integer():
                 return int(value)
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+            raise ConfigError(f"{where}: expected an integer, got {reprlib.repr(value)}")
         return value
     if annotation is float:
         if isinstance(value, str) and _YAML11_EXPONENT.fullmatch(value.strip()):
             value = float(value)  # PyYAML (YAML 1.1) reads 3.84e6, without a dot or sign, as text
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
+            raise ConfigError(f"{where}: expected a number, got {reprlib.repr(value)}")
         if not math.isfinite(value):
-            raise ConfigError(f"{where}: must be a finite number, got {value!r}")
+            raise ConfigError(f"{where}: must be a finite number, got {reprlib.repr(value)}")
         return float(value)
     if annotation is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
+            raise ConfigError(f"{where}: expected a string, got {reprlib.repr(value)}")
         return value
     return value
 

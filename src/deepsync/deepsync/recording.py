@@ -16,6 +16,7 @@ import json
 import math
 import os
 import platform
+import reprlib
 import shutil
 import time
 from collections.abc import Iterator
@@ -27,17 +28,20 @@ from tqdm import tqdm
 
 import deepsync
 from deepsync.bag import BagWriter
+from deepsync.configio import parse_yaml, read_config_bytes
 from deepsync.frontend.channel import Emitter
 from deepsync.frontend.portable import squared_magnitude
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
 from deepsync.frontend.templates import sync_code_offset_seconds
 from deepsync.jobs import JobRunner
+from deepsync.sync.stacking import check_stack_rate
 from deepsync.twin import Twin, build_twin
-from deepsync.twin.scenario import SEED_RANGE, load_scenario
+from deepsync.twin.scenario import SEED_RANGE, load_scenario, parse_scenario
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S, CellTiming, StackArrivals
 
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: receiver clock at sample 0
 POSE_PERIOD_SECONDS = 0.1
+MAX_SECONDS = 86_400.0  # a day of signal (about 250 GB of bag at 1.92 MS/s), the scenario's longest route
 TRUTH_ESTIMATOR = "truth"
 
 
@@ -128,12 +132,12 @@ def _size(n_bytes: float) -> str:
     return f"{n_bytes / 1e9:.1f} GB" if n_bytes >= 1e9 else f"{n_bytes / 1e6:.1f} MB"
 
 
-def _provenance(scenario_path: Path, seed: int, seconds: float, twin: Twin) -> str:
+def _provenance(scenario_path: Path, scenario_bytes: bytes, seed: int, seconds: float, twin: Twin) -> str:
     return json.dumps(
         {
             "generator": f"deepsync {deepsync.__version__} simulate",
             "scenario": str(scenario_path),
-            "scenario_sha256": hashlib.sha256(scenario_path.read_bytes()).hexdigest(),
+            "scenario_sha256": hashlib.sha256(scenario_bytes).hexdigest(),
             "seed": seed,
             "seconds": seconds,
             "frontend": asdict(twin.frontend),
@@ -176,15 +180,21 @@ def record_scenario(
     progress: bool = True,
 ) -> RecordingSummary:
     """Simulate ``seconds`` of a scenario into the bag ``out_dir`` (written atomically)."""
-    if not (math.isfinite(seconds) and seconds >= FRAME_SECONDS):
-        raise ValueError(f"--seconds must be at least one 10 ms frame, got {seconds!r}")
+    if not (math.isfinite(seconds) and FRAME_SECONDS <= seconds <= MAX_SECONDS):
+        raise ValueError(f"--seconds must be at least one 10 ms frame and at most a day ({MAX_SECONDS:g} s), "
+                         f"got {seconds!r}")
     scenario_path = Path(scenario_path)
-    scenario = load_scenario(scenario_path)
+    scenario_bytes = read_config_bytes(scenario_path)  # once: a FIFO cannot be read again for the hash
+    scenario = parse_scenario(parse_yaml(scenario_bytes, str(scenario_path)))
     seed = scenario.seed if seed is None else int(seed)
     if not SEED_RANGE[0] <= seed <= SEED_RANGE[1]:
         raise ValueError(f"--seed must be in [{SEED_RANGE[0]}, {SEED_RANGE[1]}] (bag provenance and ROS "
-                         f"parameters hold it as int64), got {seed}")
+                         f"parameters hold it as int64), got {reprlib.repr(seed)}")
     twin = build_twin(scenario)
+    try:  # a bag the cell search can read, or none
+        check_stack_rate(twin.frontend.adc_rate_hz)
+    except ValueError as error:
+        raise ValueError(f"{scenario_path}: frontend.adc_rate_hz: {error}") from None
     simulator = EnvelopeSimulator(twin.emitters, twin.channel, twin.frontend, seed, epoch_ns=EPOCH_NS)
     rate = twin.frontend.adc_rate_hz
     n_samples = int(round(seconds * rate))
@@ -197,7 +207,8 @@ def record_scenario(
     stats = SimulationStats()
     started = time.perf_counter()
     chunks = truth_messages = 0
-    with BagWriter(out_dir, overwrite=overwrite, provenance=_provenance(scenario_path, seed, seconds, twin)) as bag:
+    provenance = _provenance(scenario_path, scenario_bytes, seed, seconds, twin)
+    with BagWriter(out_dir, overwrite=overwrite, provenance=provenance) as bag:
         bar = tqdm(total=n_samples, unit="S", unit_scale=True, disable=not progress, desc="simulate")
         for envelope in simulator.stream(seconds, chunk_samples=chunk, workers=workers, stats=stats):
             first, end = envelope.first_sample_index, envelope.end_sample_index
@@ -254,6 +265,8 @@ def record_route_set(
     unless ``overwrite``. Summaries come as their bags are finished."""
     jobs = []
     for scenario in scenarios:
+        if Path(scenario).exists() and not Path(scenario).is_file():  # every seed's job reads it: a pipe gives one
+            raise ValueError(f"{scenario}: a route set reads its scenario once per seed: give a file, not a pipe")
         load_scenario(scenario)  # a bad file fails here, before any job starts
         for seed in seeds:
             out = route_set_bag(out_dir, scenario, seed)

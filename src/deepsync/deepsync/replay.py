@@ -53,6 +53,7 @@ from deepsync.bag import (
     envelope_from_msg,
     fix_to_navsat_msg,
     fix_to_pose_msg,
+    provenance_document,
     sync_window_array_from_msg,
     sync_window_array_to_msg,
 )
@@ -60,7 +61,7 @@ from deepsync.bag.convert import CELL_TIMING_ARRAY, ENVELOPE_SAMPLES, SYNC_WINDO
 from deepsync.frontend.config import FrontendConfig
 from deepsync.fusion.stage import FusionResult
 from deepsync.pipeline import Pipeline, PipelineConfig, TimedStack, places_sites
-from deepsync.sources.bagfile import bag_dir, recorded_frontend
+from deepsync.sources.bagfile import bag_dir, check_same_frame, recorded_frontend
 from deepsync.towers import TowerDatabase
 from deepsync.types import FRAME_SECONDS, Fix, Health, StackArrivals
 
@@ -143,10 +144,9 @@ def _provenance(recorded: str | None, path: Path, stages: Sequence[str], towers:
     """The input's provenance (its truth: sites, origin) with what this replay did added, so
     the output bag can be replayed again and scored like the input."""
     try:
-        document = json.loads(recorded) if recorded else {}
-    except ValueError:
+        document = dict(provenance_document(recorded, path))
+    except BagError:  # the input's own, unreadable: this replay's provenance alone
         document = {}
-    document = dict(document) if isinstance(document, dict) else {}
     document["replay"] = {"input": str(path), "input_generator": document.get("generator"), "stages": list(stages),
                           "towers": None if towers is None else towers.name}
     document["generator"] = f"deepsync {deepsync.__version__} replay"
@@ -186,7 +186,10 @@ class _Replayer:
         if self.pipeline is None:
             frontend = None if self.stages[0] == "fusion" else recorded_frontend(
                 self.bag.provenance, sample_rate, self.bag.path)
-            self.pipeline = Pipeline(frontend, self.config, self.towers)
+            try:
+                self.pipeline = Pipeline(frontend, self.config, self.towers)
+            except ValueError as error:  # a rate the stages cannot serve: the whole replay stops, naming the bag
+                raise ValueError(f"{self.bag.path}: {error}") from None
             self.out.set_provenance(_provenance(self.bag.provenance, self.bag.path, self.stages, self.towers,
                                                 frontend))
         return self.pipeline
@@ -316,6 +319,8 @@ def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | Non
                 raise ValueError(f"fusion alone, but {why}: there is nothing to replay")
             stages = stages[:-1]
             note(f"fusion skipped: {why}; no pose is published")
+        if "fusion" in stages:  # the poses beside the copied truth, both in "map": one frame
+            check_same_frame(source.provenance, bag, towers)
         if stages[0] == "sync" and towers is None:
             note("no tower database: the cell search runs blind (all 504 PCIs)")
         produced = {topic for stage in stages for topic in STAGE_OUTPUT[stage]}
@@ -327,7 +332,7 @@ def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | Non
             total = source.message_counts.get(input_topic) if isinstance(source, BagReader) else None
             bar = tqdm(total=total, unit="msg", disable=not progress, desc="replay")
             damage = None
-            messages = source.messages(sorted(copied | {input_topic}))
+            messages = source.messages(sorted(copied | {input_topic}), skipped=replayer.invalid.append)
             try:
                 while True:
                     try:

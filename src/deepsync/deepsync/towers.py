@@ -22,7 +22,12 @@ is confirmed (``deepsync.sync.bandwidths``); until then, the codes alone.
 Within a site, either every sector gives its EARFCN or none does (sectors of a site are paired
 by carrier: a cell without one would silently drop out of the pair search), a PCI appears at
 most once per carrier (two such sectors cannot be told apart), and the position is given
-whole (latitude and longitude) or not at all.
+whole (latitude and longitude) or not at all. Across the database a PCI appears on one placed site
+per carrier (a cell heard with it could not be placed: a copied site, or a reused PCI whose
+carriers are not given), every placed site lies within a cell's reach (``MAX_CELL_RANGE_M``, 100 km) of
+the origin (a site 1000 km off, with latitude and longitude swapped, or an origin at the
+antipode, would only show later as "too few sites" or "degenerate geometry"), and the epoch
+lies in the GPS era (1980..2100).
 
 ```yaml
 name: campus
@@ -45,17 +50,24 @@ sites:
 from __future__ import annotations
 
 import datetime
-import os
-import tempfile
+import reprlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from deepsync.configio import ConfigError, load_yaml, require_list, require_mapping
+from deepsync.geo import geodetic_to_ecef
 from deepsync.lte.cell import check_pci
 from deepsync.lte.earfcn import downlink_frequency_hz
 from deepsync.lte.numerology import check_bandwidth
+from deepsync.outputs import replacing
+from deepsync.types import MAX_CELL_RANGE_M
+
+
+EPOCH_RANGE = (datetime.datetime(1980, 1, 6, tzinfo=datetime.timezone.utc),  # the GPS epoch
+               datetime.datetime(2100, 1, 1, tzinfo=datetime.timezone.utc))
 
 
 @dataclass(frozen=True)
@@ -161,7 +173,7 @@ def _optional_number(site: dict, key: str, where: str, low: float, high: float) 
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
-        raise ConfigError(f"{where}.{key}: expected a number in [{low:g}, {high:g}], got {value!r}")
+        raise ConfigError(f"{where}.{key}: expected a number in [{low:g}, {high:g}], got {reprlib.repr(value)}")
     return float(value)
 
 
@@ -210,7 +222,7 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
             raise ConfigError(f"{at}: unknown key {', '.join(unknown)} (known: {', '.join(sorted(_SITE_KEYS))})")
         name = site.get("name")
         if not isinstance(name, str) or not name or name in names:
-            raise ConfigError(f"{at}.name: a unique, non-empty site name is required, got {name!r}")
+            raise ConfigError(f"{at}.name: a unique, non-empty site name is required, got {reprlib.repr(name)}")
         names.add(name)
         cells = []
         for j, raw_cell in enumerate(require_list(site.get("cells"), f"{at}.cells")):
@@ -229,7 +241,8 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
             bandwidth = cell.get("bandwidth_mhz")
             if bandwidth is not None:
                 if isinstance(bandwidth, bool) or not isinstance(bandwidth, (int, float)):
-                    raise ConfigError(f"{cell_at}.bandwidth_mhz: expected a number of MHz, got {bandwidth!r}")
+                    raise ConfigError(f"{cell_at}.bandwidth_mhz: expected a number of MHz, "
+                                      f"got {reprlib.repr(bandwidth)}")
                 try:
                     bandwidth = check_bandwidth(bandwidth)
                 except ValueError as error:
@@ -255,13 +268,65 @@ def parse_tower_database(data: object, where: str = "towers") -> TowerDatabase:
         raise ConfigError(f"{where}.sites: the database lists no sites")
     name = top.get("name", "")
     if not isinstance(name, str):
-        raise ConfigError(f"{where}.name: expected a string, got {name!r}")
+        raise ConfigError(f"{where}.name: expected a string, got {reprlib.repr(name)}")
+    _check_reused_pcis(sites, where)
+    origin = _origin(top.get("origin"), f"{where}.origin")
+    _check_reach(sites, origin, where)
     epoch_ns = _epoch_ns(top.get("timing_epoch_utc"), f"{where}.timing_epoch_utc")
     drifting = [site.name for site in sites if site.timing_drift_ns_per_s]
     if drifting and epoch_ns is None:
         raise ConfigError(f"{where}.timing_epoch_utc: sites {', '.join(drifting)} give a timing drift, which "
                           "needs the instant their offsets hold")
-    return TowerDatabase(name, tuple(sites), _origin(top.get("origin"), f"{where}.origin"), epoch_ns)
+    return TowerDatabase(name, tuple(sites), origin, epoch_ns)
+
+
+def _check_reused_pcis(sites: list[TowerSite], where: str) -> None:
+    """ConfigError when two placed sites carry one PCI on one carrier (or either without a
+    carrier): the fusion stage could not tell which site a cell heard with it is. (Sites without
+    a position only name cells for the search, where a reused PCI is one more to look for.)"""
+    seen: dict[int, list[tuple[int, int, TowerCell]]] = {}
+    for i, site in enumerate(sites):
+        if not site.has_position:
+            continue
+        for j, cell in enumerate(site.cells):
+            for k, l, other in seen.get(cell.pci, []):
+                if k != i and (cell.earfcn is None or other.earfcn is None or cell.earfcn == other.earfcn):
+                    carrier = "" if cell.earfcn is None or other.earfcn is None else f" on EARFCN {cell.earfcn}"
+                    raise ConfigError(
+                        f"{where}.sites[{i}].cells[{j}].pci: PCI {cell.pci}{carrier} is also on site {other.site!r} "
+                        f"({where}.sites[{k}].cells[{l}]): a cell heard with it could not be placed (a copied site? "
+                        "a reused PCI needs the carriers that tell its sites apart)")
+            seen.setdefault(cell.pci, []).append((i, j, cell))
+
+
+def _check_reach(sites: list[TowerSite], origin: MapOrigin | None, where: str) -> None:
+    """ConfigError when a placed site lies beyond a cell's reach of the origin, naming it, with
+    latitude and longitude swapped when that would place it, or the origin when every site is
+    far from it (a misplaced origin)."""
+    placed = [(i, site) for i, site in enumerate(sites) if site.has_position]
+    if origin is None or not placed:
+        return
+    centre = geodetic_to_ecef(origin.latitude_deg, origin.longitude_deg, origin.height_m)
+
+    def distance(latitude: float, longitude: float, site: TowerSite) -> float:
+        point = geodetic_to_ecef(latitude, longitude, origin.height_m + (site.height_m or 0.0))
+        return float(np.linalg.norm(point - centre))
+
+    away = [(i, site, distance(site.latitude_deg, site.longitude_deg, site)) for i, site in placed]
+    far = [(i, site, d) for i, site, d in away if d > MAX_CELL_RANGE_M]
+    if not far:
+        return
+    if len(far) == len(away) > 1:
+        nearest = min(d for _, _, d in far)
+        raise ConfigError(f"{where}.origin: every site lies {nearest / 1e3:,.0f} km or more from it, beyond the "
+                          f"{MAX_CELL_RANGE_M / 1e3:g} km a cell reaches: is the origin ({origin.latitude_deg}, "
+                          f"{origin.longitude_deg}) misplaced?")
+    i, site, d = far[0]
+    hint = ""
+    if -90 <= site.longitude_deg <= 90 and distance(site.longitude_deg, site.latitude_deg, site) <= MAX_CELL_RANGE_M:
+        hint = " (with latitude and longitude swapped it would lie within reach: swapped?)"
+    raise ConfigError(f"{where}.sites[{i}]: site {site.name!r} is {d / 1e3:,.0f} km from the origin, beyond the "
+                      f"{MAX_CELL_RANGE_M / 1e3:g} km a cell reaches{hint}")
 
 
 def _origin(value: object, where: str) -> MapOrigin | None:
@@ -288,11 +353,16 @@ def _epoch_ns(value: object, where: str) -> int | None:
         try:
             instant = datetime.datetime.fromisoformat(value.replace("Z", "+00:00"))
         except ValueError:
-            raise ConfigError(f"{where}: {value!r} is not an ISO 8601 time (e.g. 2026-01-01T00:00:00Z)") from None
+            raise ConfigError(f"{where}: {reprlib.repr(value)} is not an ISO 8601 time "
+                              "(e.g. 2026-01-01T00:00:00Z)") from None
     else:
-        raise ConfigError(f"{where}: expected an ISO 8601 time string, got {value!r}")
+        raise ConfigError(f"{where}: expected an ISO 8601 time string, got {reprlib.repr(value)}")
     if instant.tzinfo is None:
-        raise ConfigError(f"{where}: {value!r} has no time zone (end it with Z for UTC)")
+        raise ConfigError(f"{where}: {reprlib.repr(value)} has no time zone (end it with Z for UTC)")
+    if not EPOCH_RANGE[0] <= instant <= EPOCH_RANGE[1]:
+        raise ConfigError(f"{where}: {reprlib.repr(value)} lies outside "
+                          f"{EPOCH_RANGE[0]:%Y-%m-%d}..{EPOCH_RANGE[1]:%Y-%m-%d} "
+                          "(LTE site clocks are set from GPS time)")
     delta = instant - datetime.datetime(1970, 1, 1, tzinfo=datetime.timezone.utc)
     return (delta.days * 86_400 + delta.seconds) * 10**9 + delta.microseconds * 1000
 
@@ -337,20 +407,8 @@ def _epoch_utc(epoch_ns: int) -> str:
 
 
 def write_tower_database(db: TowerDatabase, path: str | Path) -> None:
-    """Write ``db`` as YAML, atomically: into a temporary file beside ``path``, then renamed over
-    it, so a reader (or a crash) never meets half a database. An existing file's permissions are
-    kept."""
-    path = Path(path)
+    """Write ``db`` as YAML, atomically (:func:`deepsync.outputs.replacing`): a reader, or a crash,
+    never meets half a database, and an existing file's permissions are kept."""
     text = yaml.safe_dump(tower_database_to_dict(db), sort_keys=False)
-    mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as file:
-            file.write(text)
-            file.flush()
-            os.fsync(file.fileno())
-        os.chmod(temporary, mode)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    with replacing(path) as temporary:
+        temporary.write_text(text, encoding="utf-8")

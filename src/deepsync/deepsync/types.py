@@ -106,6 +106,12 @@ class Health:
         return f"{self.kind.value}: {self.message}"
 
 
+MAX_CHUNK_SAMPLES = 2**22
+"""Samples an envelope chunk may hold (8 MiB of codes; 2.2 s at 1.92 MS/s, 68 ms at 61.44 MS/s):
+sources and nodes send one 10 ms frame per chunk, and the stages' working copies of a chunk
+take tens of bytes per sample, so a bag message of 200 million samples took 5 GB."""
+
+
 @dataclass(frozen=True)
 class EnvelopeChunk:
     """A contiguous run of raw ADC codes (``deepsync_msgs/EnvelopeSamples``).
@@ -123,6 +129,9 @@ class EnvelopeChunk:
     samples: np.ndarray
 
     def __post_init__(self) -> None:
+        if np.size(self.samples) > MAX_CHUNK_SAMPLES:
+            raise ValueError(f"EnvelopeChunk of {np.size(self.samples):,} samples: at most {MAX_CHUNK_SAMPLES:,} "
+                             "(a stream comes in chunks of about a frame)")
         samples = _as_codes(self.samples)
         if not (np.isfinite(self.sample_rate) and self.sample_rate > 0):
             raise ValueError(f"EnvelopeChunk.sample_rate {self.sample_rate!r} must be > 0")

@@ -41,7 +41,7 @@ from .topics import (
     TRUTH_POSE_TOPIC,
     relative_name,
 )
-from .writer import PROVENANCE_KEY, BagWriter
+from .writer import PROVENANCE_KEY, BagWriter, provenance_document
 
 __all__ = [
     "CELL_TIMING_TOPIC",
@@ -82,6 +82,7 @@ __all__ = [
     "pose_to_msg",
     "position_from_pose_msg",
     "prior_from_pose_msg",
+    "provenance_document",
     "read_envelope",
     "read_messages",
     "relative_name",

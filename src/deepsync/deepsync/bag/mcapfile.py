@@ -60,6 +60,14 @@ _CHUNK_CRC_AT = 8 + 8 + 8  # in a Chunk body: message_start_time, message_end_ti
 _STATS_METADATA_COUNT_AT = 8 + 2 + 4 + 4  # message, schema, channel, attachment counts precede it
 _BLOCK = 1 << 20
 
+MAX_CHUNK_BYTES = 128 * 2**20
+"""What one MCAP chunk may hold once decompressed: a reader holds a whole chunk in memory, so a
+small file whose chunk inflates to gigabytes would take them before its first message is seen
+(rosbag2 and rosbags write chunks of about 1 MiB; 128 MiB is far beyond any recorder's)."""
+MAX_MESSAGE_BYTES = 64 * 2**20
+"""What one serialised message may take: 8 times the largest envelope chunk (``types.MAX_CHUNK_SAMPLES``
+int16 codes), far beyond any window or arrival array."""
+
 DEEPSYNC_RECORD = "deepsync"
 """Name of the MCAP metadata record DeepSync writes (key ``provenance``, ``provenance_crc32``)."""
 ROSBAG2_RECORD = "rosbag2"
@@ -285,6 +293,37 @@ def _chunk_offsets(f: BinaryIO, path: Path, footer: Footer) -> list[int]:
     start = _data_start(f, path)
     end, _ = _data_end(f, path, footer)
     return [at for at, op, _ in _records(f, path, start, end) if op == OP_CHUNK]
+
+
+def checked_chunk_offsets(path: Path) -> list[int]:
+    """Where the chunk records of ``path`` lie (byte offsets, found by walking the data section,
+    not from its index); BagError naming the chunk when one would decompress to more than
+    :data:`MAX_CHUNK_BYTES`, by what its record says and, for zstd, what its frame header says
+    (the decompressor goes by the frame): judged from the headers alone, before anything is
+    decompressed. Chunks too malformed to tell are left to the reading, which names them."""
+    with path.open("rb") as f:
+        footer = read_footer(f, path)
+        offsets = _chunk_offsets(f, path, footer)
+        for index, at in enumerate(offsets):
+            (length,) = _U64.unpack(_read(f, at + 1, 8, path, "a chunk"))
+            head = _read(f, at + 9, min(length, _CHUNK_HEAD.size + 4 + 64 + 8 + 18), path, "a chunk")
+            try:
+                start_ns, end_ns, size, _ = _CHUNK_HEAD.unpack_from(head, 0)
+                compression, data_at = _string(head, _CHUNK_HEAD.size)
+                frame = head[data_at + 8 :]
+            except (ValueError, struct.error):
+                continue
+            declared = size
+            if compression == "zstd":
+                try:
+                    declared = max(declared, zstd.get_frame_info(frame).decompressed_size or 0)
+                except (zstd.ZstdError, ValueError, TypeError):
+                    pass
+            if declared > MAX_CHUNK_BYTES:
+                raise BagError(f"{path}: chunk {index + 1} of {len(offsets)} (record at byte {at}, messages logged "
+                               f"{start_ns}..{end_ns} ns) decompresses to {declared:,} bytes, beyond the "
+                               f"{MAX_CHUNK_BYTES / 2**20:g} MiB a chunk may take in memory; not read")
+    return offsets
 
 
 def chunk_problems(path: Path, *, first_only: bool = True) -> list[ChunkProblem]:

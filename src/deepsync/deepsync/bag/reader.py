@@ -24,22 +24,23 @@ was recorded before the damage and says where it stopped.
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-import yaml
+import zstandard  # what the mcap library decompresses chunks with
 from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.serde import SerdeError
 from rosbags.typesys import TypesysError, get_types_from_msg
 from rosbags.typesys.store import Typestore
 
+from ..configio import ConfigError, load_yaml, parse_yaml
 from ..types import EnvelopeChunk
 from . import mcapfile
 from .convert import ENVELOPE_SAMPLES, envelope_from_msg
@@ -159,13 +160,12 @@ def _metadata_problem(info: Any) -> str | None:
 
 
 def _load_metadata(path: Path) -> tuple[dict[str, Any] | None, str | None]:
-    """(parsed metadata.yaml, None) or (None, why it is unusable)."""
+    """(parsed metadata.yaml, None) or (None, why it is unusable), through the project's
+    guarded YAML loader (no alias bombs, bounded nesting and size)."""
     try:
-        info = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError) as error:
-        return None, f"unreadable: {error}"
-    except yaml.YAMLError as error:
-        return None, f"not YAML: {' '.join(str(error).split())}"
+        info = load_yaml(path, path.name)
+    except ConfigError as error:
+        return None, f"unusable ({str(error).removeprefix(f'{path.name}: ')})"
     problem = _metadata_problem(info)
     return (info, None) if problem is None else (None, problem)
 
@@ -260,11 +260,13 @@ class BagReader:
         else:
             names = info["rosbag2_bagfile_information"]["relative_file_paths"]
             files = [target / PurePath(name).name for name in names]
-            files = [f for f in files if f.suffix.lower() == ".mcap" and f.is_file()]
+            files = list(dict.fromkeys(f for f in files if f.suffix.lower() == ".mcap" and f.is_file()))
         records: list[mcapfile.MetadataRecords] = []
-        for f in files:  # footer, summary CRC and metadata records, before rosbags parses them
+        chunks: dict[Path, list[int]] = {}
+        for f in files:  # footer, summary CRC, chunk sizes and metadata records, before rosbags parses them
             try:
                 found = mcapfile.metadata_records(f)
+                chunks[f] = mcapfile.checked_chunk_offsets(f)
             except OSError as error:
                 raise BagError(f"{f}: cannot read: {error}") from error
             for name, offset, cause in found.unreadable:
@@ -288,10 +290,53 @@ class BagReader:
         self._files = files
         try:
             self._take_stock(reader, info, records, notes)
+            self._check_chunk_index(chunks, notes)
+            self.inconsistencies = tuple(notes)
             self._check_definitions()
         except BaseException:
             self.close()
             raise
+
+    def _in_time_order(self, storages: list[Any], notes: list[BagInconsistency]) -> list[Any]:
+        """A split bag's files, each once, in the order of their messages' times (what a
+        recorder wrote them in), whatever order ``metadata.yaml`` lists them in; BagError for
+        files whose times overlap (two recordings in one bag, not one split in parts)."""
+        unique: dict[Path, Any] = {}
+        for one in storages:
+            unique.setdefault(Path(one.path).resolve(), one)
+        if len(unique) < len(storages):
+            notes.append(BagInconsistency("metadata.yaml relative_file_paths", None, None, used="file",
+                                          note="lists a file more than once; each is read once"))
+        ordered = sorted(unique.values(), key=lambda one: (one.metadata.message_count == 0, one.metadata.start_time))
+        if [id(one) for one in ordered] != [id(one) for one in unique.values()]:
+            notes.append(BagInconsistency("metadata.yaml relative_file_paths", None, None, used="file",
+                                          note="lists the files out of the order of their times; they are read "
+                                               f"in time order: {', '.join(Path(one.path).name for one in ordered)}"))
+        filled = [one for one in ordered if one.metadata.message_count]
+        for before, after in zip(filled, filled[1:]):
+            if after.metadata.start_time < before.metadata.end_time:
+                span = f"{before.metadata.start_time}..{before.metadata.end_time - 1}"
+                raise self._fail(f"{Path(before.path).name} ({span} "
+                                 f"ns) and {Path(after.path).name} (from {after.metadata.start_time} ns) overlap in "
+                                 "time: two recordings in one bag, not one recording split in parts; open each alone")
+        return ordered
+
+    def _check_chunk_index(self, chunks: dict[Path, list[int]], notes: list[BagInconsistency]) -> None:
+        """Where a file's chunk index (its summary) points elsewhere than at its chunks (zeroed or
+        stale offsets: a file without a summary CRC cannot tell), read its chunks in file order
+        instead, as a file without an index is read: they are intact, and every message is in them."""
+        for storage in self._storages:
+            found = chunks.get(Path(storage.path))
+            indexed = sorted(chunk.chunk_start_offset for chunk in storage.chunks)
+            if found is None or not indexed or indexed == sorted(found):
+                continue
+            notes.append(BagInconsistency(
+                f"{Path(storage.path).name}: chunk index", None, None,
+                note=f"{sum(1 for at in indexed if at not in found)} of its {len(indexed)} entries point where no "
+                     f"chunk lies (the file has {len(found)} chunks): the messages are read from the chunks in "
+                     "file order",
+            ))
+            storage.chunks.clear()
 
     def _diagnose(self, files: Iterable[Path], cause: str, error: BaseException) -> BagError:
         """The corrupt chunk behind ``error`` if there is one, else the error as it came."""
@@ -315,7 +360,7 @@ class BagReader:
     ) -> None:
         """Topics, counts and custom data from the file; where metadata.yaml disagrees."""
         storage = reader.storage
-        self._storages = list(getattr(storage, "storages", [storage]))
+        self._storages = self._in_time_order(list(getattr(storage, "storages", [storage])), notes)
         self._message_compressed = getattr(storage, "metadata", None) is not None and (
             storage.metadata.compression_mode == "message"
         )
@@ -351,8 +396,10 @@ class BagReader:
             serialized = found.get(mcapfile.ROSBAG2_RECORD, {}).get("serialized_metadata")
             if serialized:
                 try:
-                    data = yaml.safe_load(serialized)
-                except yaml.YAMLError:
+                    data = parse_yaml(serialized, f"{f}: its {mcapfile.ROSBAG2_RECORD} metadata record")
+                except ConfigError as error:
+                    notes.append(BagInconsistency(f"{f.name}: metadata record {mcapfile.ROSBAG2_RECORD!r}", None, None,
+                                                  note=f"left aside: {error}"))
                     data = None
                 custom = data.get("custom_data") if isinstance(data, dict) else None
                 if isinstance(custom, dict):
@@ -559,9 +606,13 @@ class BagReader:
     def _read_failure(self, storage: Any, error: BaseException) -> BagError:
         return self._diagnose([Path(storage.path)], "cannot read message", error)
 
-    def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+    def messages(self, topics: Iterable[str] | None = None, *,
+                 skipped: Callable[[str], None] | None = None) -> Iterator[BagMessage]:
         """Messages in log-time order (per file), optionally only those of ``topics`` (all must
-        exist). A corrupt chunk stops the reading with a BagError (see the class docstring)."""
+        exist). A corrupt chunk stops the reading with a BagError (see the class docstring). A
+        message that cannot be decoded, or takes more than ``MAX_MESSAGE_BYTES``, is a BagError
+        too, or, with ``skipped``, said to it (one line: topic, time, cause) and passed over:
+        the chunk around it is intact, and so is every message after it."""
         self._opened()
         connections = self._connections
         if topics is not None:
@@ -592,16 +643,35 @@ class BagReader:
                         break
                     conn, log_time_ns, raw = item
                     if self._message_compressed:
-                        raw = zstd.decompress(raw)
+                        raw = _decompress_message(raw)
                 except _READ_ERRORS as error:
                     raise self._read_failure(storage, error) from error
-                try:
-                    message = store.deserialize_cdr(raw, conn.msgtype)
-                except _READ_ERRORS as error:
-                    raise self._fail(
-                        f"cannot decode the {conn.msgtype} message on {conn.topic} at {log_time_ns} ns", error
-                    ) from error
-                yield BagMessage(conn.topic, conn.msgtype, log_time_ns, message)
+                problem = _undecodable(store, raw, conn.msgtype, conn.topic, log_time_ns)
+                if isinstance(problem, str):
+                    if skipped is None:
+                        raise self._fail(problem)
+                    skipped(problem)
+                    continue
+                yield BagMessage(conn.topic, conn.msgtype, log_time_ns, problem)
+
+
+def _undecodable(store: Typestore, raw: bytes, msgtype: str, topic: str, log_time_ns: int) -> Any:
+    """The message ``raw`` holds, or why it cannot be had (a string): more bytes than
+    ``MAX_MESSAGE_BYTES``, or bytes that do not decode as ``msgtype``."""
+    where = f"the {msgtype} message on {topic} at {log_time_ns} ns"
+    if len(raw) > mcapfile.MAX_MESSAGE_BYTES:
+        return (f"{where} takes {len(raw):,} bytes, beyond the {mcapfile.MAX_MESSAGE_BYTES / 2**20:g} MiB a message "
+                "may take; not decoded")
+    try:
+        return store.deserialize_cdr(raw, msgtype)
+    except _READ_ERRORS as error:
+        return f"cannot decode {where}: {error}"
+
+
+def _decompress_message(raw: bytes) -> bytes:
+    """A message-compressed bag's message, decompressed to at most one byte more than
+    :data:`~deepsync.bag.mcapfile.MAX_MESSAGE_BYTES` (what is more is refused by size anyway)."""
+    return zstd.ZstdDecompressor().decompress(raw, max_length=mcapfile.MAX_MESSAGE_BYTES + 1)
 
 
 def _embedded_fields(text: str, msgtype: str) -> Any:
@@ -679,14 +749,25 @@ class SalvageReader:
             if f.read(len(mcapfile.MAGIC)) != mcapfile.MAGIC:
                 raise BagError(f"{self.file}: does not start with the MCAP magic: nothing to salvage")
             f.seek(0)
-            reader = StreamReader(f, validate_crcs=True)
+            reader = StreamReader(f, validate_crcs=True, emit_chunks=True)
             try:
-                for record in reader.records:
-                    if isinstance(record, Schema):
-                        self._types[record.id] = record.name
-                        self._definitions[record.name] = record.data.decode("utf-8", "replace")
-                    yield record
-            except (McapError, *_READ_ERRORS) as error:
+                for outer in reader.records:
+                    if isinstance(outer, Chunk):  # decompressed here, once its size is judged
+                        if outer.uncompressed_size > mcapfile.MAX_CHUNK_BYTES:
+                            self.damage = (f"{self.file}: the chunk ending at byte {f.tell()} decompresses to "
+                                           f"{outer.uncompressed_size:,} bytes, beyond the "
+                                           f"{mcapfile.MAX_CHUNK_BYTES / 2**20:g} MiB a chunk may take in memory; "
+                                           "read up to the chunk before it")
+                            return
+                        inner = breakup_chunk(outer, validate_crc=True)
+                    else:
+                        inner = [outer]
+                    for record in inner:
+                        if isinstance(record, Schema):
+                            self._types[record.id] = record.name
+                            self._definitions[record.name] = record.data.decode("utf-8", "replace")
+                        yield record
+            except (McapError, zstandard.ZstdError, *_READ_ERRORS) as error:
                 # the stream reader's EndOfFile, or a struct.error on a partial record: the file
                 # ends inside a record; anything else is bytes that do not make the record they should
                 cut = isinstance(error, (EndOfFile, struct.error))
@@ -705,8 +786,11 @@ class SalvageReader:
                 raise BagError(f"{self.file}: {topic}: {msgtype} in the bag differs from the current definition; "
                                "regenerate the bag or check out matching msgs")
 
-    def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
-        """Messages (of ``topics``, all of them if None) in file order, up to the damage."""
+    def messages(self, topics: Iterable[str] | None = None, *,
+                 skipped: Callable[[str], None] | None = None) -> Iterator[BagMessage]:
+        """Messages (of ``topics``, all of them if None) in file order, up to the damage; a
+        message that cannot be decoded is damage too, or, with ``skipped``, said to it and
+        passed over (as :meth:`BagReader.messages`)."""
         wanted = None if topics is None else set(topics)
         store = self.store
         channels: dict[int, tuple[str, str]] = {}
@@ -717,12 +801,13 @@ class SalvageReader:
                 topic, msgtype = channels[record.channel_id]
                 if wanted is not None and topic not in wanted:
                     continue
-                try:
-                    message = store.deserialize_cdr(record.data, msgtype)
-                except _READ_ERRORS as error:
-                    self.damage = (f"{self.file}: cannot decode the {msgtype} message on {topic} at "
-                                   f"{record.log_time} ns: {error}")
-                    return
+                message = _undecodable(store, record.data, msgtype, topic, record.log_time)
+                if isinstance(message, str):
+                    if skipped is None:
+                        self.damage = f"{self.file}: {message}"
+                        return
+                    skipped(message)
+                    continue
                 yield BagMessage(topic, msgtype, record.log_time, message)
 
 

@@ -13,6 +13,7 @@ read and the ``.mcap`` file copied on its own still says how it was made.
 from __future__ import annotations
 
 import contextlib
+import json
 import shutil
 import tempfile
 from collections.abc import Mapping
@@ -24,6 +25,8 @@ from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys.store import Typestore
 
+from ..configio import ConfigError, check_tree
+from ..outputs import partial_prefix, remove_abandoned
 from ..types import EnvelopeChunk, StackArrivals
 from .convert import (
     cell_timing_array_to_msg,
@@ -49,6 +52,27 @@ PROVENANCE_KEY = "deepsync.provenance"
 """``custom_data`` key of the provenance string (command line, scenario, seed); the ``.mcap``
 carries it too, in its ``deepsync`` metadata record (key ``provenance``)."""
 ROSBAG2_VERSION = 9
+
+
+def provenance_document(text: str | None, where: object) -> dict:
+    """A bag's provenance as the JSON mapping DeepSync writes (empty for none), or BagError
+    naming the bag: not JSON, not a mapping, or nested past what the project's guarded loader
+    allows (:func:`deepsync.configio.check_tree`; a JSON of a hundred thousand brackets raised
+    RecursionError)."""
+    if not text:
+        return {}
+    try:
+        document = json.loads(text)
+    except (ValueError, RecursionError) as error:
+        reason = "nested too deeply" if isinstance(error, RecursionError) else f"not JSON: {error}"
+        raise BagError(f"{where}: unreadable provenance ({reason})") from None
+    if not isinstance(document, dict):
+        raise BagError(f"{where}: unreadable provenance (a JSON {type(document).__name__}, not a mapping)")
+    try:
+        check_tree(document, f"{where}: provenance")
+    except ConfigError as error:
+        raise BagError(str(error)) from None
+    return document
 
 
 def _is_bag_dir(path: Path) -> bool:
@@ -134,9 +158,9 @@ class BagWriter:
         self._check_target()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._tmp = Path(
-                tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
-            )
+            remove_abandoned(self.path)  # what a killed writer of this bag left
+            self._tmp = Path(tempfile.mkdtemp(prefix=partial_prefix(self.path), suffix=".partial",
+                                              dir=self.path.parent))
         except OSError as error:
             raise BagError(f"{self.path}: cannot write a bag there ({error.strerror})") from None
         try:
@@ -233,7 +257,10 @@ class BagWriter:
             raise BagError(
                 f"{self.path}: cannot serialise {msgtype} for {topic}: {error}"
             ) from error
-        self._writer.write(conn, log_time_ns, data)
+        try:
+            self._writer.write(conn, log_time_ns, data)
+        except OSError as error:  # a full disk: the bag the user named, not rosbags' file inside the partial one
+            raise OSError(error.errno, error.strerror or str(error), str(self.path)) from None
 
     def write_envelope(self, chunk: EnvelopeChunk, *, topic: str = ENVELOPE_TOPIC) -> None:
         """Write one ADC chunk as ``deepsync_msgs/msg/EnvelopeSamples``."""

@@ -77,6 +77,9 @@ def read_truth_track(bag: str | Path) -> TruthTrack:
                  for item in reader.messages([TRUTH_POSE_TOPIC])]
     if len(poses) < 2:
         raise ValueError(f"{bag}: {len(poses)} ground-truth pose(s), at least 2 are needed")
+    broken = next((stamp for stamp, position in poses if not np.isfinite(position).all()), None)
+    if broken is not None:  # a NaN error would pass every comparison that scores the route
+        raise ValueError(f"{bag}: the ground-truth pose stamped {broken} ns holds NaN or inf")
     poses.sort(key=lambda pose: pose[0])
     return TruthTrack(np.array([p[0] for p in poses], dtype=np.int64), np.array([p[1] for p in poses]))
 
@@ -139,6 +142,7 @@ def replay(source: BagSource, towers: TowerDatabase, config: PipelineConfig | No
     replayed so far is kept, marked ``interrupted``. ValueError if the bag has no ground truth
     or the database places no site."""
     truth = read_truth_track(source.path)
+    source.check_frame(towers)
     if not places_sites(towers):
         raise ValueError(f"tower database {towers.name!r} places no site (it needs an origin and sites with "
                          "position and timing offset)")

@@ -9,7 +9,6 @@ default envelope-detector chain at the rate of its own first envelope message.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Iterator
@@ -17,7 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from deepsync.bag import (
     ENVELOPE_TOPIC,
@@ -26,11 +24,15 @@ from deepsync.bag import (
     BagError,
     BagReader,
     cell_timing_array_from_msg,
+    provenance_document,
     read_envelope,
 )
+from deepsync.configio import ConfigError, load_yaml
 from deepsync.frontend.config import FrontendConfig
-from deepsync.towers import MapOrigin
+from deepsync.geo import LocalFrame
+from deepsync.towers import MapOrigin, TowerDatabase
 from deepsync.types import EnvelopeChunk
+from .base import check_rate
 
 
 def is_bag_path(path: str | os.PathLike) -> bool:
@@ -54,9 +56,8 @@ def bag_dir(path: str | os.PathLike) -> Path:
     metadata = p.parent / "metadata.yaml"
     if metadata.is_file():
         try:
-            info = yaml.safe_load(metadata.read_text()) or {}
-            files = info["rosbag2_bagfile_information"]["relative_file_paths"]
-        except (yaml.YAMLError, OSError, KeyError, TypeError, UnicodeDecodeError):
+            files = load_yaml(metadata)["rosbag2_bagfile_information"]["relative_file_paths"]
+        except (ConfigError, KeyError, TypeError):
             return p
         if isinstance(files, list) and p.name in files:
             return p.parent
@@ -90,8 +91,9 @@ def recorded_frontend(provenance: str | None, sample_rate: float | None, where: 
     """The front end a bag's provenance names, else the default chain at ``sample_rate`` (the
     stream's, from its first message); BagError naming the bag when neither works."""
     if provenance:
+        document = provenance_document(provenance, where)
         try:
-            return FrontendConfig(**json.loads(provenance)["frontend"])
+            return FrontendConfig(**document["frontend"])
         except (ValueError, KeyError, TypeError) as error:
             raise BagError(f"{where}: unreadable front-end provenance ({error})") from None
     try:
@@ -159,6 +161,7 @@ class BagSource:
         self._provenance = bool(provenance)
         self._provenance_text = provenance
         self.frontend = _frontend(self.path, provenance)
+        check_rate(self.frontend.adc_rate_hz, f"{self.path} (recorded at)")
         self.center_hz: float | None = None  # an envelope detector sees every carrier in its RF band
 
     @property
@@ -192,11 +195,8 @@ class BagSource:
         the bag where there is none: a real recording, or a bag from before that key."""
         if not self._provenance_text:
             raise BagError(f"{self.path}: no simulation provenance, so no true {key} (a real recording?)")
-        try:
-            info = json.loads(self._provenance_text)
-        except ValueError as error:
-            raise BagError(f"{self.path}: unreadable provenance ({error})") from None
-        if not isinstance(info, dict) or key not in info:
+        info = provenance_document(self._provenance_text, self.path)
+        if key not in info:
             raise BagError(f"{self.path}: its provenance holds no true {key} (recorded by an older "
                            "deepsync simulate, or not simulated)")
         return info[key]
@@ -215,3 +215,39 @@ class BagSource:
         """The simulated scenario's map-frame origin. Raises a ValueError
         (:class:`~deepsync.bag.BagError`) naming the bag if it holds no such truth."""
         return _truth_fields(MapOrigin, self._truth("origin"), f"{self.path}: provenance origin")
+
+    def check_frame(self, towers: TowerDatabase) -> None:
+        """:func:`check_same_frame` of this bag and ``towers``."""
+        check_same_frame(self._provenance_text, self.path, towers)
+
+
+def check_same_frame(provenance: str | None, where: str | os.PathLike, towers: TowerDatabase | None) -> None:
+    """ValueError when a bag says where its ``map`` frame lies (a simulation's origin, in its
+    ``provenance``) and ``towers`` puts its origin elsewhere: the ground truth (in the bag's
+    frame) and the fixes (in the database's) would be compared, or written side by side, as if
+    they shared one, every position off by the distance between the origins. A bag that does
+    not say (a real recording) or a database without an origin has nothing to compare."""
+    if towers is None or towers.origin is None:
+        return
+    info = provenance_document(provenance, where)
+    if "origin" not in info:
+        return
+    recorded = _truth_fields(MapOrigin, info["origin"], f"{where}: provenance origin")
+    origin = towers.origin
+    frame = LocalFrame(origin.latitude_deg, origin.longitude_deg, origin.height_m)
+    apart = float(np.linalg.norm(frame.geodetic_to_enu(recorded.latitude_deg, recorded.longitude_deg,
+                                                       recorded.height_m)))
+    if apart > FRAME_TOLERANCE_M:
+        raise ValueError(
+            f"{where}: its map frame has its origin at {_where(recorded)} (the simulation's), tower database "
+            f"{towers.name!r} at {_where(origin)}, {apart:,.2f} m apart: the ground truth and the fixes would "
+            "be compared in two frames; give the database the bag's origin")
+
+
+FRAME_TOLERANCE_M = 0.01
+"""How far two map frames' origins may lie apart and still be one frame: far below any error
+the evaluation reports (metres), far above the rounding of a coordinate written with 9 decimals."""
+
+
+def _where(origin: MapOrigin) -> str:
+    return f"({origin.latitude_deg:.7f}, {origin.longitude_deg:.7f}, {origin.height_m:g} m)"

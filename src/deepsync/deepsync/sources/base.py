@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from fractions import Fraction
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from tqdm import tqdm
 
 from deepsync.frontend.config import FrontendConfig
-from deepsync.frontend.templates import check_template_rate
+from deepsync.sync.stacking import check_stack_rate
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk
 from .envelope import (
     NonFiniteSample,
@@ -30,6 +32,7 @@ from .envelope import (
 from .formats import SampleFormat
 
 PEAK_BLOCK_SAMPLES = 1 << 20  # samples per read in the scale pass: bounded memory for any file
+LONG_PASS = 1 << 26  # samples from which the scale pass shows a progress bar (35 s at 1.92 MS/s)
 
 
 @runtime_checkable
@@ -60,7 +63,8 @@ def stamp_at(stamp_ns: int, index: int, sample_rate: float) -> int:
 
 
 def check_rate(sample_rate: object, where: str) -> float:
-    """``sample_rate`` as a float, or ValueError naming ``where`` (missing, or no templates)."""
+    """``sample_rate`` as a float, or ValueError naming ``where`` (missing, or not one the cell
+    search serves: ``sync.stacking.check_stack_rate``)."""
     if sample_rate is None:
         raise ValueError(f"{where}: the sample rate must be given (the file does not say it)")
     try:
@@ -68,7 +72,7 @@ def check_rate(sample_rate: object, where: str) -> float:
     except (TypeError, ValueError):
         raise ValueError(f"{where}: sample rate {sample_rate!r} is not a number") from None
     try:
-        return check_template_rate(rate)
+        return check_stack_rate(rate)
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None
 
@@ -85,6 +89,20 @@ def centred_iq(values: np.ndarray, sample_format: SampleFormat) -> np.ndarray:
 
 BlockReader = Callable[[int, int], np.ndarray]
 """``read(start, stop)``: the stored values of samples ``start:stop``, interleaved (I0 Q0 ...)."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A run of a recording's samples that the receiver delivered without a break: samples
+    ``start:stop`` of the file, the first of them sample ``index`` of the stream (the file's
+    position plus every sample the receiver lost before it) at receiver time ``stamp_ns``.
+    A recording that says it lost samples (a SigMF capture after a dropout) has several; the
+    stream then jumps by what was lost, which the sync stage reports as a gap."""
+
+    start: int
+    stop: int
+    index: int
+    stamp_ns: int
 
 
 class FileSource:
@@ -104,13 +122,17 @@ class FileSource:
     frontend: FrontendConfig
 
     def _setup(self, path: str, sample_format: SampleFormat, sample_rate: float, n_samples: int,
-               read: BlockReader, scale: float | None, stamp_ns: int, center_hz: float | None) -> None:
+               read: BlockReader, scale: float | None, stamp_ns: int, center_hz: float | None,
+               segments: tuple[Segment, ...] | None = None) -> None:
+        """``segments``: where the receiver lost samples (default: none, one segment from
+        ``stamp_ns``)."""
         self.path = path
         self.sample_format = sample_format
         self.sample_rate = sample_rate
         self.n_samples = n_samples
         self.stamp_ns = int(stamp_ns)
         self.center_hz = center_hz
+        self.segments = segments or (Segment(0, n_samples, 0, self.stamp_ns),)
         self._read = read
         try:
             given = check_scale(scale)
@@ -139,25 +161,31 @@ class FileSource:
         if self.sample_format is SampleFormat.RI16_LE:
             return 1.0  # the values are ADC codes already
         peak = 0.0
-        for start in range(0, self.n_samples, PEAK_BLOCK_SAMPLES):
-            stop = min(start + PEAK_BLOCK_SAMPLES, self.n_samples)
-            peak = max(peak, self._block(start, stop, lambda v: block_peak(v, self.sample_format)))
+        # a long recording's pass shows its progress (20 GB of cu8 took 10 silent minutes)
+        with tqdm(total=self.n_samples, unit="S", unit_scale=True, leave=False, disable=self.n_samples < LONG_PASS,
+                  desc=f"{os.path.basename(self.path)}: its peak, for the scale (--scale skips this)") as bar:
+            for start in range(0, self.n_samples, PEAK_BLOCK_SAMPLES):
+                stop = min(start + PEAK_BLOCK_SAMPLES, self.n_samples)
+                peak = max(peak, self._block(start, stop, lambda v: block_peak(v, self.sample_format)))
+                bar.update(stop - start)
         return scale_from_peak(peak)
 
     def chunks(self) -> Iterator[EnvelopeChunk]:
-        """One chunk per LTE frame; codes per :mod:`deepsync.sources.envelope`."""
+        """One chunk per LTE frame (none across the end of a segment); codes per
+        :mod:`deepsync.sources.envelope`."""
         step = frame_samples(self.sample_rate)
-        for first in range(0, self.n_samples, step):
-            stop = min(first + step, self.n_samples)
-            codes = self._block(first, stop, lambda v: envelope_codes(v, self.sample_format, self.scale))
-            yield EnvelopeChunk(
-                stamp_ns=stamp_at(self.stamp_ns, first, self.sample_rate),
-                sample_rate=self.sample_rate,
-                first_sample_index=first,
-                adc_bits=16,
-                volts_per_code=self.scale,
-                samples=codes,
-            )
+        for segment in self.segments:
+            for first in range(segment.start, segment.stop, step):
+                stop = min(first + step, segment.stop)
+                codes = self._block(first, stop, lambda v: envelope_codes(v, self.sample_format, self.scale))
+                yield EnvelopeChunk(
+                    stamp_ns=stamp_at(segment.stamp_ns, first - segment.start, self.sample_rate),
+                    sample_rate=self.sample_rate,
+                    first_sample_index=segment.index + first - segment.start,
+                    adc_bits=16,
+                    volts_per_code=self.scale,
+                    samples=codes,
+                )
 
     def read_iq(self) -> np.ndarray:
         """All samples as complex64 ``(I - zero) + j (Q - zero)`` (complex formats only)."""
@@ -171,6 +199,8 @@ class FileSource:
         seconds = self.n_samples / self.sample_rate
         what = "I/Q, envelope |x - zero|^2" if self.sample_format.is_complex else "envelope"
         centre = "" if self.center_hz is None else f" at {self.center_hz / 1e6:g} MHz"
+        lost = self.segments[-1].index - self.segments[-1].start
+        dropouts = (f", {len(self.segments) - 1} dropout(s) losing {lost} samples" if lost else "")
         return (f"{kind} {os.path.basename(self.path)}: {self.sample_format.value} {what}, "
-                f"{self.n_samples} samples at {self.sample_rate / 1e6:g} MS/s ({seconds:.3f} s){centre}, "
+                f"{self.n_samples} samples at {self.sample_rate / 1e6:g} MS/s ({seconds:.3f} s){centre}{dropouts}, "
                 f"scale {self.scale:.6g} per code")

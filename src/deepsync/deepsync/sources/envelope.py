@@ -141,7 +141,8 @@ def envelope_codes(values: np.ndarray, sample_format: SampleFormat | str, scale:
     if scale is None:
         raise ValueError("scale must be given (a number > 0)")
     envelope, clipped, comps = _split(values, sample_format)
-    codes = np.rint(envelope / scale)
+    with np.errstate(over="ignore"):  # a tiny given scale overflows to inf: the rail, as below
+        codes = np.rint(envelope / scale)
     np.clip(codes, _CODE_LOW, CODE_RAIL, out=codes)  # an ADC driven past full scale reads its rail
     if sample_format.is_complex:
         codes[clipped] = CODE_RAIL

@@ -13,8 +13,8 @@ from .formats import SampleFormat, is_sigmf_path
 from .sigmf_recording import SigmfSource
 
 
-def _open_raw(path: str | os.PathLike, sample_format: SampleFormat) -> tuple[str, np.ndarray]:
-    """(path, memory map of its components), or ValueError naming the file and the cause."""
+def _open_raw(path: str | os.PathLike, sample_format: SampleFormat) -> tuple[str, int]:
+    """(path, samples in it), or ValueError naming the file and the cause."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise ValueError(f"{path}: no such file")
@@ -28,8 +28,21 @@ def _open_raw(path: str | os.PathLike, sample_format: SampleFormat) -> tuple[str
             f"{path}: {size} bytes is not a whole number of {sample_format.value} samples "
             f"({sample_format.bytes_per_sample} bytes each): a truncated recording, or another format?"
         )
-    # A memory map reads only what is touched: a recording larger than memory streams.
-    return path, np.memmap(path, dtype=sample_format.component_dtype, mode="r")
+    return path, size // sample_format.bytes_per_sample
+
+
+def _block_reader(path: str, sample_format: SampleFormat):
+    """``read(start, stop)``: the stored values of samples ``start:stop``, read from the file.
+    Memory holds the block alone: a memory map keeps the pages it has touched resident, and
+    streaming a 20 GB file through one grew the process to 20 GB."""
+    dtype, k = sample_format.component_dtype, sample_format.components
+
+    def read(start: int, stop: int) -> np.ndarray:
+        with open(path, "rb") as handle:
+            handle.seek(start * k * dtype.itemsize)
+            return np.fromfile(handle, dtype=dtype, count=(stop - start) * k)
+
+    return read
 
 
 class RawFileSource(FileSource):
@@ -57,11 +70,9 @@ class RawFileSource(FileSource):
             fmt = SampleFormat.parse(sample_format)
         except ValueError as error:
             raise ValueError(f"{name}: {error}") from None
-        name, values = _open_raw(name, fmt)
+        name, n_samples = _open_raw(name, fmt)
         rate = check_rate(sample_rate, name)
-        k = fmt.components
-        self._values = values
-        self._setup(name, fmt, rate, values.size // k, lambda a, b: values[k * a : k * b], scale, stamp_ns, None)
+        self._setup(name, fmt, rate, n_samples, _block_reader(name, fmt), scale, stamp_ns, None)
 
     @property
     def description(self) -> str:
@@ -87,5 +98,5 @@ def read_iq(path: str | os.PathLike, sample_format: SampleFormat | str | None = 
     fmt = SampleFormat.from_extension(name) if sample_format is None else SampleFormat.parse(sample_format)
     if not fmt.is_complex:
         raise ValueError(f"{name}: {fmt.value} is a real envelope format, not complex I/Q")
-    name, values = _open_raw(name, fmt)
-    return centred_iq(values, fmt)
+    name, _ = _open_raw(name, fmt)
+    return centred_iq(np.fromfile(name, dtype=fmt.component_dtype), fmt)

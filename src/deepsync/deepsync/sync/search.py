@@ -48,6 +48,7 @@ import numpy as np
 import scipy.fft
 import scipy.special
 
+from deepsync.configio import check_ranges
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.lte.cell import N_CELL_IDS
 from deepsync.lte.numerology import SUPPORTED_BANDWIDTHS_MHZ
@@ -59,6 +60,22 @@ from deepsync.sync.stacking import HELD_FRACTION, held_fraction
 
 PHASES = np.array([0.0, 0.5])  # sub-sample delays at which every timing template is tried
 _SPREAD_STEP = 4  # every how many lags a timing correlation's noise spread is measured on
+
+
+# Bounds of the numbers the checks below leave open (inclusive): each sizes a loop or an array
+# of the search (lags tried, cells kept), far beyond what a stack holds or a city's cells ask.
+SEARCH_RANGES: dict[str, tuple[float, float, str]] = {
+    "max_cells": (1, 64, "cells"),
+    "refine_lags": (1, 64, "samples"),
+    "keep_candidates": (1, 504, "PCIs"),
+    "cancel_spread": (0, 16, "samples"),
+    "pss_confirm": (0.0, 10.0, ""),
+    "open_set_tolerance": (0.0, 1.0, ""),
+    "max_examined": (1, 1024, "peaks"),
+    "pair_min_gain": (0.0, 100.0, ""),
+    "crs_cancel_z": (0.0, 1000.0, "sigmas"),
+    "track_lags": (1, 64, "samples"),
+}
 
 
 @dataclass(frozen=True)
@@ -88,7 +105,7 @@ class SearchConfig:
             raise ValueError("max_cells, refine_lags and track_lags must be >= 1")
         if not (math.isfinite(self.crs_cancel_z) and self.crs_cancel_z >= 0):
             raise ValueError(f"crs_cancel_z must be a number of sigmas >= 0 (0: never), got {self.crs_cancel_z!r}")
-
+        check_ranges(self, SEARCH_RANGES)  # what the checks above leave open
 
 @dataclass(frozen=True)
 class Candidate:

@@ -58,10 +58,42 @@ from functools import cached_property, lru_cache
 import numpy as np
 import scipy.fft
 
+from deepsync.frontend.templates import check_template_rate
+from deepsync.lte.numerology import BASE_RATE_HZ
 from deepsync.numeric import mad_spread, parabolic_peak
-from deepsync.types import FRAME_SECONDS, EnvelopeChunk, Health, HealthKind
+from deepsync.types import FRAME_SECONDS, HALF_FRAME_SECONDS, EnvelopeChunk, Health, HealthKind
 
 MAX_CLOCK_PPM = 200.0  # a receiver crystal further off than this is not believed
+
+MIN_STACK_RATE_HZ = 1.92e6
+"""The slowest ADC the cell search serves: a PSS occupies 62 subcarriers (0.93 MHz), so its
+envelope reaches 0.93 MHz and a slower ADC aliases it (measured on the campus scenario: every
+cell found from 30.72 down to 1.536 MS/s, one missed at 1.28, three at 1.024)."""
+
+
+def _serves(rate: float) -> bool:
+    half = rate * HALF_FRAME_SECONDS
+    return rate >= MIN_STACK_RATE_HZ and abs(half - round(half)) < 1e-6 * half
+
+
+SERVED_RATES_HZ = tuple(rate for rate in (16 * BASE_RATE_HZ / k for k in range(1, 65)) if _serves(rate))
+"""Every sample rate the sync stage serves, fastest first: 30.72 MS/s (1 / Ts, LTE's basic time
+unit: 16 x 1.92 MS/s) divided by a whole factor
+(the templates' rule) that leaves a whole number of samples in a half frame (the PSS repeats
+every half frame, and frames are stacked on whole samples: 30.72 / 9 MS/s put 17066.7 samples
+in one, and the search broke on it) and is at least :data:`MIN_STACK_RATE_HZ`."""
+
+
+def check_stack_rate(sample_rate: float) -> float:
+    """``sample_rate`` (Hz) if the sync stage serves it (:data:`SERVED_RATES_HZ`), else
+    ValueError listing the rates it does: refused at the door, not mid-stream."""
+    rate = check_template_rate(sample_rate)
+    if not _serves(rate):
+        listed = ", ".join(f"{r / 1e6:g}" for r in sorted(SERVED_RATES_HZ))
+        raise ValueError(f"sample rate {rate:g} Hz: the cell search serves {listed} MS/s (a rate dividing 30.72 MHz "
+                         f"with a whole number of samples per 5 ms half frame, at least "
+                         f"{MIN_STACK_RATE_HZ / 1e6:g} MS/s for the PSS envelope's 0.93 MHz)")
+    return rate
 HELD_FRACTION = 0.5  # a stacked frame holding one value over more of it than this has no noise to measure
 DRIFT_SMOOTHING = 0.3  # weight of each stack's drift measurement in the running estimate
 CLOCK_REACH = 16  # samples kept before the next frame's start: how far a new clock estimate moves it back
@@ -83,8 +115,10 @@ class StackConfig:
             raise ValueError(f"hop_frames must be 1..n_frames ({self.n_frames}), got {self.hop_frames!r}")
         if not math.isfinite(self.clock_ppm) or abs(self.clock_ppm) > 1000:
             raise ValueError(f"clock_ppm must be a finite number within +-1000, got {self.clock_ppm!r}")
-        if not self.max_drift_samples > 0:
-            raise ValueError(f"max_drift_samples must be > 0, got {self.max_drift_samples!r}")
+        if not 0 < self.max_drift_samples <= 1000:
+            raise ValueError(f"max_drift_samples must be in (0, 1000], got {self.max_drift_samples!r}")
+        if not 0 <= self.clip_fraction <= 1:
+            raise ValueError(f"clip_fraction must be a fraction in [0, 1], got {self.clip_fraction!r}")
 
     @property
     def hop(self) -> int:
@@ -163,9 +197,7 @@ class FrameStacker:
     """Turns a chunked stream into :class:`Stack` objects (see the module docstring)."""
 
     def __init__(self, sample_rate: float, config: StackConfig | None = None) -> None:
-        if not (math.isfinite(sample_rate) and sample_rate > 0):
-            raise ValueError(f"sample_rate must be a positive number, got {sample_rate!r}")
-        self.sample_rate = float(sample_rate)
+        self.sample_rate = check_stack_rate(sample_rate)
         self.config = config or StackConfig()
         self.clock_ppm = self.config.clock_ppm
         self.measured_drift_ppm: float | None = None  # smoothed over stacks

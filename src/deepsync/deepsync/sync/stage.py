@@ -42,6 +42,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from deepsync.configio import check_ranges
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.lte.earfcn import downlink_frequency_hz
@@ -51,6 +52,17 @@ from deepsync.sync.stacking import FrameStacker, Stack, StackConfig
 from deepsync.sync.windows import extract_windows_at
 from deepsync.towers import TowerDatabase
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk, Health, HealthKind, StackWindows, SyncWindow
+
+
+# Bounds of the numbers the checks below leave open (inclusive).
+SYNC_RANGES: dict[str, tuple[float, float, str]] = {
+    "confirm_stacks": (1, 1000, "stacks"),
+    "confirm_tolerance": (0.0, 1000.0, "samples"),
+    "search_every": (1, 100_000, "stacks"),
+    "max_search_interval_s": (0.0, 3600.0, "s"),
+    "hold_stacks": (0, 1000, "stacks"),
+    "report_z": (0.0, 1000.0, "sigmas"),
+}
 
 
 @dataclass(frozen=True)
@@ -79,7 +91,7 @@ class SyncConfig:
             raise ValueError(f"hold_stacks must be >= 0, got {self.hold_stacks!r}")
         if not (math.isfinite(self.report_z) and self.report_z >= 0):
             raise ValueError(f"report_z must be a number of sigmas >= 0, got {self.report_z!r}")
-
+        check_ranges(self, SYNC_RANGES)  # what the checks above leave open
 
 @dataclass(frozen=True)
 class DetectedCell:

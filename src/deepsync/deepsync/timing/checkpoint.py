@@ -16,13 +16,13 @@ import dataclasses
 import enum
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from deepsync.outputs import replacing
 from deepsync.timing.inputs import Normalisation
 from deepsync.timing.model import TimingNet, TimingNetConfig
 
@@ -90,16 +90,9 @@ def save_checkpoint(path: str | Path, model: TimingNet, training_range: Training
         "optimiser": optimiser,
         "meta": dict(meta or {}),
     }
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(handle)
-    try:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with replacing(path) as temporary:
         torch.save(payload, temporary)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
 
 
 def _field(payload: dict, key: str, kind: type, where: str) -> Any:

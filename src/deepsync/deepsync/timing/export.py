@@ -11,12 +11,14 @@ and the training range travel in the model's metadata, so the file alone says ho
 from __future__ import annotations
 
 import dataclasses
+import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from deepsync.outputs import check_writable, replacing
 from deepsync.timing.checkpoint import TimingCheckpoint
 
 MAX_BATCH = 1024
@@ -24,27 +26,34 @@ MAX_FRAMES = 1000
 
 
 def export_onnx(checkpoint: TimingCheckpoint, path: str | Path) -> Path:
-    """Write the checkpoint's network to ``path`` (opset chosen by torch's exporter)."""
+    """Write the checkpoint's network to ``path`` (opset chosen by torch's exporter) as one
+    self-contained file, replaced whole or not at all: the exporter works in a temporary folder
+    (its weights file, ``.onnx.data``, is folded into the graph and goes with it), and a
+    folder that cannot be written is refused before the export's minute of work."""
     import onnx
 
+    path = check_writable(path, "ONNX model")
     model = checkpoint.model.eval()
     c = model.config
     example = (torch.zeros(2, 10, c.window_length), torch.zeros(2, c.template_length))
     batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
     frames = torch.export.Dim("frames", min=2, max=MAX_FRAMES)
-    path = Path(path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the exporter's notes on its own internals
-        torch.onnx.export(model, example, str(path), input_names=["windows", "template"],
-                          output_names=["offset", "log_variance"], dynamo=True, verbose=False,
-                          dynamic_shapes={"windows": {0: batch, 1: frames}, "template": {0: batch}})
-    graph = onnx.load(str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{path.name}.", dir=path.parent) as work:
+        exported = Path(work) / "model.onnx"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the exporter's notes on its own internals
+            torch.onnx.export(model, example, str(exported), input_names=["windows", "template"],
+                              output_names=["offset", "log_variance"], dynamo=True, verbose=False,
+                              dynamic_shapes={"windows": {0: batch, 1: frames}, "template": {0: batch}})
+        graph = onnx.load(str(exported))  # with the weights of an external .onnx.data, if it wrote one
     metadata = {"window_scale": checkpoint.normalisation.window_scale,
                 **{f"training_range.{k}": v for k, v in dataclasses.asdict(checkpoint.training_range).items()}}
     for key, value in metadata.items():
         entry = graph.metadata_props.add()
         entry.key, entry.value = key, str(value)
-    onnx.save(graph, str(path))
+    with replacing(path) as temporary:
+        onnx.save(graph, str(temporary), save_as_external_data=False)
     return path
 
 

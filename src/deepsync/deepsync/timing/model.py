@@ -45,8 +45,28 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from deepsync.configio import check_ranges
+
 
 LOG_VARIANCE_RANGE = (-12.0, 6.0)  # the sigma head's output is clamped to this: 0.0025 to 20 samples
+
+# The range of every size (inclusive). Each is far beyond what a sync stage's windows or a
+# tracker's CPU ask for (the shipped network: windows of 296 samples, 8-32 channels, 41,000
+# weights), and together with MAX_PARAMETERS keeps a typo or a tampered checkpoint from
+# allocating gigabytes before anything else is checked.
+NET_RANGES: dict[str, tuple[float, float, str]] = {
+    "window_length": (1, 4096, "samples"),  # 2 ms at 1.92 MS/s: a window is the code +- a margin
+    "template_length": (1, 4096, "samples"),
+    "channels": (1, 1024, ""),
+    "kernels": (1, 256, "samples"),
+    "pool": (1, 64, "samples"),
+    "heads": (1, 64, ""),
+    "hidden": (1, 65536, ""),
+    "dropout": (0.0, 0.99, ""),
+}
+MAX_PARAMETERS = 16_000_000
+"""Weights a network may have (64 MB of float32; Adam keeps two more copies while training):
+400 times the shipped network's."""
 
 
 class Fusion(enum.Enum):
@@ -88,17 +108,53 @@ class TimingNetConfig:
                     object.__setattr__(self, name, kind(value))
                 except ValueError:
                     raise ValueError(f"{name}: {value!r} must be one of {', '.join(k.value for k in kind)}") from None
-        for name in ("window_length", "template_length", "pool", "heads"):
-            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
-                raise ValueError(f"{name}: {getattr(self, name)!r} must be a positive integer")
-        if len(self.channels) != 3 or len(self.kernels) != 3 or min(self.channels + self.kernels) < 1:
-            raise ValueError(f"channels {self.channels!r} and kernels {self.kernels!r}: three positive integers each")
+        for name in ("window_length", "template_length", "pool", "heads", "channels", "kernels", "hidden"):
+            value = getattr(self, name)
+            values = value if isinstance(value, tuple) else (value,)
+            if not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
+                what = "whole numbers" if isinstance(value, tuple) else "a whole number"
+                raise ValueError(f"{name}: {value!r} must be {what}")
+        if len(self.channels) != 3 or len(self.kernels) != 3 or len(self.hidden) != 2:
+            raise ValueError(f"channels {self.channels!r} and kernels {self.kernels!r}: three positive integers each; "
+                             f"hidden {self.hidden!r}: two")
+        check_ranges(self, NET_RANGES)
         if self.channels[-1] % self.heads:
             raise ValueError(f"heads: {self.heads} must divide the token width channels[-1] = {self.channels[-1]}")
         if self.template_length > self.window_length:
             raise ValueError(f"template_length {self.template_length} is longer than window_length {self.window_length}")
-        if not 0 <= self.dropout < 1:
-            raise ValueError(f"dropout: {self.dropout!r} must be in [0, 1)")
+        if self.pool > self.template_length:
+            raise ValueError(f"pool {self.pool} is longer than template_length {self.template_length}: no token")
+        if self.parameter_count > MAX_PARAMETERS:
+            raise ValueError(f"a network of these sizes has {self.parameter_count:,} weights, more than the "
+                             f"{MAX_PARAMETERS:,} allowed (the shipped one has about 41,000)")
+
+    @property
+    def parameter_count(self) -> int:
+        """Weights of the network this config describes, counted without building it (a tested
+        match for ``TimingNet``'s), so that a config is judged before anything is allocated."""
+        width, fused = self.channels[-1], self.fused_tokens * self.fused_width
+
+        def encoder(inputs: int) -> int:  # convolutions without bias, batch-norm scale and shift
+            widths = (inputs, *self.channels)
+            return sum(widths[i] * c * k + 2 * c for i, (c, k) in enumerate(zip(self.channels, self.kernels)))
+
+        count = encoder(2) + encoder(1) + (self.signal_tokens + self.template_tokens) * width
+        if self.fusion is Fusion.CROSS_ATTENTION:
+            count += 4 * width * width + 4 * width  # in-projection of q, k, v and the out-projection, with biases
+        inputs = fused
+        for hidden in self.hidden:
+            count += inputs * hidden + hidden
+            inputs = hidden
+        count += inputs + 1 if self.head is Head.DENSE else 2 * self.fused_width + 2
+        return count + inputs + 1  # the log-variance
+
+    def activation_bytes(self, frames: int) -> int:
+        """About how much memory one example of ``frames`` frames takes through a training
+        step (float32 feature maps of every layer of the encoders, attention weights, fused
+        tokens; forward and backward): what sizes a batch."""
+        maps = frames * self.window_length * (2 + 3 * sum(self.channels))
+        attention = self.heads * self.signal_tokens * self.template_tokens
+        return 4 * 2 * (maps + attention + self.fused_tokens * self.fused_width)
 
     @property
     def signal_tokens(self) -> int:

@@ -115,8 +115,8 @@ class TimingConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.estimator, Estimator):
             raise ValueError(f"estimator must be one of {', '.join(e.value for e in Estimator)}, got {self.estimator!r}")
-        if not (math.isfinite(self.weak_std_samples) and self.weak_std_samples > 0):
-            raise ValueError(f"weak_std_samples must be a positive number, got {self.weak_std_samples!r}")
+        if not (math.isfinite(self.weak_std_samples) and 0 < self.weak_std_samples <= 1e6):
+            raise ValueError(f"weak_std_samples must be a positive number up to 1e6, got {self.weak_std_samples!r}")
 
 
 @dataclass(frozen=True)

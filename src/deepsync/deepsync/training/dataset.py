@@ -61,15 +61,14 @@ from __future__ import annotations
 import enum
 import json
 import math
-import os
-import tempfile
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from deepsync.configio import choice_name
+from deepsync.configio import check_ranges, choice_name
+from deepsync.outputs import replacing
 from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
@@ -101,6 +100,24 @@ class Channel(enum.Enum):
     CLEAN = "clean"  # the direct path alone, no multipath or fading: where an estimator meets its bound
 
 
+# The range of every number of the dataset section (inclusive): what a receiver can meet,
+# and sizes far beyond the shipped run's (256 examples per shard of 12 frames).
+DATASET_RANGES: dict[str, tuple[float, float, str]] = {
+    "seed": (0, 2**63 - 1, ""),
+    "max_frames": (2, 100, "frames"),
+    "window_margin": (1, 100, "samples"),
+    "max_coarse_error": (1, 99, "samples"),
+    "re_power_dbm": (-160.0, 0.0, "dBm"),  # per resource element at the antenna
+    "carrier_hz": (400e6, 6e9, "Hz"),  # the LTE bands
+    "max_speed_mps": (0.0, 140.0, "m/s"),  # the scenario's receiver speed range
+    "max_clock_ppm": (0.0, 1000.0, "ppm"),  # the front end's clock_offset_ppm range
+    "max_site_drift_ppb": (0.0, 1000.0, "ppb"),  # the scenario's site oscillator range
+    "examples_per_shard": (1, 65_536, "examples"),
+    "cosited_share": (0.0, 1.0, ""),
+    "cosited_power_db": (-60.0, 20.0, "dB"),
+}
+
+
 @dataclass(frozen=True)
 class DatasetConfig:
     """The training distribution; each shard records it, and a changed field means new data."""
@@ -127,26 +144,28 @@ class DatasetConfig:
             except ValueError:
                 raise ValueError(f"channel: {self.channel!r} must be one of "
                                  f"{', '.join(c.value for c in Channel)}") from None
-        if not 2 <= self.max_frames <= 100:
-            raise ValueError(f"max_frames: {self.max_frames!r} must be 2..100")
+        check_ranges(self, DATASET_RANGES)
         if not 1 <= self.max_coarse_error < self.window_margin:
             raise ValueError(f"max_coarse_error: {self.max_coarse_error!r} must be 1..window_margin-1 "
                              f"({self.window_margin - 1}) so the true code stays inside the window")
         low, high = self.re_power_dbm
-        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        if not low < high:
             raise ValueError(f"re_power_dbm: {self.re_power_dbm!r} must be an increasing pair of numbers")
-        if not 0.0 <= self.cosited_share <= 1.0:
-            raise ValueError(f"cosited_share: {self.cosited_share!r} must be a fraction in 0..1")
         low, high = self.cosited_power_db
-        if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+        if not low <= high:
             raise ValueError(f"cosited_power_db: {self.cosited_power_db!r} must be a non-decreasing pair of numbers")
         object.__setattr__(self, "frame_means", tuple(self.frame_means))
         if (not all(isinstance(f, int) and 2 <= f <= self.max_frames for f in self.frame_means)
                 or list(self.frame_means) != sorted(set(self.frame_means))):
             raise ValueError(f"frame_means: {self.frame_means!r} must be increasing frame counts in 2..max_frames "
                              f"({self.max_frames})")
-        if not self.examples_per_shard >= 1:
-            raise ValueError(f"examples_per_shard: {self.examples_per_shard!r} must be a positive integer")
+
+    def example_bytes(self, template_length: int) -> int:
+        """Memory one example takes when a split is loaded: its float32 windows and template,
+        its mean frames (float64, a frame each at the default front end's rate) and scalars."""
+        frame = round(FrontendConfig().adc_rate_hz * FRAME_SECONDS)
+        windows = self.max_frames * (template_length + 2 * self.window_margin)
+        return 4 * (windows + template_length) + 8 * len(self.frame_means) * (frame + 1) + 128
 
 
 @dataclass(frozen=True)
@@ -365,13 +384,8 @@ def _write_shard(config: DatasetConfig, root: Path, split: str, index: int) -> i
     arrays = make_shard(config, split, index)
     path.parent.mkdir(parents=True, exist_ok=True)
     # atomic: an interrupted write leaves no shard, so a rerun makes it again
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
-        try:
-            np.savez(handle, **arrays)
-        except BaseException:
-            Path(handle.name).unlink(missing_ok=True)
-            raise
-    os.replace(handle.name, path)
+    with replacing(path) as temporary, temporary.open("wb") as handle:
+        np.savez(handle, **arrays)
     return len(arrays["offset"])
 
 
@@ -412,10 +426,11 @@ def generate(root: Path, shards: dict[str, int], config: DatasetConfig | None = 
     return made
 
 
-def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
-    """Every shard of a split, concatenated (``SHARD_KEYS``, and the mean frames every shard
+def load_split(root: Path, split: str, shards: int | None = None) -> dict[str, np.ndarray]:
+    """Every shard of a split (the first ``shards`` of them: what a run config counted on, and
+    bounded the memory of), concatenated (``SHARD_KEYS``, and the mean frames every shard
     holds: ``frame_key``); ValueError when there is none."""
-    paths = sorted((Path(root) / split).glob("shard_*.npz"))
+    paths = sorted((Path(root) / split).glob("shard_*.npz"))[:shards]
     if not paths:
         raise ValueError(f"no shards in {Path(root) / split}: `deepsync train` makes them")
     parts = []

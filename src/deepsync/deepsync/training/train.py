@@ -22,9 +22,10 @@ Interrupt at any time: ``<run_dir>/last.pt`` (saved every ``eval_every`` steps, 
 optimiser) is where a rerun resumes, and every batch is drawn from ``(seed, step, rank)``, so a
 resumed run takes the same path as an uninterrupted one. The checkpoint with the lowest
 validation RMSE over the examples with a code to find (at least ``huber_min_stacked_snr_db``
-after stacking 10 frames) is written to ``model_path`` (no optimiser: the file to ship), and
+after stacking 10 frames) is kept as ``<run_dir>/best.pt`` (no optimiser: the file to ship), and
 again with its sigma calibrated; the curve to ``<run_dir>/training_curve.png`` and
-``history.json``.
+``history.json``, each replaced whole. Only a finished run copies ``best.pt`` to ``model_path``:
+an interrupted one leaves the file there (with the shipped config, the shipped network) as it was.
 
 Devices: a GPU when there is one, else the CPU. Under ``torchrun`` every rank trains on its own
 batches and DistributedDataParallel averages the gradients; rank 0 evaluates and writes, and
@@ -36,6 +37,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -45,13 +47,46 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepsync.configio import ConfigError, build_dataclass, choice_name, load_yaml, require_mapping
+from deepsync.configio import ConfigError, build_dataclass, check_ranges, choice_name, load_yaml, require_mapping
 from deepsync.frontend.config import FrontendConfig
+from deepsync.outputs import check_writable, replacing, write_text
 from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_checkpoint
 from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND
 from deepsync.timing.inputs import Normalisation, network_inputs, noise_normalised
 from deepsync.timing.model import TimingNet, TimingNetConfig
 from deepsync.training.dataset import DatasetConfig, generate, load_split
+
+
+# The range of every number of the training section (inclusive): a value outside is a typo or
+# a unit slip; left through, it trains for hours and then fails (steps 1e308), or fails at the
+# first step (huber_delta 0, threads -1), or makes every weight NaN (learning_rate 1e308).
+TRAIN_RANGES: dict[str, tuple[float, float, str]] = {
+    "train_shards": (1, 100_000, "shards"),
+    "val_shards": (1, 10_000, "shards"),
+    "test_shards": (0, 10_000, "shards"),
+    "steps": (1, 10_000_000, "steps"),  # the shipped network took 8000
+    "batch_size": (1, 65_536, "examples"),  # and within MAX_BATCH_BYTES (RunConfig)
+    "learning_rate": (1e-9, 1.0, ""),  # Adam's steps are about this size: beyond 1 every weight diverges
+    "final_learning_rate": (1e-12, 1.0, ""),
+    "warmup_steps": (0, 10_000_000, "steps"),
+    "min_frames": (2, 100, "frames"),
+    "max_frames": (2, 100, "frames"),
+    "huber_delta": (1e-3, 1000.0, "samples"),  # 0 is no loss at all (torch refuses it)
+    "nll_weight": (0.0, 1000.0, ""),
+    "huber_min_stacked_snr_db": (-100.0, 100.0, "dB"),
+    "eval_every": (1, 10_000_000, "steps"),
+    "calibration_steps": (0, 10_000_000, "steps"),
+    "calibration_learning_rate": (1e-12, 1.0, ""),
+    "seed": (0, 2**63 - 1, ""),
+    "threads": (0, 1024, "threads"),  # 0: torch's default
+    "workers": (1, 64, "processes"),
+}
+MAX_BATCH_BYTES = 8 * 2**30
+"""Memory a training batch may take (``TimingNetConfig.activation_bytes`` of its examples at
+``max_frames``): the shipped run's batches take about 0.7 GB."""
+MAX_DATASET_BYTES = 16 * 2**30
+"""Memory the training and validation examples may take, held in memory as float32 windows,
+templates and mean frames: the shipped run's take about 0.3 GB."""
 
 
 @dataclass(frozen=True)
@@ -83,16 +118,10 @@ class TrainConfig:
     workers: int = 2  # processes making missing shards
 
     def __post_init__(self) -> None:
-        for name in ("train_shards", "val_shards", "steps", "batch_size", "eval_every", "min_frames"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}: {getattr(self, name)!r} must be a positive integer")
+        check_ranges(self, TRAIN_RANGES)
         if not 2 <= self.min_frames <= self.max_frames:
             raise ValueError(f"min_frames {self.min_frames} and max_frames {self.max_frames}: 2 <= min <= max "
                              "(the windows are normalised by their frame-to-frame noise)")
-        if self.calibration_steps < 0:
-            raise ValueError(f"calibration_steps: {self.calibration_steps!r} must be 0 or more")
-        if not self.calibration_learning_rate > 0:
-            raise ValueError(f"calibration_learning_rate: {self.calibration_learning_rate!r} must be positive")
         if not 0 < self.final_learning_rate <= self.learning_rate:
             raise ValueError(f"learning rates: 0 < final_learning_rate {self.final_learning_rate!r} <= "
                              f"learning_rate {self.learning_rate!r}")
@@ -112,6 +141,19 @@ class RunConfig:
         if window != self.model.window_length:
             raise ValueError(f"model.window_length {self.model.window_length} must be the examples' "
                              f"template + 2 x dataset.window_margin = {window}")
+        # sizes checked against their bounds before anything is allocated
+        batch = self.training.batch_size * self.model.activation_bytes(self.training.max_frames)
+        if batch > MAX_BATCH_BYTES:
+            most = MAX_BATCH_BYTES // self.model.activation_bytes(self.training.max_frames)
+            raise ValueError(f"training.batch_size {self.training.batch_size}: a batch would take about "
+                             f"{batch / 2**30:.3g} GiB, beyond the {MAX_BATCH_BYTES / 2**30:g} GiB bound "
+                             f"(at most {most} examples of {self.training.max_frames} frames with this model)")
+        shards = self.training.train_shards + self.training.val_shards
+        held = shards * self.dataset.examples_per_shard * self.dataset.example_bytes(self.model.template_length)
+        if held > MAX_DATASET_BYTES:
+            raise ValueError(f"{self.training.train_shards} + {self.training.val_shards} shards of "
+                             f"{self.dataset.examples_per_shard} examples would hold about {held / 2**30:.3g} GiB "
+                             f"in memory, beyond the {MAX_DATASET_BYTES / 2**30:g} GiB bound")
 
 
 def load_run_config(path: str | Path) -> RunConfig:
@@ -231,6 +273,8 @@ def evaluate(model: TimingNet, examples: Examples, normalisation: Normalisation,
 def train(run: RunConfig, config_path: str = "") -> Path:
     """Train (or resume) as ``run`` says; returns the path of the best checkpoint."""
     cfg = run.training
+    check_writable(cfg.model_path, "trained network")  # at the door, not after an hour of training
+    check_writable(Path(cfg.run_dir) / "last.pt", "run's checkpoints")
     distributed = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1
     rank = int(os.environ.get("RANK", 0))
     if distributed:
@@ -245,7 +289,9 @@ def train(run: RunConfig, config_path: str = "") -> Path:
                  workers=cfg.workers)
     if distributed:
         torch.distributed.barrier()
-    train_set, val_set = Examples(load_split(root, "train")), Examples(load_split(root, "val"))
+    # the shards the config counts (and MAX_DATASET_BYTES bounds), whatever else the folder holds
+    train_set = Examples(load_split(root, "train", cfg.train_shards))
+    val_set = Examples(load_split(root, "val", cfg.val_shards))
     normalisation = measure_normalisation(train_set, min(10, cfg.max_frames))
     trained_on = training_range(run, train_set)
 
@@ -258,6 +304,8 @@ def train(run: RunConfig, config_path: str = "") -> Path:
     step = 0
     calibrating_since = None  # the step the sigma's calibration started at, where last.pt is mid-way
     if last.exists():
+        if not (run_dir / BEST).exists() and Path(cfg.model_path).exists():
+            shutil.copyfile(cfg.model_path, run_dir / BEST)  # a run from before best.pt kept its best there
         resumed = load_checkpoint(last)
         if resumed.model.config != run.model:
             raise ValueError(f"{last} is a run of another model config ({resumed.model.config}): remove "
@@ -269,7 +317,7 @@ def train(run: RunConfig, config_path: str = "") -> Path:
         if calibrating_since is not None and cfg.steps > calibrating_since:
             raise ValueError(f"{last} is calibrating its sigma since step {calibrating_since}: more training steps "
                              f"({cfg.steps}) would train a calibrated network; remove {run_dir} to train anew")
-        history = json.loads((run_dir / "history.json").read_text()) if (run_dir / "history.json").exists() else []
+        history = read_history(run_dir / "history.json")
         if rank == 0:
             print(f"resuming {last} at step {step}")
     net = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
@@ -306,22 +354,50 @@ def train(run: RunConfig, config_path: str = "") -> Path:
                 bar.set_postfix(val_rmse=f"{scores['rmse']:.3f}", val_med=f"{scores['median_abs_error']:.3f}")
                 if scores["rmse_with_code"] < best:
                     best = scores["rmse_with_code"]
-                    save_checkpoint(cfg.model_path, model, trained_on, normalisation, step=step, meta=meta)
+                    save_checkpoint(run_dir / BEST, model, trained_on, normalisation, step=step, meta=meta)
                 save_checkpoint(last, model, trained_on, normalisation, step=step,
                                 optimiser=optimiser.state_dict(), meta=meta)
-                run_dir.mkdir(parents=True, exist_ok=True)
-                (run_dir / "history.json").write_text(json.dumps(history, indent=1))
-                plot_history(history, run_dir / "training_curve.png")
+                write_history(history, run_dir)
     if distributed:
         torch.distributed.destroy_process_group()
     since = step if calibrating_since is None else calibrating_since
     if rank == 0 and step < since + cfg.calibration_steps:
         if calibrating_since is None:  # its start: the best checkpoint, a fresh optimiser
-            model.load_state_dict(load_checkpoint(cfg.model_path).model.state_dict())
+            model.load_state_dict(load_checkpoint(run_dir / BEST).model.state_dict())
             optimiser = torch.optim.Adam(model.parameters(), lr=cfg.calibration_learning_rate)
         calibrate_sigma(model, optimiser, step, since, train_set, val_set, normalisation, trained_on, meta, history,
                         device, cfg)
+    if rank == 0:  # the run is done: only now is the file to ship replaced
+        with replacing(cfg.model_path) as temporary:
+            shutil.copyfile(run_dir / BEST, temporary)
     return Path(cfg.model_path)
+
+
+BEST = "best.pt"
+"""The run's best checkpoint so far, in its run directory: ``model_path`` (the shipped network,
+with the shipped config) is replaced by it only when the run ends, so an interrupted run leaves
+it as it was."""
+
+
+def read_history(path: Path) -> list[dict]:
+    """A run's history (``history.json``; empty when there is none), or ValueError naming the file."""
+    if not path.exists():
+        return []
+    try:
+        history = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise ValueError(f"{path}: unreadable ({error}); it records the run's scores: remove it (the run then "
+                         "resumes keeping its best checkpoint by score from here on) or the run directory") from None
+    if not isinstance(history, list) or not all(isinstance(h, dict) for h in history):
+        raise ValueError(f"{path}: not a run history (a list of records)")
+    return history
+
+
+def write_history(history: list[dict], run_dir: Path) -> None:
+    """The history and its figure, each replaced whole (a cut file broke resuming)."""
+    write_text(run_dir / "history.json", json.dumps(history, indent=1))
+    with replacing(run_dir / "training_curve.png") as temporary:
+        plot_history(history, temporary)
 
 
 def calibrate_sigma(model: TimingNet, optimiser: torch.optim.Optimizer, step: int, since: int, train_set: Examples,
@@ -361,11 +437,10 @@ def calibrate_sigma(model: TimingNet, optimiser: torch.optim.Optimizer, step: in
                                 **{f"val_{k}": v for k, v in scores.items()}})
                 bar.set_postfix(val_within_1_sigma=f"{scores['within_1_sigma']:.3f}")
                 if step == end:
-                    save_checkpoint(cfg.model_path, model, trained_on, normalisation, step=step, meta=meta)
+                    save_checkpoint(run_dir / BEST, model, trained_on, normalisation, step=step, meta=meta)
                 save_checkpoint(run_dir / "last.pt", model, trained_on, normalisation, step=step,
                                 optimiser=optimiser.state_dict(), meta=resumable)
-                (run_dir / "history.json").write_text(json.dumps(history, indent=1))
-                plot_history(history, run_dir / "training_curve.png")
+                write_history(history, run_dir)
 
 
 def plot_history(history: list[dict], path: Path) -> None:
@@ -398,5 +473,5 @@ def plot_history(history: list[dict], path: Path) -> None:
     right.legend()
     right.grid(True, alpha=0.3)
     figure.tight_layout()
-    figure.savefig(path, dpi=120)
+    figure.savefig(path, dpi=120, format="png")
     plt.close(figure)
