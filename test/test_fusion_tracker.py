@@ -467,7 +467,7 @@ def test_a_site_unheard_for_long_is_forgotten_and_added_again_when_heard():
     tracker = Tracker(config)
     for arrivals, end in zip(route.stacks[:k], route.ends[:k]):
         tracker.update(arrivals, round(end * 1e9), float(end))
-    assert set(tracker._sites) == set("ABCD") and len(tracker._x) == config.dims + 4 + 4
+    assert set(tracker._sites) == set("ABCD") and len(tracker._x) == config.dims + 4 + 4 * tracker._width
     tracker.update(route.stacks[k + 10], 1, float(route.ends[k + 10]))
     assert set(tracker._sites) == set("ABCD") | {a.site for a in route.stacks[k + 10]}
 
