@@ -23,7 +23,7 @@ bound; the GNSS interval swept (10, 30, 60, 120, 300 s) on the walks, and the er
 time since the last fix. Writes docs/results/route_set.json and route_set.png.
 
     python benchmarks/route_set.py [--routes city_walk city_drive] [--loads day evening]
-                                   [--seeds 1 2 3] [--workers 2]
+                                   [--seeds 1 2 3] [--workers 2] [--bags-only | --kept-only]
 """
 
 from __future__ import annotations
@@ -179,6 +179,37 @@ def table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def route_table(rows: dict[str, dict]) -> str:
+    """The README's table: per route and load, each configuration's published median / p90 (NEES)
+    as the range over the seeds measured."""
+    groups: dict[str, list[dict]] = {}
+    for name, row in rows.items():
+        groups.setdefault(name.rsplit("_s", 1)[0], []).append(row)
+    names = list(next(iter(rows.values()))["configurations"])
+    lines = ["| route (seeds) | sites per stack | " + " | ".join(names) + " | RSSI | bound |",
+             "|---" * (len(names) + 4) + "|"]
+    for group, members in groups.items():
+        cells = [f"{group.replace('_', ' ')} ({len(members)})",
+                 _span([row["heard"]["mean"] for row in members], "{:.1f}")]
+        for configuration in names:
+            chosen = [row["configurations"][configuration] for row in members]
+            cells.append(f"{_span([c['median_m'] for c in chosen])} / {_span([c['p90_m'] for c in chosen])} "
+                         f"({_span([c['nees_mean'] for c in chosen], '{:.1f}')})")
+        cells.append(_span([row["rssi"]["median_m"] for row in members]))
+        cells.append(_span([row["bound"]["median_m"] for row in members], "{:.1f}"))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _span(values: list[float | None], style: str = "{:.0f}") -> str:
+    """``low-high`` of the values there are (``-`` where none is)."""
+    present = [value for value in values if value is not None and math.isfinite(value)]
+    if not present:
+        return "-"
+    low, high = style.format(min(present)), style.format(max(present))
+    return low if low == high else f"{low}-{high}"
+
+
 def _m(value: float | None) -> str:
     return "      -" if value is None else f"{value:7.1f}"
 
@@ -234,6 +265,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--workers", type=int, default=2, help="simulator processes for a new bag")
     parser.add_argument("--bags-only", action="store_true", help="make the missing bags, measure nothing")
+    parser.add_argument("--kept-only", action="store_true",
+                        help="tabulate the rows already measured (docs/results/route_set/), make and measure nothing")
     args = parser.parse_args()
     if args.bags_only:
         for route in args.routes:
@@ -252,12 +285,17 @@ def main() -> None:
                 if kept.exists():
                     rows[name] = json.loads(kept.read_text())
                     continue
+                if args.kept_only:
+                    continue
                 print(f"== {name}", flush=True)
                 rows[name] = measure(route, bag_for(route, load, seed, args.workers))
                 temporary = kept.with_suffix(".tmp")
                 temporary.write_text(json.dumps(rows[name], indent=1))
                 temporary.replace(kept)  # a row is there whole or not at all
+    if not rows:
+        parser.exit(2, "route_set: no rows measured for this selection\n")
     print(table(rows))
+    print("\n" + route_table(rows))
     (RESULTS / "route_set.json").write_text(json.dumps(rows, indent=1))
     plot(rows, RESULTS / "route_set.png")
     print(f"written: {RESULTS / 'route_set.json'}, {RESULTS / 'route_set.png'}")
