@@ -206,7 +206,7 @@ class _Reader(threading.Thread):
         while not self.stop.is_set():
             try:
                 connection = source.connect()
-            except (OSError, ValueError) as error:
+            except (OSError, ValueError, ImportError) as error:  # ImportError: an optional driver's bindings
                 why = f"cannot connect ({error})"
             else:
                 source.connections += 1

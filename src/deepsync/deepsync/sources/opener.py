@@ -92,7 +92,18 @@ def open_source(
 LIVE_OPTIONS: dict[str, Callable[[str], object]] = {"reconnect": flag, "stall": positive, "buffer": positive}
 """Options every live address takes: ``reconnect`` (1/0), ``stall`` and ``buffer`` (seconds)."""
 
-LiveOpener = Callable[[StreamAddress, SampleFormat | None, float, float | None], LiveSource]
+LiveOpener = Callable[[StreamAddress, SampleFormat | None, float | None, float | None], LiveSource]
+TUNED_RATE_HZ = 1.92e6  # what a client that sets the receiver's rate asks for unless told: LTE's 1.4 MHz rate
+
+
+def _rate(address: StreamAddress, rate: float | None, default: float | None = None) -> float:
+    """The stream's rate: the one given, else ``default`` (a receiver the client tunes), else an error."""
+    if rate is None:
+        if default is None:
+            raise ValueError(f"{address.text}: give the sample rate (--rate / sample_rate), e.g. 1.92e6: a byte "
+                             "stream does not say it")
+        rate = default
+    return check_rate(rate, address.text)
 
 
 def _options(address: StreamAddress, own: dict[str, Callable[[str], object]]) -> tuple[LiveOptions, dict]:
@@ -108,7 +119,7 @@ def _format(address: StreamAddress, sample_format: SampleFormat | None, fixed: S
     """The stream's format: the one its protocol fixes (a given one must agree), else the one given."""
     if fixed is not None:
         if sample_format is not None and sample_format is not fixed:
-            raise ValueError(f"{address.text}: a {address.scheme} stream is {fixed.value}, not {sample_format.value}")
+            raise ValueError(f"{address.text}: {address.scheme} streams {fixed.value}, not {sample_format.value}")
         return fixed
     if sample_format is None:
         raise ValueError(f"{address.text}: give the sample format (--format / sample_format): {SampleFormat.names()}; "
@@ -119,11 +130,11 @@ def _format(address: StreamAddress, sample_format: SampleFormat | None, fixed: S
 def _raw(connect: Callable[[StreamAddress, dict], Callable], own: dict[str, Callable[[str], object]]) -> LiveOpener:
     """An opener of a plain byte stream in the format the user gives."""
 
-    def opener(address: StreamAddress, sample_format: SampleFormat | None, rate: float,
+    def opener(address: StreamAddress, sample_format: SampleFormat | None, rate: float | None,
                scale: float | None) -> LiveSource:
         options, values = _options(address, own)
-        return LiveSource(address.text, connect(address, values), _format(address, sample_format), rate, options,
-                          scale=scale)
+        return LiveSource(address.text, connect(address, values), _format(address, sample_format),
+                          _rate(address, rate), options, scale=scale)
 
     return opener
 
@@ -145,9 +156,10 @@ def _stdin(address: StreamAddress, values: dict) -> Callable:
     return open_stdin
 
 
-def _rtl_tcp(address: StreamAddress, sample_format: SampleFormat | None, rate: float,
+def _rtl_tcp(address: StreamAddress, sample_format: SampleFormat | None, rate: float | None,
              scale: float | None) -> LiveSource:
     host, port = address.endpoint()
+    rate = _rate(address, rate, TUNED_RATE_HZ)
     options, values = _options(address, {"freq": positive, "gain": parse_gain, "ppm": whole(-1000, 1000),
                                          "agc": flag, "settle": _seconds})
     settings = RtlTcpSettings(rate, values.get("freq"), values.get("gain"), values.get("ppm"), values.get("agc"),
@@ -157,10 +169,11 @@ def _rtl_tcp(address: StreamAddress, sample_format: SampleFormat | None, rate: f
                       scale=scale, center_hz=settings.center_hz)
 
 
-def _soapy(address: StreamAddress, sample_format: SampleFormat | None, rate: float,
+def _soapy(address: StreamAddress, sample_format: SampleFormat | None, rate: float | None,
            scale: float | None) -> LiveSource:
     from .soapy import SoapyConnection, device_arguments
 
+    rate = _rate(address, rate, TUNED_RATE_HZ)
     options, values = _options(address, {"freq": positive, "gain": parse_gain, "antenna": str,
                                          "channel": whole(0, 64), "device": str})
     if "freq" not in values:
@@ -193,7 +206,8 @@ LIVE_SCHEMES: dict[str, LiveOpener] = {
 def open_live(text: str, sample_format: SampleFormat | str | None = None, sample_rate: float | None = None,
               scale: float | None = None) -> LiveSource:
     """The live source an address names (see :mod:`deepsync.sources.address`); nothing connects
-    until it is read. ValueError naming the address and the fault: an unknown scheme, no host
+    until it is read. The rate: ``sample_rate`` (required for byte streams; ``rtl_tcp`` and
+    ``soapy`` set the receiver to it, 1.92 MS/s unless given). ValueError naming the address and the fault: an unknown scheme, no host
     or port, a port out of range, an unknown option or format, a missing or unusable rate."""
     address = parse_address(text)
     opener = LIVE_SCHEMES.get(address.scheme)
@@ -205,6 +219,4 @@ def open_live(text: str, sample_format: SampleFormat | str | None = None, sample
         fmt = None if sample_format is None else SampleFormat.parse(sample_format)
     except ValueError as error:
         raise ValueError(f"{text}: {error}") from None
-    if sample_rate is None:
-        raise ValueError(f"{text}: give the sample rate (--rate / sample_rate), e.g. 1.92e6: a stream does not say it")
-    return opener(address, fmt, check_rate(sample_rate, text), scale)
+    return opener(address, fmt, sample_rate, scale)

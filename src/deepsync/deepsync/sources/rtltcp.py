@@ -12,8 +12,8 @@ Settings, as options of the address: ``freq`` (Hz; unset: the server's ``-f`` st
 ``gain`` (dB, or ``auto``; unset: the server's), ``ppm`` (whole ppm; unset: the server's),
 ``agc`` (1/0; unset: the server's), ``settle`` (seconds of samples dropped after the commands,
 default 0.25: the server streams from the moment it accepts, at its old tuning, until the
-commands take effect). The sample rate is the stream's (``--rate`` / ``sample_rate``), always
-sent: it is the rate the envelope is stamped and searched at.
+commands take effect). The sample rate is the stream's (``--rate`` / ``sample_rate``; 1.92 MS/s
+unless given), always sent: it is the rate the envelope is stamped and searched at.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ They are imported only when a ``soapy://`` source connects; without them the sou
 
 Options of the address: ``freq`` (Hz, required), ``gain`` (dB, or ``auto``; default auto),
 ``antenna``, ``channel`` (default 0), ``device`` (more device arguments, ``key=value,key=value``,
-e.g. ``serial=00000001``). The rate is the stream's (``--rate``); samples are read as complex
+e.g. ``serial=00000001``). The rate is the stream's (``--rate``; 1.92 MS/s unless given); samples are read as complex
 float32 (``cf32_le``, components within +-1).
 """
 
