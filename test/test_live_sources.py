@@ -476,3 +476,62 @@ def test_connect_tcp_refused_is_an_oserror() -> None:
     listener.close()
     with pytest.raises(OSError):
         connect_tcp("127.0.0.1", port)
+
+
+# --- the envelope_adc node's player, without ROS ------------------------------------------------
+
+
+class Gated(Pieces):
+    """Pieces that wait for ``gate`` before the first one: a receiver that has sent nothing yet."""
+
+    def __init__(self, data: bytes, sizes: list[int], gate: threading.Event) -> None:
+        super().__init__(data, sizes)
+        self.gate = gate
+
+    def read(self, max_bytes: int, timeout: float) -> bytes | None:
+        if not self.gate.wait(timeout):
+            return None
+        return super().read(max_bytes, timeout)
+
+
+def test_the_player_polls_a_live_source_without_waiting_pacing_or_looping() -> None:
+    from deepsync_ros.health import Playback, PlaybackConfig
+
+    data = noise_cu8(2 * FRAME)
+    gate = threading.Event()
+    source = LiveSource("gated", lambda: Gated(data, [len(data)], gate), "cu8", FS)
+    playback = Playback(source, PlaybackConfig(realtime=True, loop=True))
+    try:
+        start = time.monotonic()
+        assert playback.next_chunk() is None and not playback.ended  # nothing yet: the timer looks again
+        assert time.monotonic() - start < 0.05
+        gate.set()
+        chunks, deadline = [], time.monotonic() + 10
+        while not playback.ended and time.monotonic() < deadline:
+            chunk = playback.next_chunk()
+            if chunk is not None:
+                assert playback.due_in(chunk, time.monotonic()) == 0.0  # a live chunk goes out as it comes
+                playback.mark_published(chunk, time.monotonic())
+                chunks.append(chunk)
+    finally:
+        playback.close()
+    assert [c.first_sample_index for c in chunks] == [0, FRAME] and playback.loops == 0  # never looped
+    assert playback.source_events[HealthKind.SOURCE_CLOSED] == 1
+    report = playback.report()
+    assert report.level.name == "ERROR" and "source_closed" in report.message  # nothing came after the close
+    assert ("source events: source_closed", "1") in report.values
+
+
+@needs_real
+def test_detect_reads_a_tcp_stream_and_prints_its_events(recording, capsys) -> None:
+    from deepsync.cli import main
+
+    server = Server(send(recording))
+    try:
+        assert main(["detect", "--input", f"tcp://127.0.0.1:{server.port}", "--format", "cu8", "--rate", "1.92e6",
+                     "--towers", str(TOWERS), "--frames", "10"]) == 0
+    finally:
+        server.close()
+    out = capsys.readouterr().out
+    assert {int(line.split()[1]) for line in out.splitlines() if "reported in" in line} == {142, 86}
+    assert "source: source_closed: tcp://127.0.0.1" in out and "end of stream" in out

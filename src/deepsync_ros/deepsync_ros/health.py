@@ -346,7 +346,7 @@ class Playback:
             values.append((f"source events: {kind.value}", str(count)))
         if self.last_source_event is not None:
             values.append(("last source event", str(self.last_source_event)))
-            if self.published == self._published_at_event:  # nothing has come since: it still holds
+            if self.ended or self.published == self._published_at_event:  # it still holds: nothing came since
                 return Report(self.last_source_event.severity, str(self.last_source_event), values)
         if self.error is not None:
             return Report(Severity.ERROR, f"source failed after {self.published} chunks: {self.error}", values)

@@ -108,6 +108,18 @@ def positive(text: str) -> float:
     return value
 
 
+def within(low: float, high: float) -> Callable[[str], float]:
+    """A parser of numbers in ``low..high``."""
+
+    def parse(text: str) -> float:
+        value = float(text)
+        if not (math.isfinite(value) and low <= value <= high):
+            raise ValueError(f"must be a number within {low:g}..{high:g}")
+        return value
+
+    return parse
+
+
 def whole(low: int, high: int) -> Callable[[str], int]:
     """A parser of whole numbers in ``low..high``."""
 

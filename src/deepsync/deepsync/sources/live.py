@@ -21,8 +21,10 @@ samples of the outage are a gap); it never goes back.
 ``reconnect`` the source keeps waiting, with it the connection is dropped and made again.
 ``SOURCE_CLOSED``: the peer closed the stream, the link failed, or a connection could not be
 made; with ``reconnect`` the source tries again after 0.5 s, 1 s, 2 s, ... (at most 30 s; back to
-0.5 s once a connection delivers), without it the stream ends cleanly. A float sample that is
-NaN or inf drops its chunk with a ``NOT_FINITE`` event. Nothing here raises on a bad stream.
+0.5 s once a connection delivers), without it the stream ends cleanly. A receiver that says it
+dropped samples itself (a SoapySDR overflow) is a ``GAP``, the host clock placing what follows.
+A float sample that is NaN or inf drops its chunk with a ``NOT_FINITE`` event. Nothing here
+raises on a bad stream.
 """
 
 from __future__ import annotations

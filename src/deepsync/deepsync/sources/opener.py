@@ -9,7 +9,8 @@ import math
 import os
 from collections.abc import Callable
 
-from .address import STDIN, StreamAddress, flag, is_live_address, parse_address, positive, take_options, whole
+from .address import (STDIN, StreamAddress, flag, is_live_address, parse_address, positive, take_options, whole,
+                      within)
 from .bagfile import BagSource, is_bag_path
 from .base import Source, check_rate
 from .connections import connect_tcp, open_serial, open_stdin
@@ -109,8 +110,8 @@ def _rate(address: StreamAddress, rate: float | None, default: float | None = No
 def _options(address: StreamAddress, own: dict[str, Callable[[str], object]]) -> tuple[LiveOptions, dict]:
     """(the live options, the scheme's own options) of ``address``."""
     values = take_options(address, {**LIVE_OPTIONS, **own})
-    live = LiveOptions(reconnect=bool(values.pop("reconnect", False)), stall_s=float(values.pop("stall", 2.0)),
-                       buffer_s=float(values.pop("buffer", 2.0)))
+    fields = {"reconnect": "reconnect", "stall": "stall_s", "buffer": "buffer_s"}
+    live = LiveOptions(**{field: values.pop(name) for name, field in fields.items() if name in values})
     return live, values
 
 
@@ -161,7 +162,7 @@ def _rtl_tcp(address: StreamAddress, sample_format: SampleFormat | None, rate: f
     host, port = address.endpoint()
     rate = _rate(address, rate, TUNED_RATE_HZ)
     options, values = _options(address, {"freq": positive, "gain": parse_gain, "ppm": whole(-1000, 1000),
-                                         "agc": flag, "settle": _seconds})
+                                         "agc": flag, "settle": within(0.0, 10.0)})
     settings = RtlTcpSettings(rate, values.get("freq"), values.get("gain"), values.get("ppm"), values.get("agc"),
                               values.get("settle", DEFAULT_SETTLE_S))
     fmt = _format(address, sample_format, SampleFormat.CU8)
@@ -186,13 +187,6 @@ def _soapy(address: StreamAddress, sample_format: SampleFormat | None, rate: flo
                       fmt, rate, options, scale=scale, center_hz=values["freq"])
 
 
-def _seconds(text: str) -> float:
-    value = float(text)
-    if not (math.isfinite(value) and 0 <= value <= 10):
-        raise ValueError("must be seconds within 0..10")
-    return value
-
-
 LIVE_SCHEMES: dict[str, LiveOpener] = {
     "tcp": _raw(_tcp, {}),
     "rtl_tcp": _rtl_tcp,
@@ -207,8 +201,9 @@ def open_live(text: str, sample_format: SampleFormat | str | None = None, sample
               scale: float | None = None) -> LiveSource:
     """The live source an address names (see :mod:`deepsync.sources.address`); nothing connects
     until it is read. The rate: ``sample_rate`` (required for byte streams; ``rtl_tcp`` and
-    ``soapy`` set the receiver to it, 1.92 MS/s unless given). ValueError naming the address and the fault: an unknown scheme, no host
-    or port, a port out of range, an unknown option or format, a missing or unusable rate."""
+    ``soapy`` set the receiver to it, 1.92 MS/s unless given). ValueError naming the address and
+    the fault: an unknown scheme, no host or port, a port out of range, an unknown option or
+    format, a missing or unusable rate."""
     address = parse_address(text)
     opener = LIVE_SCHEMES.get(address.scheme)
     if opener is None:
