@@ -294,6 +294,28 @@ def test_with_reconnect_it_reconnects_and_the_outage_is_a_gap() -> None:
     assert closed and "reconnecting in 0.5 s" in closed[0].message
 
 
+def test_with_reconnect_a_stalled_connection_is_dropped_and_made_again() -> None:
+    first, second = noise_cu8(FRAME, seed=1), noise_cu8(FRAME, seed=2)
+
+    def then_silent(conn: socket.socket, server: Server) -> None:
+        conn.sendall(first)
+        time.sleep(3.0)  # open, but silent: a dead link the peer never closed
+
+    server = Server(then_silent, send(second))
+    source = open_source(f"tcp://127.0.0.1:{server.port}?reconnect=1&stall=0.3", "cu8", FS)
+    stream = source.open_stream()
+    try:
+        chunks = drain(stream, until=lambda got: len(got) >= 2, timeout=10)
+    finally:
+        stream.close()
+        server.close()
+    assert server.connections == 2 and len(chunks) == 2
+    assert np.array_equal(chunks[1].samples, envelope_codes(np.frombuffer(second, np.uint8), "cu8", CU8_SCALE))
+    events = source.take_events()
+    assert [e.kind for e in events[:2]] == [HealthKind.SOURCE_STALLED, HealthKind.SOURCE_CLOSED]
+    assert events[1].message.startswith(f"tcp://127.0.0.1:{server.port}?reconnect=1&stall=0.3: stalled after 19200")
+
+
 def test_a_refused_connection_is_a_closed_source_not_an_exception() -> None:
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]
@@ -383,11 +405,18 @@ def test_a_nan_in_a_float_stream_drops_its_chunk_with_an_event() -> None:
     assert sorted(kinds, key=str) == sorted([HealthKind.NOT_FINITE, HealthKind.SOURCE_CLOSED], key=str)
 
 
-def test_a_serial_device_is_read_raw(tmp_path) -> None:
+@pytest.mark.parametrize("configured_by", ["termios", "pyserial"])
+def test_a_serial_device_is_read_raw(configured_by: str, monkeypatch) -> None:
+    if configured_by == "pyserial":
+        pytest.importorskip("serial", reason="pyserial not installed (pip install 'deepsync[serial]')")
+    else:
+        monkeypatch.setitem(sys.modules, "serial", None)  # as if pyserial were not installed
     primary, secondary = os.openpty()
     device = os.ttyname(secondary)
-    data = noise_cu8(FRAME)
+    data = noise_cu8(FRAME - 256) + bytes(range(256)) * 2  # every byte value: ^C, ^S, CR, ... too
     source = open_source(device, "cu8", FS)  # a bare device path is a serial port
+    opened, connect = [], source.connect
+    source.connect = lambda: opened.append(connect()) or opened[-1]
     stream = source.open_stream()
     try:
         deadline = time.monotonic() + 10
@@ -402,7 +431,8 @@ def test_a_serial_device_is_read_raw(tmp_path) -> None:
         stream.close()
         os.close(primary)
         os.close(secondary)
-    # raw mode: bytes such as 0x0d or 0x03 arrive as they were sent
+    assert f"at 921600 baud ({configured_by}" in opened[0].description
+    # raw mode: control bytes (0x03, 0x0d, 0x11, 0x13, ...) arrive as they were sent
     assert np.array_equal(codes_of(chunks), envelope_codes(np.frombuffer(data, np.uint8), "cu8", CU8_SCALE))
 
 
