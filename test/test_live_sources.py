@@ -22,7 +22,7 @@ import pytest
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources import LiveOptions, LiveSource, RawFileSource, open_live, open_source
 from deepsync.sources.base import stamp_at
-from deepsync.sources.connections import connect_tcp
+from deepsync.sources.connections import SamplesLost, connect_tcp
 from deepsync.sources.envelope import envelope_codes, full_scale
 from deepsync.sources.rtltcp import RtlTcpSettings
 from deepsync.towers import load_tower_database
@@ -392,6 +392,36 @@ def test_a_full_queue_drops_counts_and_reports_the_samples() -> None:
     assert np.array_equal(codes_of(chunks)[-2 * FRAME:],
                           envelope_codes(np.frombuffer(after, np.uint8), "cu8", CU8_SCALE))
     assert any(b.first_sample_index > a.end_sample_index for a, b in zip(chunks, chunks[1:]))
+
+
+class Overflowing(Pieces):
+    """Pieces with a driver overflow (SamplesLost) between the first and the second."""
+
+    reads = 0
+
+    def read(self, max_bytes: int, timeout: float) -> bytes | None:
+        self.reads += 1
+        if self.reads == 2:
+            raise SamplesLost("overflow, the driver dropped samples")
+        return super().read(max_bytes, timeout)
+
+
+def test_samples_the_receiver_lost_are_a_gap_placed_by_the_host_clock() -> None:
+    data = noise_cu8(2 * FRAME)
+    now = [1_000_000_000_000]
+
+    def clock() -> int:
+        now[0] += 200_000_000  # every block arrives 0.2 s after the one before, on the host clock
+        return now[0]
+
+    source = LiveSource("overflowing", lambda: Overflowing(data, [2 * FRAME, 2 * FRAME]), "cu8", FS,
+                        clock=clock)
+    chunks = list(source.chunks())
+    assert [c.first_sample_index for c in chunks] == [0, round(0.2 * FS)]  # 0.2 s on: the loss, not hidden
+    assert chunks[1].stamp_ns - chunks[0].stamp_ns == 200_000_000
+    gap, closed = source.take_events()
+    assert gap.kind is HealthKind.GAP and "driver dropped samples after sample 19200" in gap.message
+    assert closed.kind is HealthKind.SOURCE_CLOSED
 
 
 def test_a_nan_in_a_float_stream_drops_its_chunk_with_an_event() -> None:
