@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from deepsync.pipeline import Pipeline, PipelineConfig
-from deepsync.sources import LiveOptions, LiveSource, RawFileSource, open_live, open_source
+from deepsync.sources import LiveOptions, LiveSource, RawFileSource, Source, open_live, open_source
 from deepsync.sources.base import stamp_at
 from deepsync.sources.connections import SamplesLost, connect_tcp
 from deepsync.sources.envelope import envelope_codes, full_scale
@@ -161,6 +161,7 @@ def named_cells(source, chunks) -> set[int]:
 def test_a_tcp_stream_of_the_recording_names_142_and_86(recording, file_codes) -> None:
     server = Server(send(recording))
     source = open_source(f"tcp://127.0.0.1:{server.port}", "cu8", FS)
+    assert isinstance(source, Source) and source.frontend == RawFileSource(RECORDING, "cu8", FS).frontend
     try:
         chunks = list(source.chunks())
         assert np.array_equal(codes_of(chunks), file_codes)  # every byte, decoded as the file is
