@@ -12,7 +12,8 @@ never raise, and never complete a stack from data that spans a bad chunk, a gap 
 
 The other files of the matrix: ``test_bad_input_config.py`` (front end, scenario, tower
 database), ``test_bad_input_bags.py`` (bags), ``test_bad_input_cli.py`` (the command line,
-signals); recordings are in ``test_sources.py``. Whatever comes next (fusion, the timing network,
+signals); recordings are in ``test_sources.py``, live receivers (stalls, closes, drops, partial
+samples, bad addresses) in ``test_live_sources.py``. Whatever comes next (fusion, the timing network,
 the ROS nodes, bag replay) adds its rows to this matrix, in these files or a new
 ``test_bad_input_<part>.py`` with the same outcome classes.
 """

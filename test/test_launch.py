@@ -200,7 +200,7 @@ def test_launch_file_never_imports_numpy_or_deepsync() -> None:
 # --- the helpers, run without ROS -------------------------------------------------------------
 
 HELPERS = ("_as_bool", "_interpreter_command", "_check_dependencies", "_params_key_matches",
-           "_unmatched_nodes", "_is_bag")
+           "_unmatched_nodes", "_is_bag", "_is_address")
 
 
 def _load_helpers() -> dict:
@@ -299,6 +299,13 @@ def test_the_nodes_yaml_reaches_every_node_in_any_namespace() -> None:
     for namespace in ("/deepsync", "/robot1/deepsync", ""):
         names = [f"{namespace}/{name}" for name in NODE_NAMES]
         assert H["_unmatched_nodes"](str(NODES_YAML), names) == [], namespace
+
+
+def test_a_live_address_is_not_checked_as_a_path() -> None:
+    assert H["_is_address"]("rtl_tcp://192.168.1.5:1234?freq=1860e6")
+    assert H["_is_address"]("tcp://localhost:5000")
+    assert not H["_is_address"]("/dev/ttyUSB0")  # a device path exists, and is checked as one
+    assert not H["_is_address"]("bags/campus")
 
 
 def test_is_bag() -> None:

@@ -193,6 +193,19 @@ def test_the_source_is_opened_or_named() -> None:
     assert opened.frontend == BagSource(CAMPUS_BAG).frontend
 
 
+def test_the_source_may_be_a_live_receivers_address() -> None:
+    values = defaults("envelope_adc")
+    tuned = params.source({**values, "source": "rtl_tcp://192.0.2.7:1234?freq=1860e6&gain=30"})  # nothing connects
+    assert tuned.frontend.adc_rate_hz == 1.92e6 and tuned.center_hz == 1860e6
+    raw = params.source({**values, "source": "tcp://192.0.2.7:5000", "sample_format": "ci16_le",
+                         "sample_rate": 3.84e6})
+    assert raw.frontend.adc_rate_hz == 3.84e6
+    with pytest.raises(ParameterError, match=r"^envelope_adc\.source: tcp://192\.0\.2\.7:5000: give the sample format"):
+        params.source({**values, "source": "tcp://192.0.2.7:5000"})
+    with pytest.raises(ParameterError, match=r"^envelope_adc\.source: udp://h:1: unknown scheme 'udp'"):
+        params.source({**values, "source": "udp://h:1"})
+
+
 def nodes_yaml() -> dict:
     """The YAML's sections by node name; its keys are ``/**/<node>``, for a node in any namespace."""
     document = yaml.safe_load(NODES_YAML.read_text())

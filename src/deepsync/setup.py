@@ -25,9 +25,11 @@ setup(
         "sigmf>=1.14",
     ],
     # the timing network; the classical estimators, the nodes and the rest of the chain need none;
-    # route sets, timing examples and route evaluations on a Ray cluster (deepsync.jobs)
+    # route sets, timing examples and route evaluations on a Ray cluster (deepsync.jobs); serial
+    # ports at any baud rate (deepsync.sources.connections; termios otherwise). SoapySDR's
+    # bindings are not on PyPI: they come with the library (docs/live_receivers.md)
     extras_require={"network": ["torch>=2.4"], "onnx": ["onnx>=1.16", "onnxscript>=0.5", "onnxruntime>=1.18"],
-                    "ray": ["ray>=2.9"]},
+                    "ray": ["ray>=2.9"], "serial": ["pyserial>=3.5"]},
     zip_safe=True,
     maintainer="DeepSync",
     maintainer_email="dev@deepsync.invalid",

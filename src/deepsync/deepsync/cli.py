@@ -28,7 +28,7 @@ from deepsync.jobs import JobRunner
 from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
 from deepsync.numeric import one_blas_thread
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
-from deepsync.sources import BagSource, SampleFormat, Source, open_source
+from deepsync.sources import BagSource, LiveSource, SampleFormat, Source, open_source
 from deepsync.sync.stacking import StackConfig
 from deepsync.timing import network_install_hint
 from deepsync.towers import load_tower_database
@@ -289,8 +289,11 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     stacks, samples = [], 0
     alike: list[dict] = []  # stacks not printed: like the last printed one, with no cell and no event
     printed: list | None = None  # the flags of the last stack printed
+    live = source if isinstance(source, LiveSource) else None
     for chunk in source.chunks():
         samples += len(chunk.samples)
+        for event in live.take_events() if live else ():
+            print(f"  source: {event}")
         for result in pipeline.process(chunk):
             stacks.append(stack_record(result, truth, source.frontend.adc_rate_hz))
             if not verbose:
@@ -303,6 +306,8 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
             _print_stack(result, stacks[-1], truth)
             printed = None if (stacks[-1]["cells"] or stacks[-1]["events"] or result.sync.tentative) else kinds
     _print_alike(alike)
+    for event in live.take_events() if live else ():
+        print(f"  source: {event}")
     if not stacks:
         frame = round(source.frontend.adc_rate_hz * FRAME_SECONDS)
         reason = (f"it holds {samples} samples ({samples / frame:.1f} frames), less than one {frames}-frame stack"
@@ -702,15 +707,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     detect = commands.add_parser("detect", help="cell search and timing over a recording (bag, I/Q or envelope file)")
     detect.add_argument("--bag", help="rosbag2 bag (directory or .mcap) with /deepsync/envelope")
-    detect.add_argument("--input", metavar="FILE",
+    detect.add_argument("--input", metavar="FILE|URL",
                         help="a recording: raw I/Q or envelope file, SigMF (.sigmf-meta/-data, .sigmf) or a bag; "
+                             "or a live receiver: rtl_tcp://HOST:PORT?freq=1860e6, tcp://HOST:PORT, - (standard "
+                             "input), a serial device, soapy://DRIVER?freq=... (docs/live_receivers.md); "
                              "complex I/Q becomes the envelope |x|^2")
     detect.add_argument("--format", choices=[f.value for f in SampleFormat],
-                        help="sample format of a raw --input (SigMF datatype names: cu8 RTL-SDR, ci8 HackRF, ...); "
-                             "guessed from the extension where it is unambiguous")
-    detect.add_argument("--rate", type=_positive_float, help="sample rate of a raw --input (Hz), e.g. 1.92e6")
+                        help="sample format of a raw --input or a byte stream (SigMF datatype names: cu8 RTL-SDR, "
+                             "ci8 HackRF, ...); guessed from a file's extension where it is unambiguous")
+    detect.add_argument("--rate", type=_positive_float,
+                        help="sample rate of a raw --input or a live stream (Hz), e.g. 1.92e6 (rtl_tcp: the default)")
     detect.add_argument("--scale", type=_positive_float,
-                        help="envelope units per ADC code for --input (default: the recording's peak maps to 32766)")
+                        help="envelope units per ADC code for --input (default: a recording's peak, a live "
+                             "stream's full scale, maps to 32766)")
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
     frames = StackConfig().n_frames  # a cell search shows each stack: short ones, back to back
     detect.add_argument("--frames", type=int, default=frames, help=f"frames per stack (default {frames})")

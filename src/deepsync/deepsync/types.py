@@ -45,7 +45,10 @@ class HealthKind(enum.Enum):
     """Everything a stage reports about its input or its output, as a closed set.
 
     Stream events (something happened at a sample index; data around it was dropped):
-    ``GAP``, ``NOT_FINITE``, ``CORRUPT``, ``BACKWARDS``, ``RESTART``, ``RATE_MISMATCH``. Stack flags (a stack was searched,
+    ``GAP``, ``NOT_FINITE``, ``CORRUPT``, ``BACKWARDS``, ``RESTART``, ``RATE_MISMATCH``. Live
+    sources (a receiver's byte stream): ``SOURCE_STALLED`` (no bytes for a while),
+    ``SOURCE_CLOSED`` (the stream ended or its connection failed); samples a live source had to
+    drop are a ``GAP``. Stack flags (a stack was searched,
     but its result deserves less trust, or none): ``CLIPPED``, ``NO_SIGNAL``, ``MISALIGNED``.
     Timing: ``UNTIMEABLE`` (a cell's windows could not be timed at all), ``WEAK_TIMING`` (an
     arrival whose 1-sigma says it may be far off). Fusion: ``UNANCHORED`` (a heard cell the tower
@@ -60,6 +63,8 @@ class HealthKind(enum.Enum):
     BACKWARDS = "backwards"  # a late or repeated chunk, from before what was already received: dropped
     RESTART = "restart"  # the stream started over (index back, a driver restart): stacking starts afresh
     RATE_MISMATCH = "rate_mismatch"  # a chunk at another rate than the templates': dropped
+    SOURCE_STALLED = "source_stalled"  # a live stream sent no bytes for its stall time
+    SOURCE_CLOSED = "source_closed"  # a live stream closed, or could not be (re)connected
     CLIPPED = "clipped"  # too many samples at the ADC rails (or the recording's)
     NO_SIGNAL = "no_signal"  # silent or stuck input: nothing is searched
     MISALIGNED = "misaligned"  # receiver clock drift smeared the stack's frames
@@ -80,6 +85,8 @@ _SEVERITY = {
     HealthKind.BACKWARDS: Severity.WARN,
     HealthKind.RESTART: Severity.WARN,
     HealthKind.RATE_MISMATCH: Severity.ERROR,
+    HealthKind.SOURCE_STALLED: Severity.WARN,
+    HealthKind.SOURCE_CLOSED: Severity.ERROR,
     HealthKind.CLIPPED: Severity.WARN,
     HealthKind.NO_SIGNAL: Severity.ERROR,
     HealthKind.MISALIGNED: Severity.WARN,

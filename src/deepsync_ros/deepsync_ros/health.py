@@ -10,7 +10,10 @@ people, key/value strings) to a ``diagnostic_updater`` task:
   (with the last message of each), and input messages that could not be converted;
 * :class:`Playback`, for the nodes that play a source (``envelope_adc``, the pipeline): the
   recording played on, looped if asked, paced by the chunks' own stamps on a steady clock, and
-  whether the source keeps up with that pace (the live simulator does not on one core).
+  whether the source keeps up with that pace (the live simulator does not on one core); a live
+  receiver (:class:`~deepsync.sources.LiveSource`) is polled without waiting, published as it
+  arrives (never paced or looped), and its health events (stalled, closed, dropped samples)
+  are counted.
 
 The level is the worst of what happened *recently* (within the window), so a node that recovers
 from a gap goes back to OK while its counts keep the history.
@@ -27,7 +30,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from deepsync.pipeline import StackResult
-from deepsync.sources import Source
+from deepsync.sources import LiveSource, Source
+from deepsync.sources.live import LiveStream
 from deepsync.sources.base import stamp_at
 from deepsync.types import EnvelopeChunk, Fix, Health, HealthKind, NoFix, Severity
 
@@ -218,6 +222,11 @@ class Playback:
         self._shift = (0, 0)  # (samples, ns) added to this pass
         self._anchor: tuple[float, int] | None = None  # (steady s, stamp ns) the pace is counted from
         self._history: deque[tuple[float, int]] = deque()  # (steady s, stream ns) of recent chunks
+        self._stream: LiveStream | None = None
+        self.source_events: Counter[HealthKind] = Counter()
+        self.last_source_event: Health | None = None
+        self.new_source_events: list[Health] = []  # for the node's log; it empties the list
+        self._published_at_event = 0
 
     def reconfigure(self, config: PlaybackConfig) -> None:
         """New settings at runtime; the pace starts again from the next chunk."""
@@ -225,8 +234,16 @@ class Playback:
         self._anchor = None
         self._history.clear()
 
+    @property
+    def live(self) -> bool:
+        """The source is a live receiver: polled, never paced nor looped."""
+        return isinstance(self.source, LiveSource)
+
     def next_chunk(self) -> EnvelopeChunk | None:
-        """The next chunk of the stream; None at its end (or when the source failed: ``error``)."""
+        """The next chunk of the stream; None at its end (``ended``; ``error`` if the source failed),
+        or, from a live source, when none has arrived yet (never waits for one)."""
+        if self.live:
+            return self._next_live()
         while not self.ended:
             if self._chunks is None:
                 self._chunks = iter(self.source.chunks())
@@ -255,9 +272,30 @@ class Playback:
             self.loops += 1
         return None
 
+    def _next_live(self) -> EnvelopeChunk | None:
+        if self.ended:
+            return None
+        if self._stream is None:
+            self._stream = self.source.open_stream()  # type: ignore[attr-defined]
+        chunk = self._stream.next(0.0)
+        for event in self.source.take_events():  # type: ignore[attr-defined]
+            self.source_events[event.kind] += 1
+            self.last_source_event = event
+            self.new_source_events.append(event)
+            self._published_at_event = self.published
+        if chunk is None and self._stream.ended:
+            self.ended = True
+        return chunk
+
+    def close(self) -> None:
+        """Stop a live source's reading (its thread and connection)."""
+        if self._stream is not None:
+            self._stream.close()
+
     def due_in(self, chunk: EnvelopeChunk, now_s: float) -> float:
-        """Seconds until ``chunk`` is due (<= 0: publish now); the first chunk is due at once."""
-        if not self.config.realtime:
+        """Seconds until ``chunk`` is due (<= 0: publish now); the first chunk is due at once,
+        a live source's chunks as they arrive."""
+        if not self.config.realtime or self.live:
             return 0.0
         if self._anchor is None:
             self._anchor = (now_s, chunk.stamp_ns)
@@ -287,7 +325,7 @@ class Playback:
     @property
     def behind(self) -> bool:
         """Chunks fall due faster than the source makes them."""
-        return self.config.realtime and not self.ended and self.lag_s > self.max_lag_s
+        return self.config.realtime and not self.live and not self.ended and self.lag_s > self.max_lag_s
 
     def report(self) -> Report:
         factor = self.realtime_factor()
@@ -295,7 +333,8 @@ class Playback:
             ("source", self.source.description),
             ("chunks published", str(self.published)),
             ("loops", str(self.loops)),
-            ("paced", f"{self.config.realtime} (rate {self.config.rate:g})"),
+            ("paced", "no: a live source, published as it arrives" if self.live
+             else f"{self.config.realtime} (rate {self.config.rate:g})"),
             ("real-time factor", "n/a" if factor is None else f"{factor:.2f}"),
             ("lag (s)", f"{self.lag_s:.3f}"),
             ("end of source", str(self.ended)),
@@ -303,6 +342,12 @@ class Playback:
         ]
         if self.last_unpublishable is not None:
             values.append(("last unpublishable chunk", self.last_unpublishable))
+        for kind, count in self.source_events.items():
+            values.append((f"source events: {kind.value}", str(count)))
+        if self.last_source_event is not None:
+            values.append(("last source event", str(self.last_source_event)))
+            if self.ended or self.published == self._published_at_event:  # it still holds: nothing came since
+                return Report(self.last_source_event.severity, str(self.last_source_event), values)
         if self.error is not None:
             return Report(Severity.ERROR, f"source failed after {self.published} chunks: {self.error}", values)
         if self.behind:

@@ -327,7 +327,10 @@ class PacedPlayer:
         deadline = time.monotonic() + BURST_S
         while True:
             chunk = self._pending if self._pending is not None else self.playback.next_chunk()
+            self._log_source_events()
             if chunk is None:
+                if not self.playback.ended:  # a live source has nothing yet: the next tick looks again
+                    return
                 self.timer.cancel()
                 self._log_end()
                 return
@@ -352,6 +355,12 @@ class PacedPlayer:
             return False
         self.clock_publisher.publish(message)
         return True
+
+    def _log_source_events(self) -> None:
+        logger = self.node.get_logger()
+        for event in self.playback.new_source_events:
+            (logger.error if event.severity is Severity.ERROR else logger.warning)(str(event))
+        self.playback.new_source_events.clear()
 
     def _log_end(self) -> None:
         logger = self.node.get_logger()

@@ -30,6 +30,7 @@ from deepsync.fusion.tracker import TrackerConfig
 from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS, motion_model
 from deepsync.pipeline import PipelineConfig, moving, places_sites
 from deepsync.sources import SampleFormat, Source, bag_frontend, open_source
+from deepsync.sources.address import is_live_address
 from deepsync.sources.bagfile import is_bag_path
 from deepsync.sync.search import SearchConfig
 from deepsync.sync.stacking import StackConfig
@@ -110,10 +111,13 @@ MOTION = ParamSpec("motion", DEFAULT_MOTION, "How the receiver moves: it sets th
 
 SOURCE = (
     ParamSpec("source", "", "Recording to publish: a rosbag2 bag (directory or .mcap), a SigMF recording, a raw "
-              "I/Q or envelope file, or a scenario YAML (the live simulator). Required."),
-    ParamSpec("sample_format", "", "Sample format of a raw file; empty: from its extension or metadata.",
-              choices=("", *(f.value for f in SampleFormat))),
-    ParamSpec("sample_rate", 0.0, "Sample rate of a raw file [Hz]; 0: from the recording.",
+              "I/Q or envelope file, or a scenario YAML (the live simulator); or a live receiver: "
+              "rtl_tcp://HOST:PORT?freq=HZ, tcp://HOST:PORT, a serial device, soapy://DRIVER?freq=HZ "
+              "(docs/live_receivers.md). Required."),
+    ParamSpec("sample_format", "", "Sample format of a raw file or a tcp/serial stream; empty: from its extension "
+              "or metadata (rtl_tcp: cu8).", choices=("", *(f.value for f in SampleFormat))),
+    ParamSpec("sample_rate", 0.0, "Sample rate of a raw file or a live stream [Hz]; 0: from the recording "
+              "(rtl_tcp, soapy: 1.92e6).",
               range=(0.0, FRONTEND_RANGES["adc_rate_hz"][1])),
     ParamSpec("realtime", True, "Pace the chunks by their stamps on a steady clock (true) or publish them as "
               "fast as they come (false).", read_only=False),
@@ -385,11 +389,14 @@ def frontend(values: Mapping[str, ParamValue], node: str) -> FrontendConfig:
 
 
 def source(values: Mapping[str, ParamValue], node: str = "envelope_adc") -> Source:
-    """The source ``source`` names, read with ``sample_format`` and ``sample_rate`` (unset: "" and 0)."""
+    """The source ``source`` names (a path, or a live receiver's address), read with
+    ``sample_format`` and ``sample_rate`` (unset: "" and 0)."""
     path = str(values["source"])
     if not path:
-        raise ParameterError(f"{node}.source: required: a bag, a SigMF or raw recording, or a scenario YAML")
-    _existing(path, node, "source")
+        raise ParameterError(f"{node}.source: required: a bag, a SigMF or raw recording, a scenario YAML or a "
+                             "live receiver's address")
+    if not is_live_address(path):
+        _existing(path, node, "source")
     sample_format = str(values["sample_format"]) or None
     sample_rate = float(values["sample_rate"]) or None
     try:

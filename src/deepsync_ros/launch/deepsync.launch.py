@@ -45,7 +45,9 @@ def generate_launch_description():
             "source",
             default_value=_share("bags", "campus"),
             description="Envelope input of the envelope_adc node: a rosbag2 directory or .mcap, a SigMF "
-                        "recording, a raw recording or a scenario YAML. 'topic': start no envelope_adc "
+                        "recording, a raw recording or a scenario YAML; or a live receiver's address "
+                        "(rtl_tcp://HOST:PORT?freq=1860e6, tcp://HOST:PORT, a serial device, soapy://DRIVER?"
+                        "freq=...; docs/live_receivers.md). 'topic': start no envelope_adc "
                         "node, the nodes read /<namespace>/envelope (ros2 bag play --clock).",
         ),
         DeclareLaunchArgument(
@@ -194,6 +196,11 @@ def _is_bag(path):
     return path.endswith(".mcap") or os.path.isfile(os.path.join(path, "metadata.yaml"))
 
 
+def _is_address(source):
+    """A live receiver's address (``scheme://...``), not a path: the node's opener checks it."""
+    return "://" in source
+
+
 def _refusal(message):
     """What to raise to start nothing: launch logs it as one error line (no traceback) and
     exits 1, where a Shutdown action would end the launch normally, with 0."""
@@ -225,7 +232,7 @@ def _launch_setup(context):
                        "tdoa_fusion node needs a tower database")
     missing = [f"{name}:={path}" for name, path in
                (("source", source), ("towers", towers), ("params_file", params_file))
-               if not (name == "source" and from_topic) and not (name == "towers" and blind)
+               if not (name == "source" and (from_topic or _is_address(path))) and not (name == "towers" and blind)
                and not os.path.exists(path)]
     if missing:
         raise _refusal("no such file or directory: " + ", ".join(missing))

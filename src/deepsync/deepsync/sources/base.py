@@ -87,6 +87,18 @@ def centred_iq(values: np.ndarray, sample_format: SampleFormat) -> np.ndarray:
     return out
 
 
+def stream_frontend(sample_format: SampleFormat, sample_rate: float, where: str) -> FrontendConfig:
+    """The receiver chain of a stream of stored samples: I/Q squared digitally
+    (:func:`~deepsync.sources.envelope.squared_iq_frontend`), or the default envelope-detector
+    chain for a real envelope format; ValueError naming ``where`` when none is at that rate."""
+    try:
+        if sample_format.is_complex:
+            return squared_iq_frontend(sample_rate)
+        return FrontendConfig(adc_rate_hz=sample_rate)
+    except ValueError as error:
+        raise ValueError(f"{where}: no receiver chain at {sample_rate:g} Hz: {error}") from None
+
+
 BlockReader = Callable[[int, int], np.ndarray]
 """``read(start, stop)``: the stored values of samples ``start:stop``, interleaved (I0 Q0 ...)."""
 
@@ -139,13 +151,7 @@ class FileSource:
         except ValueError as error:
             raise ValueError(f"{path}: {error}") from None
         self.scale = self._default_scale() if given is None else given
-        try:
-            if sample_format.is_complex:
-                self.frontend = squared_iq_frontend(sample_rate)
-            else:
-                self.frontend = FrontendConfig(adc_rate_hz=sample_rate)
-        except ValueError as error:
-            raise ValueError(f"{path}: no receiver chain at {sample_rate:g} Hz: {error}") from None
+        self.frontend = stream_frontend(sample_format, sample_rate, path)
 
     def _block(self, start: int, stop: int, convert: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """``convert`` of samples ``start:stop``; a non-finite sample raises with its file index."""

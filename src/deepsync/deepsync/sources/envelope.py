@@ -46,6 +46,14 @@ saturated to the int16 range; ``ri16_le`` values are ADC codes (default scale 1:
 unchanged), and a value at an int16 rail stays at that rail whatever the scale (it was clipped
 when recorded). ``rf32_le`` gets ``scale = peak |value| / 32766`` by default.
 
+**A live stream** (a socket, a pipe, a receiver) cannot be read twice, so there is no pass to
+find its peak: its default scale is the format's full scale, :func:`full_scale`, the largest
+``p`` (or ``|value|``) an unclipped sample can take mapping to code 32766: ``cu8``
+``2 * 126.5^2 / 32766`` (about 0.977), ``ci8`` ``2 * 127^2 / 32766``, ``ci16_le``
+``2 * 32767^2 / 32766``, ``ri16_le`` 1 (codes pass unchanged); float formats take components
+within +-1 as full scale (what SDR drivers deliver: ``cf32_le`` ``2 / 32766``, ``rf32_le``
+``1 / 32766``). A given ``scale`` replaces it.
+
 **Non-finite samples** (NaN or inf in a float recording) have no code: an int16 chunk cannot
 carry them, and turning them into numbers would hide a broken recording from the stage, which
 reports NaN as an event. A source raises ValueError naming the file and the sample index instead
@@ -127,6 +135,20 @@ def block_peak(values: np.ndarray, sample_format: SampleFormat) -> float:
 def scale_from_peak(peak: float) -> float:
     """The default scale: ``peak`` maps to code 32766; a recording with a zero peak gets 1."""
     return peak / CODE_PEAK if peak > 0 else 1.0
+
+
+def full_scale(sample_format: SampleFormat | str) -> float:
+    """The default scale of a live stream: the largest envelope an unclipped sample of the format
+    can have maps to code 32766 (float formats: components within +-1)."""
+    sample_format = SampleFormat.parse(sample_format)
+    if sample_format is SampleFormat.RI16_LE:
+        return 1.0  # the values are ADC codes already
+    rails = sample_format.rails
+    zero = sample_format.zero
+    # the widest unclipped component: one step inside either rail
+    widest = 1.0 if rails is None else max(rails[1] - 1 - zero, zero - (rails[0] + 1))
+    peak = sample_format.components * widest * widest if sample_format.is_complex else widest
+    return peak / CODE_PEAK
 
 
 def envelope_codes(values: np.ndarray, sample_format: SampleFormat | str, scale: float) -> np.ndarray:
