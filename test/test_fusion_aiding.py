@@ -213,6 +213,35 @@ def test_odometry_in_a_turned_frame_is_aligned_and_carries_the_track():
     assert np.mean([nees(fix, truth) for fix, truth in zip(outcomes[span], route.truth[span])]) < 6.0
 
 
+def test_the_odometry_frame_found_outlives_a_restart_of_the_track():
+    """Two fixes that agree far off the track restart it (and the sites, which disagree with
+    them, restart it again): the yaw and scale already found are kept through every restart,
+    not lost (they were read after the state was cleared, and a restarted track raised)."""
+    rng = np.random.default_rng(9)
+    route = biased_route(9, 70.0, velocity=(1.4, 0.3))
+    aids = odometry(route, 2.0, -0.03, rng)
+    for k in (5, 300):
+        aids.setdefault(k, []).append(fix_at(route, k, 3.0, rng))
+    tracker = Tracker()
+    outcomes, found = [], None
+    for k, (arrivals, end) in enumerate(zip(route.stacks, route.ends)):
+        if k in (400, 420):  # the track "was wrong": the receiver is 800 m east
+            moved = fix_at(route, k, 3.0, rng)
+            tracker.add_position(PositionAid(moved.time_s, moved.position_enu + [800.0, 0.0, 0.0], moved.covariance))
+        if k == 420:
+            block = slice(tracker._odometry, tracker._odometry + 2)
+            found = (tracker._x[block].copy(), tracker._P[block, block].copy())
+        for aid in aids.get(k, []):
+            (tracker.add_position if isinstance(aid, PositionAid) else tracker.add_velocity)(aid)
+        outcomes.append(tracker.update(arrivals, round(end * 1e9), float(end)))
+    assert found is not None and tracker.last_restart is not None
+    assert isinstance(outcomes[-1], Fix)
+    block = slice(tracker._odometry, tracker._odometry + 2)
+    kept, spread = tracker._x[block], np.diag(tracker._P[block, block])
+    assert np.allclose(kept, found[0], atol=1e-9)  # considered, not updated: the same values
+    assert np.all(spread >= np.diag(found[1])) and np.all(spread < 1.1 * np.diag(found[1]))  # their drift only
+
+
 def test_odometry_standing_still_says_so_before_any_alignment():
     route = Route(np.random.default_rng(10), 20.0, random_sites(2, 3), moving=False, velocity=(0.0, 0.0))
     aids = {k: [VelocityAid(float(route.ends[k]), np.zeros(2), np.eye(2) * 0.02**2)] for k in range(5, 200)}

@@ -357,6 +357,9 @@ class Tracker:
     def _forget(self) -> None:
         """Forget the state but keep the window of recent arrivals, for a start at once."""
         c, dims = self.config, self.config.dims
+        if getattr(self, "_odometry", None) is not None:  # the odometry's yaw and scale outlive the track
+            block = slice(self._odometry, self._odometry + 2)
+            self._odometry_known = (self._x[block].copy(), self._P[block, block].copy())
         self._x = np.zeros(0)
         self._P = np.zeros((0, 0))
         self._t = math.nan
@@ -366,9 +369,6 @@ class Tracker:
         self._refused_positions: list[PositionAid] = []
         self._velocity_refusals = 0  # odometry velocities refused in a row
         self._odometry_heard_s = -math.inf  # the latest odometry velocity used
-        if getattr(self, "_odometry", None) is not None:  # the odometry's yaw and scale outlive the track
-            block = slice(self._odometry, self._odometry + 2)
-            self._odometry_known = (self._x[block].copy(), self._P[block, block].copy())
         self._sites: dict[str, _Site] = {}  # in the order of their states
         self._odometry: int | None = None  # index of the odometry frame's yaw (its scale next)
         self._clone: int | None = None  # index of the position cloned where an odometry stretch began
