@@ -22,7 +22,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH_FILE = REPO / "src" / "deepsync_ros" / "launch" / "deepsync.launch.py"
 SETUP_PY = REPO / "src" / "deepsync_ros" / "setup.py"
-NODES_YAML = REPO / "config" / "deepsync_nodes.yaml"
+NODES_YAML = REPO / "src" / "deepsync_ros" / "config" / "deepsync_nodes.yaml"
 POSE_LAUNCH_TEST = REPO / "test" / "ros_launch" / "deepsync_pose_launch.py"
 SHARE = "$(find-pkg-share deepsync_ros)"
 
@@ -163,6 +163,8 @@ def test_setup_py_data_files_exist_relative_to_where_colcon_runs_it() -> None:
     data_files = setup_py_data_files()
     for source in data_files:
         assert (REPO / source).is_file(), f"setup.py installs {source}, which does not exist"
+        # a workspace may hold the package folder alone: nothing may come from outside it
+        assert Path(source).parts[:2] == ("src", "deepsync_ros"), f"setup.py installs {source}, outside the package"
     destinations = set(data_files.values())
     for expected in ("share/deepsync_ros/launch/deepsync.launch.py",
                      "share/deepsync_ros/config/deepsync_nodes.yaml",

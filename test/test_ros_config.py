@@ -8,8 +8,8 @@ from pathlib import Path
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-EKF = REPO / "config" / "robot_localization_ekf.yaml"
-LAYOUT = REPO / "config" / "foxglove_layout.json"
+EKF = REPO / "src" / "deepsync_ros" / "config" / "robot_localization_ekf.yaml"
+LAYOUT = REPO / "src" / "deepsync_ros" / "config" / "foxglove_layout.json"
 
 # robot_localization's state order for every *_config vector
 STATE = ("x", "y", "z", "roll", "pitch", "yaw", "vx", "vy", "vz", "vroll", "vpitch", "vyaw", "ax", "ay", "az")
