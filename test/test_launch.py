@@ -31,6 +31,7 @@ DOCUMENTED = {
     "source": f"{SHARE}/bags/campus",
     "towers": f"{SHARE}/config/towers/campus.yaml",
     "params_file": f"{SHARE}/config/deepsync_nodes.yaml",
+    "extra_params_file": "",
     "use_sim_time": "true",
     "namespace": "deepsync",
     "one_process": "false",
@@ -173,7 +174,9 @@ def test_setup_py_data_files_exist_relative_to_where_colcon_runs_it() -> None:
     destinations = set(data_files.values())
     for expected in ("share/deepsync_ros/launch/deepsync.launch.py",
                      "share/deepsync_ros/config/deepsync_nodes.yaml",
-                     "share/deepsync_ros/config/robot_localization_ekf.yaml",
+                     "share/deepsync_ros/config/robot_localization_dual_ekf.yaml",
+                     "share/deepsync_ros/config/deepsync_ekf_poses.yaml",
+                     "share/deepsync_ros/launch/dual_ekf.launch.py",
                      "share/deepsync_ros/config/foxglove_layout.json",
                      "share/deepsync_ros/config/towers/campus.yaml",
                      "share/deepsync_ros/bags/campus/metadata.yaml",

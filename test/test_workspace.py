@@ -219,8 +219,9 @@ def test_ros_package_builds_alone_with_everything_its_launch_needs(tmp_path: Pat
     """A workspace holding the deepsync_ros folder alone builds (issue #49: setup.py copied
     ../../config), and installs the launch file's defaults: params, tower database, the bag."""
     share = _build_alone(tmp_path, "deepsync_ros", *options) / "share" / "deepsync_ros"
-    for path in ("launch/deepsync.launch.py", "config/deepsync_nodes.yaml", "config/towers/campus.yaml",
-                 "config/robot_localization_ekf.yaml", "bags/campus/metadata.yaml", "bags/campus/campus.mcap",
+    for path in ("launch/deepsync.launch.py", "launch/dual_ekf.launch.py", "config/deepsync_nodes.yaml",
+                 "config/deepsync_ekf_poses.yaml", "config/towers/campus.yaml",
+                 "config/robot_localization_dual_ekf.yaml", "bags/campus/metadata.yaml", "bags/campus/campus.mcap",
                  "package.xml"):
         assert (share / path).is_file(), f"share/deepsync_ros/{path} is not installed"
     assert (share / "bags" / "campus" / "campus.mcap").stat().st_size == \

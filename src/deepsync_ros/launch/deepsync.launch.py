@@ -69,6 +69,12 @@ def generate_launch_description():
                         "arguments are applied on top of it.",
         ),
         DeclareLaunchArgument(
+            "extra_params_file",
+            default_value="",
+            description="A second parameters file applied on top of params_file, holding only what it "
+                        "changes (e.g. config/deepsync_ekf_poses.yaml); '': none.",
+        ),
+        DeclareLaunchArgument(
             "use_sim_time",
             default_value="true",
             description="Every node uses /clock. With a file source the envelope_adc node publishes "
@@ -267,6 +273,7 @@ def _launch_setup(context):
     source = arg["source"].strip()
     towers = arg["towers"].strip()
     params_file = arg["params_file"].strip()
+    extra_params_file = arg["extra_params_file"].strip()
     namespace = arg["namespace"].strip().strip("/")
     from_topic = source == TOPIC_SOURCE
 
@@ -278,9 +285,10 @@ def _launch_setup(context):
         raise _refusal("towers:='' (a blind search, no position) needs one_process:=true: the "
                        "tdoa_fusion node needs a tower database")
     missing = [f"{name}:={path}" for name, path in
-               (("source", source), ("towers", towers), ("params_file", params_file))
+               (("source", source), ("towers", towers), ("params_file", params_file),
+                ("extra_params_file", extra_params_file))
                if not (name == "source" and from_topic) and not (name == "towers" and blind)
-               and not os.path.exists(path)]
+               and not (name == "extra_params_file" and not path) and not os.path.exists(path)]
     if missing:
         raise _refusal("no such file or directory: " + ", ".join(missing))
 
@@ -320,7 +328,8 @@ def _launch_setup(context):
     }
     nodes = []
     for name in executables:
-        parameters = [params_file, {"use_sim_time": use_sim_time, **overrides[name]}]
+        parameters = [params_file, *([extra_params_file] if extra_params_file else []),
+                      {"use_sim_time": use_sim_time, **overrides[name]}]
         placement = {"namespace": namespace} if namespace else {}
         nodes.append(Node(package=PACKAGE, executable=name, name=name, parameters=parameters,
                           output="screen", emulate_tty=True, on_exit=_end_of_a_required_node, **placement))
