@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import json
 import re
+import sys
 from pathlib import Path
 
 import yaml
@@ -217,3 +218,48 @@ def test_foxglove_layout_shows_our_topics() -> None:
     text = LAYOUT.read_text()
     for topic in ("/deepsync/pose", "/deepsync/fix", "/deepsync/truth/pose", "/diagnostics"):
         assert f'"{topic}' in text
+
+
+def _nees_script():
+    """benchmarks/ekf_example_nees.py as a module (it is a script, not a package)."""
+    import importlib.util
+    path = REPO / "benchmarks" / "ekf_example_nees.py"
+    spec = importlib.util.spec_from_file_location("ekf_example_nees", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault(spec.name, module)  # its dataclasses look their module up there
+    spec.loader.exec_module(sys.modules[spec.name])
+    return sys.modules[spec.name]
+
+
+def _standing_filter_nees(bias_block_s: float) -> float:
+    """The script's filter, set up as the example's map filter, on a receiver standing still:
+    odometry (0.05 m/s, 20 Hz) and 30 m position fixes once a second whose error is redrawn
+    every ``bias_block_s`` (1: independent fixes; longer: a bias the fixes repeat)."""
+    import numpy as np
+    script = _nees_script()
+    settings = script.map_filter_settings(EKF)
+    states = list(script.STATE)
+    ekf = script.PlaneEkf(np.asarray(settings["process_noise_covariance"])[states],
+                          np.asarray(settings["initial_estimate_covariance"])[states],
+                          float(settings["pose0_rejection_threshold"]))
+    rng = np.random.default_rng(7)
+    nees, bias = [], np.zeros(2)
+    for second in range(3000):
+        if second % bias_block_s == 0:
+            bias = rng.normal(0.0, 30.0, 2)
+        t_ns = second * 1_000_000_000
+        ekf.update(t_ns, script.POSITION, bias, np.eye(2) * 900.0, gated=True)
+        if second > 30:  # past the start
+            nees.append(float(ekf.x[:2] @ np.linalg.solve(ekf.p[:2, :2], ekf.x[:2])))
+        for k in range(1, 20):
+            ekf.update(t_ns + k * 50_000_000, script.VELOCITY, rng.normal(0.0, 0.05, 2), np.eye(2) * 0.0025,
+                       gated=False)
+    return float(np.mean(nees))
+
+
+def test_the_nees_check_passes_independent_fixes_and_catches_repeated_ones() -> None:
+    """The filter of benchmarks/ekf_example_nees.py reads 2 or less when its inputs are what they
+    claim (less: its process noise allows for motion a standing receiver does not make), and far
+    more when the same error comes back fix after fix, as a tracker's does."""
+    assert 0.8 < _standing_filter_nees(1) < 2.5
+    assert _standing_filter_nees(30) > 10.0
