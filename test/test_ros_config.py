@@ -211,6 +211,8 @@ def test_foxglove_layout_shows_our_topics() -> None:
     config = _layout()["configById"]
     by_type = {panel.split("!")[0]: settings for panel, settings in config.items()}
     assert by_type["map"]["followTopic"] == "/deepsync/fix"
+    from deepsync.bag.topics import MAP_SITES_TOPIC
+    assert {"/deepsync/fix", MAP_SITES_TOPIC} <= set(by_type["map"]["topicColors"])  # the pose and the sites
     assert set(by_type["3D"]["topics"]) == {"/deepsync/pose", "/deepsync/truth/pose"}
     plotted = {path["value"] for path in by_type["Plot"]["paths"]}
     assert {"/deepsync/pose.pose.pose.position.x", "/deepsync/pose.pose.pose.position.y"} <= plotted

@@ -286,3 +286,31 @@ def test_the_cell_table_says_each_cells_site_snr_sigma_and_when_it_was_last_hear
     assert said["PCI 120"].endswith("last heard 0.0 s before the latest stack")
     assert said["PCI 301"].startswith("site unknown, SNR 3.0 dB, sigma 78.1 m")
     assert "last heard 2.0 s before" in said["PCI 301"]
+
+
+def test_the_sites_map_marks_the_sites_heard_recently() -> None:
+    """Foxglove's Map panel layer: every placed site of the database, green while heard."""
+    import json
+
+    from deepsync.fusion.anchors import SiteArrival
+    from deepsync.towers import load_tower_database
+    from deepsync.types import CellTiming, StackArrivals
+    from deepsync_ros.health import HEARD_COLOR, SILENT_COLOR, CellTable, sites_geojson
+
+    towers = load_tower_database(CAMPUS_TOWERS)
+    table = CellTable()
+    site_a = SiteArrival("A", np.zeros(3), 0.0, 0.0, 5.0, (120,))
+    table.heard(StackArrivals(0, 0, 1.92e6, (CellTiming(120, 10.0, 0.05, 12.5, "ml_frame"),)), [site_a])
+    features = json.loads(sites_geojson(towers, table))["features"]
+    placed = [site for site in towers.sites if site.has_position]
+    assert len(features) == len(placed)
+    by_name = {feature["properties"]["name"].split(" ")[0]: feature for feature in features}
+    assert by_name["A"]["properties"]["heard"] and by_name["A"]["properties"]["style"]["color"] == HEARD_COLOR
+    assert "SNR 12.5 dB" in by_name["A"]["properties"]["name"]
+    site = towers.site("A")
+    assert by_name["A"]["geometry"]["coordinates"] == [site.longitude_deg, site.latitude_deg]  # GeoJSON: lon, lat
+    assert all(not f["properties"]["heard"] and f["properties"]["style"]["color"] == SILENT_COLOR
+               for name, f in by_name.items() if name != "A")
+    later = StackArrivals(10_000_000_000, 19_200_000, 1.92e6, (CellTiming(301, 10.0, 0.05, 3.0, "ml_frame"),))
+    table.heard(later)  # A last heard 10 s before: grey again
+    assert not json.loads(sites_geojson(towers, table))["features"][0]["properties"]["heard"]

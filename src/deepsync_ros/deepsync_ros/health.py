@@ -13,6 +13,9 @@ people, key/value strings) to a ``diagnostic_updater`` task:
   recording played on, looped if asked, paced by the chunks' own stamps on a steady clock, and
   whether the source keeps up with that pace (the live simulator does not on one core).
 
+:class:`CellTable` also draws the tower database's sites for Foxglove's Map panel
+(:func:`sites_geojson`), heard or not.
+
 The level is the worst of what happened *recently* (within the window), so a node that recovers
 from a gap goes back to OK while its counts keep the history.
 """
@@ -20,6 +23,7 @@ from a gap goes back to OK while its counts keep the history.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import statistics
 from collections import Counter, deque
@@ -30,6 +34,7 @@ from typing import NamedTuple
 from deepsync.pipeline import StackResult
 from deepsync.sources import Source
 from deepsync.sources.base import stamp_at
+from deepsync.towers import TowerDatabase
 from deepsync.fusion.anchors import SiteArrival
 from deepsync.types import SPEED_OF_LIGHT_M_S, EnvelopeChunk, Fix, Health, HealthKind, NoFix, Severity, StackArrivals
 
@@ -270,6 +275,36 @@ class CellTable:
                                          f"{age_s:.1f} s before the latest stack"))
         return Report(Severity.OK, f"{len(self.in_latest)} of {len(self.cells)} cells heard in the latest stack",
                       values)
+
+
+# A site is drawn as heard on the map while one of its cells was heard this recently (stream s).
+HEARD_RECENTLY_S = 5.0
+HEARD_COLOR = "#2f9e44"
+SILENT_COLOR = "#868e96"
+
+
+def sites_geojson(towers: TowerDatabase, cells: CellTable) -> str:
+    """The tower database's placed sites as a GeoJSON FeatureCollection for Foxglove's Map panel
+    (``foxglove_msgs/msg/GeoJSON``): one point per site, named with its PCIs, green while one of
+    its cells was heard within :data:`HEARD_RECENTLY_S` of the latest stack (with the best SNR
+    heard), grey otherwise."""
+    features = []
+    for site in towers.sites:
+        if not site.has_position:
+            continue
+        heard = [cells.cells[cell.pci] for cell in site.cells if cell.pci in cells.cells]
+        recent = [cell for cell in heard
+                  if cells.latest_ns is not None and (cells.latest_ns - cell.stamp_ns) * 1e-9 <= HEARD_RECENTLY_S]
+        name = f"{site.name} (PCI {' '.join(str(cell.pci) for cell in site.cells)})"
+        if recent:
+            name += f": heard, SNR {max(cell.snr_db for cell in recent):.1f} dB"
+        features.append({
+            "type": "Feature",
+            "geometry": {"type": "Point", "coordinates": [site.longitude_deg, site.latitude_deg]},
+            "properties": {"name": name, "heard": bool(recent),
+                           "style": {"color": HEARD_COLOR if recent else SILENT_COLOR}},
+        })
+    return json.dumps({"type": "FeatureCollection", "features": features}, separators=(",", ":"))
 
 
 def chunk_end_ns(chunk: EnvelopeChunk) -> int:

@@ -39,6 +39,7 @@ from deepsync.bag.convert import ns_to_stamp
 from deepsync.bag.topics import (
     GNSS_FIX_TOPIC,
     INITIAL_POSE_TOPIC,
+    MAP_SITES_TOPIC,
     NAV_SAT_FIX_TOPIC,
     ODOMETRY_TOPIC,
     POSE_TOPIC,
@@ -46,6 +47,7 @@ from deepsync.bag.topics import (
 )
 from deepsync.fusion.stage import FusionStage
 from deepsync.geo import LocalFrame
+from deepsync.towers import TowerDatabase
 from deepsync.numeric import one_blas_thread
 from deepsync.types import EnvelopeChunk, Fix, HealthKind, NoFix, Severity
 
@@ -57,7 +59,7 @@ from .conversions import (
     no_fix_to_navsat_msg,
     prior_from_pose_msg,
 )
-from .health import Playback, Report, StageHealth, chunk_end_ns
+from .health import CellTable, Playback, Report, StageHealth, chunk_end_ns, sites_geojson
 from .params import ParameterError, ParamSpec, ParamValue, checked
 
 # Reliable keeps a message from being lost on the wire, not from being overwritten: a keep-last
@@ -266,6 +268,40 @@ def output_gate(node: DeepSyncNode, publishers: list[Any] | None = None) -> Subs
     far), waiting the node's ``wait_for_subscribers_s``."""
     return SubscriberGate(node, data_publishers(node) if publishers is None else publishers,
                           float(node.values["wait_for_subscribers_s"]))
+
+
+# The map layer of the sites: late joiners (Foxglove opened later) get the latest at once.
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class SitesMap:
+    """The tower database's sites on ``map_sites`` (``foxglove_msgs/msg/GeoJSON``, transient
+    local) for Foxglove's Map panel, green while heard (:func:`~deepsync_ros.health.sites_geojson`),
+    published again when that changes. Without foxglove_msgs the node runs on and says so once."""
+
+    def __init__(self, node: Node, towers: TowerDatabase, cells: CellTable) -> None:
+        self.towers = towers
+        self.cells = cells
+        self.shown: str | None = None
+        try:
+            from foxglove_msgs.msg import GeoJSON
+        except ImportError:
+            node.get_logger().info("foxglove_msgs does not import (sudo apt install ros-jazzy-foxglove-msgs): no "
+                                   f"{relative_name(MAP_SITES_TOPIC)} layer for Foxglove's Map panel")
+            self.publisher = None
+            return
+        self.message = GeoJSON
+        self.publisher = node.create_publisher(GeoJSON, relative_name(MAP_SITES_TOPIC), LATCHED_QOS)
+        self.update()
+
+    def update(self) -> None:
+        if self.publisher is None:
+            return
+        text = sites_geojson(self.towers, self.cells)
+        if text != self.shown:
+            self.publisher.publish(self.message(geojson=text))
+            self.shown = text
 
 
 class FixPublisher:

@@ -23,7 +23,16 @@ from deepsync.types import EnvelopeChunk
 from . import params
 from .conversions import cell_timing_array_to_msg
 from .health import CellTable, Playback, StageHealth
-from .node_base import RESULTS_QOS, AidingListener, DeepSyncNode, FixPublisher, InitialPoseListener, PacedPlayer, run
+from .node_base import (
+    RESULTS_QOS,
+    AidingListener,
+    DeepSyncNode,
+    FixPublisher,
+    InitialPoseListener,
+    PacedPlayer,
+    SitesMap,
+    run,
+)
 from .params import ParameterError, ParamValue
 
 
@@ -45,6 +54,7 @@ class PipelineNode(DeepSyncNode):
         self.timing_publisher = self.create_publisher(CellTimingArray, relative_name(CELL_TIMING_TOPIC), RESULTS_QOS)
         self.cells = CellTable()
         self.fixes = FixPublisher(self, values)
+        self.sites_map = None if self.pipeline.fusion is None else SitesMap(self, towers, self.cells)
         self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.pipeline.fusion,
                                                 float(values["initial_pose_min_std_m"]))
         self.aiding = AidingListener(self, values, self.pipeline.fusion)
@@ -82,6 +92,8 @@ class PipelineNode(DeepSyncNode):
             except ValueError as error:  # a stamp beyond what builtin_interfaces/Time holds
                 self.reject(self.health, error)
             self.cells.heard(result.arrivals, () if result.fusion is None else result.fusion.sites)
+            if self.sites_map is not None:
+                self.sites_map.update()
             if result.fusion is not None:
                 self.aiding.stacked(result.stamp_ns, result.fusion.events)
             self.health.result(result, latency_s=time.monotonic() - now_s, stage_s=stage_s)

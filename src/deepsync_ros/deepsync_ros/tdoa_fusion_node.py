@@ -25,7 +25,15 @@ from deepsync.fusion.stage import FusionStage
 from . import params
 from .conversions import cell_timing_array_from_msg
 from .health import CellTable, StageHealth
-from .node_base import RESULTS_QOS, AidingListener, DeepSyncNode, FixPublisher, InitialPoseListener, run
+from .node_base import (
+    RESULTS_QOS,
+    AidingListener,
+    DeepSyncNode,
+    FixPublisher,
+    InitialPoseListener,
+    SitesMap,
+    run,
+)
 from .params import ParamValue
 
 
@@ -39,6 +47,7 @@ class TdoaFusionNode(DeepSyncNode):
         self.health = StageHealth()
         self.cells = CellTable()
         self.fixes = FixPublisher(self, values)
+        self.sites_map = SitesMap(self, towers, self.cells)
         self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.stage,
                                                 float(values["initial_pose_min_std_m"]))
         self.aiding = AidingListener(self, values, self.stage)
@@ -65,6 +74,7 @@ class TdoaFusionNode(DeepSyncNode):
         except ValueError as error:
             self.reject(self.health, error)
         self.cells.heard(arrivals, result.sites)
+        self.sites_map.update()
         self.aiding.stacked(arrivals.stamp_ns, result.events)
         self.health.stack([cell.pci for cell in arrivals.cells], events=result.events,
                           sites=[site.site for site in result.sites], fix=fix,
