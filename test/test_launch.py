@@ -474,3 +474,17 @@ def test_proj_data_is_left_alone_otherwise(tmp_path: Path, monkeypatch, situatio
     monkeypatch.setattr(dependencies.sys, "base_prefix", str(base))
     dependencies.use_system_proj_data()
     assert dependencies.os.environ == environ
+
+
+@pytest.mark.skipif(_ros2_launch_skip_reason() is not None, reason=_ros2_launch_skip_reason() or "")
+def test_a_node_that_cannot_run_ends_the_launch_with_its_reason(tmp_path: Path) -> None:
+    """issue #49: cell_sync refusing n_frames -3 left the launch running for ever."""
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("/**/cell_sync:\n  ros__parameters:\n    n_frames: -3\n")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(50 + (os.getpid() + 1) % 50), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    done = subprocess.run(["ros2", "launch", "deepsync_ros", "deepsync.launch.py", f"extra_params_file:={broken}",
+                           "antenna_tf:=false"], capture_output=True, text=True, timeout=180, check=False, env=env)
+    said = done.stdout + done.stderr
+    assert done.returncode == 1, said
+    assert "n_frames" in said  # the node's own line
+    assert "cell_sync" in said and "exited with status 1" in said
