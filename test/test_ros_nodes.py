@@ -201,6 +201,10 @@ def test_the_pipeline_node_publishes_what_the_offline_chain_makes(ros, offline: 
         status = localization_status()[-1]
         assert status.level == DiagnosticStatus.OK
         assert "fix rate" in status.message
+        cells = [s for array in diagnostics for s in array.status if s.name == "deepsync_pipeline: cells"
+                 and s.message != "Node starting up"]
+        heard = {cell.pci for result in offline for cell in result.arrivals.cells}
+        assert cells and {v.key for v in cells[-1].values} == {f"PCI {pci}" for pci in heard}
     finally:
         bench.close()
 
