@@ -164,6 +164,13 @@ def fed_poses(run, feed: Feed) -> list[tuple[int, Fix]]:
     return poses
 
 
+def true_velocity(truth, stamp_ns: int, half_ns: int = 50_000_000) -> np.ndarray:
+    """Horizontal velocity of the true track at ``stamp_ns`` (central difference, inside the track)."""
+    before = max(stamp_ns - half_ns, int(truth.stamps_ns[0]))
+    after = min(stamp_ns + half_ns, int(truth.stamps_ns[-1]))
+    return (truth.at(after)[:2] - truth.at(before)[:2]) / ((after - before) * 1e-9)
+
+
 def run_feed(feed: Feed, bag: str, towers_path: str, settings: dict, odometry_std: float, odometry_rate: float,
              seed: int, cache: dict) -> dict:
     poses = fed_poses(fused_route(feed.node_parameters, bag, towers_path, cache), feed)
@@ -181,10 +188,9 @@ def run_feed(feed: Feed, bag: str, towers_path: str, settings: dict, odometry_st
     nees, errors, claimed = [], [], []
     for stamp, kind, fix in events:
         if kind == "odometry":
-            velocity = (truth.at(stamp + 50_000_000)[:2] - truth.at(max(stamp - 50_000_000, truth.stamps_ns[0]))[:2]) / 0.1
             if ekf.x is None:
                 continue  # the position starts the filter
-            measured = velocity + rng.normal(0.0, odometry_std, 2)
+            measured = true_velocity(truth, stamp) + rng.normal(0.0, odometry_std, 2)
             ekf.update(stamp, VELOCITY, measured, np.eye(2) * odometry_std ** 2, gated=False)
             continue
         ekf.update(stamp, POSITION, np.asarray(fix.position_enu[:2], dtype=float), fix.covariance[:2, :2], gated=True)

@@ -5,7 +5,9 @@ Subscribes ``cell_timing`` (CellTimingArray) and runs the core's
 when it has one, else the stack's own snapshot) goes out on ``pose``
 (PoseWithCovarianceStamped in ``map_frame``, reliable) and ``fix`` (NavSatFix in
 ``antenna_frame``), stamped with the stack's ADC time. A stack without a fix publishes no pose,
-and on ``fix`` a NavSatFix saying ``STATUS_NO_FIX`` (``publish_no_fix``); the diagnostics say why (too few sites, unknown PCIs, geometry, a lost track, ...). A pose on
+and on ``fix`` a NavSatFix saying ``STATUS_NO_FIX`` (``publish_no_fix``); the diagnostics say
+why (too few sites, unknown PCIs, geometry, a lost track, ...), and list every cell heard
+(``cells``); ``map_sites`` draws the database's sites for Foxglove's Map panel. A pose on
 ``/initialpose`` (RViz's "2D Pose Estimate") restarts the tracker from there: one heard site is
 then enough. With ``use_gnss`` it takes ``gnss/fix`` (NavSatFix) as anchors, with
 ``use_odometry`` ``odometry`` (Odometry) as velocities (``deepsync_ros.aiding``); with
