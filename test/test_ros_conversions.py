@@ -217,6 +217,20 @@ def test_navsat_round_trip(name: str, store: MessageTypes, carry) -> None:
     np.testing.assert_array_equal(np.asarray(message.position_covariance).reshape(3, 3), want.covariance)
 
 
+@pytest.mark.parametrize("name, store, carry", flavours())
+def test_a_stack_without_a_fix_is_a_navsat_saying_no_fix(name: str, store: MessageTypes, carry) -> None:
+    """As a GNSS driver says it: STATUS_NO_FIX, covariance UNKNOWN, no position; and our own GNSS
+    reader skips it, as it does a receiver's."""
+    message = rebuilt(convert.no_fix_to_navsat_msg(1_767_225_600_400_000_000, store=store), convert.NAV_SAT_FIX,
+                      carry)
+    assert message.status.status == convert.NAV_SAT_STATUS_NO_FIX == -1
+    assert message.position_covariance_type == convert.NAV_SAT_COVARIANCE_UNKNOWN == 0
+    assert math.isnan(message.latitude) and math.isnan(message.longitude)
+    assert conversions.stamp_to_ns(message.header.stamp) == 1_767_225_600_400_000_000
+    assert message.header.frame_id == conversions.ANTENNA_FRAME_ID
+    assert convert.gnss_fix_from_msg(message) is None
+
+
 def test_a_window_array_of_the_wrong_size_is_a_value_error() -> None:
     message = convert.sync_window_array_to_msg(stack(), store=array_flavour())
     message.cells[0].windows = conversions.to_array(np.zeros(3, dtype="<f4"))

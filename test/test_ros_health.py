@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
@@ -212,3 +213,104 @@ def test_without_a_loop_the_source_ends() -> None:
 def test_a_rate_must_be_positive() -> None:
     with pytest.raises(ValueError, match="rate must be a positive number"):
         PlaybackConfig(rate=0.0)
+
+
+# --- stacks lost between nodes ------------------------------------------------------------------
+
+HOP = 20 * 19_200  # pedestrian stacks: every 20 frames of 19,200 samples
+
+
+def test_stack_sequence_counts_the_stacks_that_never_came() -> None:
+    from deepsync_ros.health import StackSequence
+    sequence = StackSequence()
+    for index in (0, 1, 2, 5, 6, 9):  # 3, 4, 7 and 8 lost
+        sequence.arrived(1000 + index * HOP)
+    assert sequence.lost == 4 and sequence.seen == 6
+
+
+def test_stack_sequence_counts_a_gap_before_the_hop_is_known() -> None:
+    """The very first step spans a lost stack: counted once a single hop shows the spacing."""
+    from deepsync_ros.health import StackSequence
+    sequence = StackSequence()
+    sequence.arrived(0)
+    sequence.arrived(2 * HOP)
+    assert sequence.lost == 0  # one step: no telling yet
+    sequence.arrived(3 * HOP + 1)  # a sample of clock drift does not make a gap
+    assert sequence.lost == 1
+
+
+def test_stack_sequence_starts_over_when_the_stream_does() -> None:
+    from deepsync_ros.health import StackSequence
+    sequence = StackSequence()
+    for index in (0, 1, 3):
+        sequence.arrived(index * HOP)
+    for index in (0, 1, 2):  # ros2 bag play --loop: the indices start again, no loss in this pass
+        sequence.arrived(index * HOP)
+    assert sequence.lost == 1
+
+
+def test_stage_health_warns_of_lost_stacks_and_counts_them() -> None:
+    health = StageHealth()
+    for index in (0, 1, 4):
+        health.arrived(index * HOP)
+        health.stack([301])
+    level, message, values = health.report()
+    assert level is Severity.WARN and "2 input stacks never arrived" in message
+    assert dict(values)["lost input stacks"] == "2"
+
+
+def test_a_node_fed_no_stacks_reports_no_lost_stack_count() -> None:
+    health = StageHealth()
+    health.stack([301])
+    assert "lost input stacks" not in dict(health.report().values)
+
+
+def test_the_cell_table_says_each_cells_site_snr_sigma_and_when_it_was_last_heard() -> None:
+    from deepsync.fusion.anchors import SiteArrival
+    from deepsync.types import CellTiming, StackArrivals
+    from deepsync_ros.health import CellTable
+
+    rate = 1.92e6
+    table = CellTable()
+    assert table.report().message == "no stack yet"
+    site_a = SiteArrival("A", np.zeros(3), 0.0, 0.0, 5.0, (120, 121))
+    first = StackArrivals(0, 0, rate, (CellTiming(120, 10.0, 0.05, 12.0, "ml_frame"),
+                                       CellTiming(301, 20.0, 0.5, 3.0, "ml_frame")))
+    table.heard(first, [site_a])
+    later = StackArrivals(2_000_000_000, 3_840_000, rate, (CellTiming(120, 10.1, 0.04, 13.0, "ml_frame"),))
+    table.heard(later)  # no fusion here: the site stays what it was
+    level, message, values = table.report()
+    assert level is Severity.OK and message == "1 of 2 cells heard in the latest stack"
+    said = dict(values)
+    assert said["PCI 120"].startswith("site A, SNR 13.0 dB, sigma 6.2 m (0.040 samples)")
+    assert said["PCI 120"].endswith("last heard 0.0 s before the latest stack")
+    assert said["PCI 301"].startswith("site unknown, SNR 3.0 dB, sigma 78.1 m")
+    assert "last heard 2.0 s before" in said["PCI 301"]
+
+
+def test_the_sites_map_marks_the_sites_heard_recently() -> None:
+    """Foxglove's Map panel layer: every placed site of the database, green while heard."""
+    import json
+
+    from deepsync.fusion.anchors import SiteArrival
+    from deepsync.towers import load_tower_database
+    from deepsync.types import CellTiming, StackArrivals
+    from deepsync_ros.health import HEARD_COLOR, SILENT_COLOR, CellTable, sites_geojson
+
+    towers = load_tower_database(CAMPUS_TOWERS)
+    table = CellTable()
+    site_a = SiteArrival("A", np.zeros(3), 0.0, 0.0, 5.0, (120,))
+    table.heard(StackArrivals(0, 0, 1.92e6, (CellTiming(120, 10.0, 0.05, 12.5, "ml_frame"),)), [site_a])
+    features = json.loads(sites_geojson(towers, table))["features"]
+    placed = [site for site in towers.sites if site.has_position]
+    assert len(features) == len(placed)
+    by_name = {feature["properties"]["name"].split(" ")[0]: feature for feature in features}
+    assert by_name["A"]["properties"]["heard"] and by_name["A"]["properties"]["style"]["color"] == HEARD_COLOR
+    assert "SNR 12.5 dB" in by_name["A"]["properties"]["name"]
+    site = towers.site("A")
+    assert by_name["A"]["geometry"]["coordinates"] == [site.longitude_deg, site.latitude_deg]  # GeoJSON: lon, lat
+    assert all(not f["properties"]["heard"] and f["properties"]["style"]["color"] == SILENT_COLOR
+               for name, f in by_name.items() if name != "A")
+    later = StackArrivals(10_000_000_000, 19_200_000, 1.92e6, (CellTiming(301, 10.0, 0.05, 3.0, "ml_frame"),))
+    table.heard(later)  # A last heard 10 s before: grey again
+    assert not json.loads(sites_geojson(towers, table))["features"][0]["properties"]["heard"]

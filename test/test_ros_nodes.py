@@ -154,15 +154,19 @@ def test_the_three_stage_nodes_localise_the_campus_bag_as_the_pipeline_does(
             assert_pose_is(pose, expected[stamp_to_ns(pose.header.stamp)])
         sync, timing, fusion = bench.nodes
         assert sync.health.stacks == timing.health.stacks == fusion.health.stacks == len(offline)
+        assert timing.health.sequence.lost == fusion.health.sequence.lost == 0  # none lost between the nodes
         assert sync.health.event_counts[HealthKind.GAP] == 0  # no chunk lost on the way
     finally:
         bench.close()
 
 
 def test_the_pipeline_node_publishes_what_the_offline_chain_makes(ros, offline: list[StackResult]) -> None:
+    """The node plays as soon as it spins; its first stacks used to go out before this test's
+    readers had matched, and were lost (issue #49). It now holds its output until a reader
+    has matched (wait_for_subscribers_s)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from geometry_msgs.msg import PoseWithCovarianceStamped
-    from sensor_msgs.msg import NavSatFix
+    from sensor_msgs.msg import NavSatFix, NavSatStatus
 
     from deepsync_ros.conversions import stamp_to_ns
     from deepsync_ros.node_base import RESULTS_QOS
@@ -180,7 +184,13 @@ def test_the_pipeline_node_publishes_what_the_offline_chain_makes(ros, offline: 
         assert [stamp_to_ns(p.header.stamp) for p in poses] == sorted(expected)
         for pose in poses:
             assert_pose_is(pose, expected[stamp_to_ns(pose.header.stamp)])
-        assert [stamp_to_ns(f.header.stamp) for f in navsats] == sorted(expected)
+        # every stack says something on fix: a position, or STATUS_NO_FIX (publish_no_fix)
+        assert bench.spin_until(lambda: len(navsats) >= len(offline))
+        assert [stamp_to_ns(f.header.stamp) for f in navsats] == [r.stamp_ns for r in offline]
+        assert [stamp_to_ns(f.header.stamp) for f in navsats if f.status.status == NavSatStatus.STATUS_FIX] == \
+            sorted(expected)
+        assert all(f.position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN for f in navsats
+                   if f.status.status == NavSatStatus.STATUS_NO_FIX)
         assert all(f.header.frame_id == "deepsync_antenna" for f in navsats)
 
         def localization_status() -> list:
@@ -191,6 +201,10 @@ def test_the_pipeline_node_publishes_what_the_offline_chain_makes(ros, offline: 
         status = localization_status()[-1]
         assert status.level == DiagnosticStatus.OK
         assert "fix rate" in status.message
+        cells = [s for array in diagnostics for s in array.status if s.name == "deepsync_pipeline: cells"
+                 and s.message != "Node starting up"]
+        heard = {cell.pci for result in offline for cell in result.arrivals.cells}
+        assert cells and {v.key for v in cells[-1].values} == {f"PCI {pci}" for pci in heard}
     finally:
         bench.close()
 
@@ -259,6 +273,7 @@ def test_bad_input_is_counted_and_the_nodes_go_on(ros, offline: list[StackResult
         assert bench.spin_until(lambda: len(timings) >= 1)  # the good stack, timed and passed on
         assert bench.spin_until(lambda: len(poses) >= 1)  # and fused: three sites give a fix
         assert timing.health.stacks == 1
+        assert timing.health.sequence.lost == 0
 
         send_arrivals = bench.publisher(CellTimingArray, "cell_timing", RESULTS_QOS)
         nan = cell_timing_array_to_msg(heard.arrivals)
@@ -431,7 +446,7 @@ def test_a_misspelt_parameter_is_named_not_silently_ignored(ros) -> None:
 
     node = CellSyncNode(namespace=NAMESPACE, parameter_overrides=parameters(towers=CAMPUS_TOWERS, n_frame=50))
     try:
-        assert node.unknown_overrides == ["n_frame"] and node.get_parameter("n_frames").value == 10
+        assert node.unknown_overrides == ["n_frame"] and node.get_parameter("n_frames").value == 0  # the motion's
     finally:
         node.destroy_node()
 

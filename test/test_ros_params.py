@@ -25,7 +25,7 @@ from deepsync_ros.params import ParameterError
 REPO = Path(__file__).resolve().parents[1]
 CAMPUS_BAG = REPO / "bags" / "campus"
 CAMPUS_TOWERS = REPO / "config" / "towers" / "campus.yaml"
-NODES_YAML = REPO / "config" / "deepsync_nodes.yaml"
+NODES_YAML = REPO / "src" / "deepsync_ros" / "config" / "deepsync_nodes.yaml"
 PATH_PARAMETERS = {"source", "towers", "frontend"}
 
 

@@ -196,3 +196,50 @@ def test_deepsync_ros_imports_without_rclpy() -> None:
         timeout=60,
     )
     assert proc.returncode == 0, proc.stderr
+
+
+def _build_alone(tmp_path: Path, name: str, *options: str) -> Path:
+    """``colcon build`` in a workspace that holds only the package ``name`` (copied, symlinks
+    resolved as a tarball or a git checkout of the folder would give them); its install prefix."""
+    workspace = tmp_path / "ws"
+    shutil.copytree(REPO / EXPECTED[name][0], workspace / "src" / name, symlinks=False,
+                    ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "build", "install", "log"))
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("COLCON_", "PYTHON", "VIRTUAL_ENV"))}
+    env["COLCON_HOME"] = str(tmp_path / "colcon_home")
+    env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep) if ".venv" not in p)
+    done = subprocess.run(["colcon", "build", "--event-handlers", "console_direct-", *options],
+                          cwd=workspace, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 0, f"{name} does not build alone:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    return workspace / "install" / name
+
+
+@needs_colcon
+@pytest.mark.parametrize("options", [(), ("--symlink-install",)], ids=["copy", "symlink"])
+def test_ros_package_builds_alone_with_everything_its_launch_needs(tmp_path: Path, options: tuple) -> None:
+    """A workspace holding the deepsync_ros folder alone builds (issue #49: setup.py copied
+    ../../config), and installs the launch file's defaults: params, tower database, the bag."""
+    share = _build_alone(tmp_path, "deepsync_ros", *options) / "share" / "deepsync_ros"
+    for path in ("launch/deepsync.launch.py", "launch/dual_ekf.launch.py", "config/deepsync_nodes.yaml",
+                 "config/deepsync_ekf_poses.yaml", "config/towers/campus.yaml",
+                 "config/robot_localization_dual_ekf.yaml", "bags/campus/metadata.yaml", "bags/campus/campus.mcap",
+                 "package.xml"):
+        assert (share / path).is_file(), f"share/deepsync_ros/{path} is not installed"
+    assert (share / "bags" / "campus" / "campus.mcap").stat().st_size == \
+        (REPO / "src" / "deepsync_ros" / "bags" / "campus" / "campus.mcap").stat().st_size
+
+
+@needs_colcon
+def test_core_package_builds_alone(tmp_path: Path) -> None:
+    prefix = _build_alone(tmp_path, "deepsync")
+    assert (prefix / "share" / "deepsync" / "package.xml").is_file()
+    assert (prefix / "lib" / "deepsync" / "deepsync").is_file()  # ros2 run deepsync deepsync
+
+
+def test_bundled_files_at_the_root_are_the_packages() -> None:
+    """The repository root's campus bag and tower database are links into deepsync_ros (one copy),
+    so the core's command line and the tests find them where they always were."""
+    for path in ("bags/campus", "config/towers/campus.yaml"):
+        linked = REPO / path
+        assert linked.is_symlink(), f"{path} should link into src/deepsync_ros"
+        assert linked.resolve().is_relative_to((REPO / "src" / "deepsync_ros").resolve())
+        assert linked.exists()

@@ -5,14 +5,12 @@ from setuptools import find_packages, setup
 
 package_name = "deepsync_ros"
 
-# The launch file's defaults (parameters, tower database, the bundled bag) and the example
-# configs live at the repository root, two levels above this file. colcon runs setup.py with
-# the package directory as the working directory for a plain build, but from its build
-# directory (build/deepsync_ros, holding a symlink to this file) for --symlink-install; colcon
-# also insists that data_files sources are relative paths. So every source is written relative
-# to the current working directory, starting from where this file really is.
+# Everything this package installs lives inside it (a workspace may hold the package folder
+# alone). colcon runs setup.py with the package directory as the working directory for a plain
+# build, but from its build directory (build/deepsync_ros, holding symlinks to the package's
+# files) for --symlink-install, and it wants data_files sources as relative paths: so every
+# source is written relative to the working directory, starting from where this file really is.
 HERE = os.path.dirname(os.path.realpath(__file__))
-REPO = os.path.normpath(os.path.join(HERE, "..", ".."))
 SHARE = os.path.join("share", package_name)
 
 
@@ -21,9 +19,10 @@ def from_here(*parts: str) -> str:
     return os.path.relpath(os.path.join(HERE, *parts))
 
 
-def from_repo(*parts: str) -> str:
-    """A path at the repository root, relative to the working directory."""
-    return os.path.relpath(os.path.join(REPO, *parts))
+def shared(folder: str, pattern: str = "*") -> tuple[str, list[str]]:
+    """The files of one of this package's folders, installed under share/deepsync_ros/<folder>."""
+    files = sorted(path for path in glob(from_here(folder, pattern)) if os.path.isfile(path))
+    return os.path.join(SHARE, folder), files
 
 
 setup(
@@ -33,20 +32,10 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [from_here("resource", package_name)]),
         (SHARE, [from_here("package.xml")]),
-        (os.path.join(SHARE, "launch"), sorted(glob(from_here("launch", "*.launch.py")))),
-        (
-            os.path.join(SHARE, "config"),
-            [
-                from_repo("config", "deepsync_nodes.yaml"),
-                from_repo("config", "robot_localization_ekf.yaml"),
-                from_repo("config", "foxglove_layout.json"),
-            ],
-        ),
-        (os.path.join(SHARE, "config", "towers"), [from_repo("config", "towers", "campus.yaml")]),
-        (
-            os.path.join(SHARE, "bags", "campus"),
-            [from_repo("bags", "campus", "metadata.yaml"), from_repo("bags", "campus", "campus.mcap")],
-        ),
+        shared("launch", "*.launch.py"),
+        shared("config"),
+        shared(os.path.join("config", "towers")),
+        shared(os.path.join("bags", "campus")),
     ],
     python_requires=">=3.10",
     # Only what pip can provide. rclpy, the message packages and deepsync_msgs come from ROS

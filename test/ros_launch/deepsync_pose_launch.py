@@ -1,4 +1,4 @@
-"""launch_testing: the default launch publishes a pose on /deepsync/pose within 60 s.
+"""launch_testing: the default launch publishes a pose on /deepsync/pose within 120 s.
 
 Run by test/test_launch.py where ROS 2 is sourced and deepsync_ros is built (it is named so
 that pytest does not collect it itself), or by hand:
@@ -22,7 +22,10 @@ from launch.actions import IncludeLaunchDescription
 from launch.launch_description_sources import PythonLaunchDescriptionSource
 
 POSE_TOPIC = "/deepsync/pose"
-WITHIN_S = 60.0
+# Four nodes import numpy/scipy and build their templates before the first stack (1 s of signal);
+# alone that takes seconds, but a full test run shares a loaded machine: the budget is generous,
+# and the wait ends as soon as a pose comes.
+WITHIN_S = 120.0
 
 
 @pytest.mark.launch_test
@@ -45,7 +48,7 @@ class TestPose(unittest.TestCase):
         cls.node.destroy_node()
         rclpy.shutdown()
 
-    def test_a_pose_within_60_s(self):
+    def test_a_pose_within_the_budget(self):
         poses = []
         subscription = self.node.create_subscription(PoseWithCovarianceStamped, POSE_TOPIC, poses.append, 10)
         try:

@@ -2,7 +2,8 @@
 
 Subscribes ``envelope`` (EnvelopeSamples, SensorDataQoS) and runs the core's
 :class:`~deepsync.sync.stage.SyncStage`; every completed stack goes out on ``sync_windows``
-(SyncWindowArray, reliable) with the stack's time base, stamped with its first sample's ADC time.
+(SyncWindowArray, reliable) with the stack's time base, stamped with its first sample's ADC time,
+held until a reader has matched (``wait_for_subscribers_s``).
 What is wrong with the stream (gaps, a restart, another sample rate, clipping, silence) is in the
 diagnostics, never a crash.
 """
@@ -20,7 +21,7 @@ from deepsync.sync.stage import SyncStage
 from . import params
 from .conversions import envelope_from_msg, sync_window_array_to_msg
 from .health import StageHealth
-from .node_base import ENVELOPE_SUBSCRIBER_QOS, RESULTS_QOS, DeepSyncNode, run
+from .node_base import ENVELOPE_SUBSCRIBER_QOS, RESULTS_QOS, DeepSyncNode, output_gate, run
 from .params import ParameterError, ParamValue
 
 
@@ -39,6 +40,7 @@ class CellSyncNode(DeepSyncNode):
         self.frame_id = str(values["frame_id"])
         self.health = StageHealth()
         self.publisher = self.create_publisher(SyncWindowArray, relative_name(SYNC_WINDOWS_TOPIC), RESULTS_QOS)
+        self.gate = output_gate(self)  # cell_timing may start later: hold the first stacks for it
         self.subscription = self.create_subscription(EnvelopeSamples, relative_name(ENVELOPE_TOPIC), self._on_envelope,
                                                      ENVELOPE_SUBSCRIBER_QOS)
         self.add_diagnostic("cell search", self.health.report)
@@ -61,7 +63,7 @@ class CellSyncNode(DeepSyncNode):
             except ValueError as error:  # a stamp beyond what builtin_interfaces/Time holds
                 self.reject(self.health, error)
             else:
-                self.publisher.publish(out)
+                self.gate.publish(self.publisher, out)
             self.health.stack(result.pcis, events=result.events + result.flags,
                               latency_s=time.monotonic() - arrived, stage_s=stage_s)
 

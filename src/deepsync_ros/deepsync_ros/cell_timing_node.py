@@ -20,7 +20,7 @@ from deepsync.timing.stage import TimingStage
 from . import params
 from .conversions import cell_timing_array_to_msg, sync_window_array_from_msg
 from .health import StageHealth
-from .node_base import RESULTS_QOS, DeepSyncNode, run
+from .node_base import RESULTS_QOS, DeepSyncNode, output_gate, run
 from .params import ParameterError, ParamValue
 
 
@@ -38,6 +38,7 @@ class CellTimingNode(DeepSyncNode):
             raise ParameterError(f"{self.NAME}.{parameter}: {error}") from None
         self.health = StageHealth()
         self.publisher = self.create_publisher(CellTimingArray, relative_name(CELL_TIMING_TOPIC), RESULTS_QOS)
+        self.gate = output_gate(self)  # tdoa_fusion may start later: hold the first stacks for it
         self.subscription = self.create_subscription(SyncWindowArray, relative_name(SYNC_WINDOWS_TOPIC),
                                                      self._on_windows, RESULTS_QOS)
         self.add_diagnostic("cell timing", self.health.report)
@@ -54,6 +55,7 @@ class CellTimingNode(DeepSyncNode):
 
     def _on_windows(self, message: SyncWindowArray) -> None:
         arrived = time.monotonic()
+        self.health.arrived(message.first_sample_index)
         try:
             stack = sync_window_array_from_msg(message)
             started = time.monotonic()
@@ -63,7 +65,7 @@ class CellTimingNode(DeepSyncNode):
         except ValueError as error:
             self.reject(self.health, error)
             return
-        self.publisher.publish(out)
+        self.gate.publish(self.publisher, out)
         weak = tuple(flag for cell in result.cells for flag in cell.flags)
         self.health.stack([cell.pci for cell in result.cells], events=result.events + weak,
                           latency_s=time.monotonic() - arrived, stage_s=stage_s)

@@ -79,6 +79,11 @@ def fix_to_pose_msg(fix: Fix, frame_id: str = MAP_FRAME_ID) -> Any:
     return convert.fix_to_pose_msg(fix, frame_id=frame_id, store=RCLPY_TYPES)
 
 
+def no_fix_to_navsat_msg(stamp_ns: int, frame_id: str = ANTENNA_FRAME_ID) -> Any:
+    """``sensor_msgs/NavSatFix`` saying ``STATUS_NO_FIX`` for a stack without a fix."""
+    return convert.no_fix_to_navsat_msg(stamp_ns, frame_id=frame_id, store=RCLPY_TYPES)
+
+
 def fix_to_navsat_msg(fix: Fix, frame: LocalFrame, frame_id: str = ANTENNA_FRAME_ID) -> Any:
     """``sensor_msgs/NavSatFix`` of a fix, through the map origin ``frame``."""
     return convert.fix_to_navsat_msg(fix, frame, frame_id=frame_id, store=RCLPY_TYPES)
@@ -96,6 +101,7 @@ __all__ = [
     "fix_to_navsat_msg",
     "fix_to_pose_msg",
     "message_class",
+    "no_fix_to_navsat_msg",
     "position_from_pose_msg",
     "prior_from_pose_msg",
     "stamp_to_ns",

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata
+import os
 import sys
 
 # module -> how a Jazzy user gets it (README, "ROS 2")
@@ -29,6 +30,19 @@ REQUIRED = {
     "deepsync": "build the workspace: colcon build, then source install/setup.bash",
     "deepsync_msgs.msg": "build the workspace (colcon build) and source install/setup.bash",
 }
+
+
+def use_system_proj_data() -> None:
+    """Point pyproj at the system's PROJ data where it would not find it: apt's pyproj (which
+    carries no data of its own) looks in ``sys.prefix``/share/proj, and in a venv made with
+    ``--system-site-packages`` that is the venv, so every node would warn "Valid PROJ data
+    directory not found". Nothing changes when ``PROJ_DATA``/``PROJ_LIB`` is set, outside a
+    venv, or when the base Python has no ``proj.db`` (a pip pyproj brings its own)."""
+    if "PROJ_DATA" in os.environ or "PROJ_LIB" in os.environ or sys.prefix == sys.base_prefix:
+        return
+    system_data = os.path.join(sys.base_prefix, "share", "proj")
+    if os.path.isfile(os.path.join(system_data, "proj.db")):
+        os.environ["PROJ_DATA"] = system_data
 
 
 def missing_dependencies() -> list[str]:
@@ -61,6 +75,7 @@ def report(program: str) -> bool:
 
 
 def main() -> int:
+    use_system_proj_data()
     ok = report("deepsync_ros")
     if ok:
         print(f"deepsync_ros: every dependency imports with {sys.executable}")

@@ -29,6 +29,7 @@ _ROS_PACKAGES = {
 
 
 def _run(program: str, module: str) -> None:
+    dependencies.use_system_proj_data()  # before anything imports pyproj
     if not dependencies.report(program):
         sys.exit(1)
     try:

@@ -39,6 +39,7 @@ from deepsync.bag.convert import ns_to_stamp
 from deepsync.bag.topics import (
     GNSS_FIX_TOPIC,
     INITIAL_POSE_TOPIC,
+    MAP_SITES_TOPIC,
     NAV_SAT_FIX_TOPIC,
     ODOMETRY_TOPIC,
     POSE_TOPIC,
@@ -46,17 +47,29 @@ from deepsync.bag.topics import (
 )
 from deepsync.fusion.stage import FusionStage
 from deepsync.geo import LocalFrame
+from deepsync.towers import TowerDatabase
 from deepsync.numeric import one_blas_thread
-from deepsync.types import EnvelopeChunk, Fix, HealthKind, Severity
+from deepsync.types import EnvelopeChunk, Fix, HealthKind, NoFix, Severity
 
 from .aiding import AidingInputs, LearnedTowers
-from .conversions import RCLPY_TYPES, fix_to_navsat_msg, fix_to_pose_msg, prior_from_pose_msg
-from .health import Playback, Report, StageHealth, chunk_end_ns
+from .conversions import (
+    RCLPY_TYPES,
+    fix_to_navsat_msg,
+    fix_to_pose_msg,
+    no_fix_to_navsat_msg,
+    prior_from_pose_msg,
+)
+from .health import CellTable, Playback, Report, StageHealth, chunk_end_ns, sites_geojson
 from .params import ParameterError, ParamSpec, ParamValue, checked
 
-RESULTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+# Reliable keeps a message from being lost on the wire, not from being overwritten: a keep-last
+# queue of N drops the oldest when a burst of N+1 waits for a busy reader. At start-up a node's
+# first stack takes a second or more (its first full search, building templates), and meanwhile
+# the upstream node's stacks pile up: 100 holds 20 s of pedestrian stacks (5 Hz), 10 s of vehicle
+# ones, 1 s of sliding stacks every frame (a sync_windows message is about 0.1 MB).
+RESULTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
-"""Stacks, arrivals and fixes: every message counts (what the bags record them with)."""
+"""Stacks, arrivals and fixes: every message counts, a start-up burst included."""
 # SensorDataQoS (best effort, volatile) with 2 s of chunks instead of its 5: the first search
 # takes about a second and later ones tens of ms, while chunks keep coming every 10 ms, and a
 # chunk dropped from the reader's queue drops every stack that spans it.
@@ -70,6 +83,14 @@ CLOCK_TOPIC = "/clock"
 # hold a second of 50 Hz odometry while a stack is being fused
 AIDING_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
+
+# Topics every node has that are not its data: a subscriber there says nothing about the data's.
+_INFRASTRUCTURE_TOPICS = frozenset({"/parameter_events", "/rosout", "/diagnostics", CLOCK_TOPIC})
+# How often a gate looks for subscribers; it opens one look after it sees one, so that the
+# reliable writer has matched the reader the graph announced.
+SUBSCRIBER_POLL_S = 0.05
+# Most messages a gate holds; beyond, it opens (publishing beats holding without end).
+MAX_HELD = 1000
 
 REJECTION_LOG_PERIOD_S = 5.0
 # Steady-clock pacing: the tick bounds how late a due chunk goes out; the burst bounds how long
@@ -188,22 +209,125 @@ class DeepSyncNode(Node):
                                   throttle_duration_sec=REJECTION_LOG_PERIOD_S)
 
 
-class FixPublisher:
-    """A fix on ``pose`` (PoseWithCovarianceStamped in ``map_frame``) and ``fix`` (NavSatFix in
-    ``antenna_frame``, through the map origin ``frame``)."""
+class SubscriberGate:
+    """Holds a node's output until one of ``publishers`` has a subscriber, for at most
+    ``wait_s`` of steady time (then it opens anyway and says which topics nobody read): DDS
+    hands a volatile message published before a reader has matched to no one, and the nodes
+    of a launch start in any order. Messages given to :meth:`publish` meanwhile are kept, in
+    order, and published when it opens; a player asks :attr:`open` before it plays."""
 
-    def __init__(self, node: Node, map_frame: str, antenna_frame: str) -> None:
-        self.map_frame = map_frame
-        self.antenna_frame = antenna_frame
+    def __init__(self, node: Node, publishers: list[Any], wait_s: float) -> None:
+        self.node = node
+        self.publishers = publishers
+        self.wait_s = wait_s
+        self.open = wait_s <= 0 or not publishers
+        self.started_s = time.monotonic()
+        self._seen = False
+        self._held: list[tuple[Any, Any]] = []
+        self.timer = None if self.open else node.create_timer(SUBSCRIBER_POLL_S, self._poll,
+                                                              clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def publish(self, publisher: Any, message: Any) -> None:
+        """``message`` on ``publisher`` now, or when the gate opens."""
+        if self.open:
+            publisher.publish(message)
+            return
+        self._held.append((publisher, message))
+        if len(self._held) >= MAX_HELD:
+            self._release(f"{MAX_HELD} messages held")
+
+    def _poll(self) -> None:
+        if any(publisher.get_subscription_count() > 0 for publisher in self.publishers):
+            if self._seen:
+                self._release(None)
+            self._seen = True
+        elif time.monotonic() - self.started_s >= self.wait_s:
+            self._release(f"no subscriber after {self.wait_s:g} s (wait_for_subscribers_s)")
+
+    def _release(self, why: str | None) -> None:
+        self.open = True
+        if self.timer is not None:
+            self.timer.cancel()
+            self.node.destroy_timer(self.timer)
+            self.timer = None
+        if why is not None:
+            topics = ", ".join(publisher.topic_name for publisher in self.publishers)
+            self.node.get_logger().warning(f"publishing on {topics}: {why}")
+        held, self._held = self._held, []
+        for publisher, message in held:
+            publisher.publish(message)
+
+
+def data_publishers(node: Node) -> list[Any]:
+    """The node's publishers of its own data (not /parameter_events, /diagnostics, /clock)."""
+    return [publisher for publisher in node.publishers if publisher.topic_name not in _INFRASTRUCTURE_TOPICS]
+
+
+def output_gate(node: DeepSyncNode, publishers: list[Any] | None = None) -> SubscriberGate:
+    """A :class:`SubscriberGate` over ``publishers`` (default: the node's data publishers made so
+    far), waiting the node's ``wait_for_subscribers_s``."""
+    return SubscriberGate(node, data_publishers(node) if publishers is None else publishers,
+                          float(node.values["wait_for_subscribers_s"]))
+
+
+# The map layer of the sites: late joiners (Foxglove opened later) get the latest at once.
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class SitesMap:
+    """The tower database's sites on ``map_sites`` (``foxglove_msgs/msg/GeoJSON``, transient
+    local) for Foxglove's Map panel, green while heard (:func:`~deepsync_ros.health.sites_geojson`),
+    published again when that changes. Without foxglove_msgs the node runs on and says so once."""
+
+    def __init__(self, node: Node, towers: TowerDatabase, cells: CellTable) -> None:
+        self.towers = towers
+        self.cells = cells
+        self.shown: str | None = None
+        try:
+            from foxglove_msgs.msg import GeoJSON
+        except ImportError:
+            node.get_logger().info("foxglove_msgs does not import (sudo apt install ros-jazzy-foxglove-msgs): no "
+                                   f"{relative_name(MAP_SITES_TOPIC)} layer for Foxglove's Map panel")
+            self.publisher = None
+            return
+        self.message = GeoJSON
+        self.publisher = node.create_publisher(GeoJSON, relative_name(MAP_SITES_TOPIC), LATCHED_QOS)
+        self.update()
+
+    def update(self) -> None:
+        if self.publisher is None:
+            return
+        text = sites_geojson(self.towers, self.cells)
+        if text != self.shown:
+            self.publisher.publish(self.message(geojson=text))
+            self.shown = text
+
+
+class FixPublisher:
+    """A stack's outcome: a fix on ``pose`` (PoseWithCovarianceStamped in ``map_frame``) and
+    ``fix`` (NavSatFix in ``antenna_frame``, through the map origin ``frame``); a stack without
+    one, with ``publish_no_fix``, a NavSatFix saying ``STATUS_NO_FIX``. Held, in order, until a
+    reader of either topic has matched (``wait_for_subscribers_s``)."""
+
+    def __init__(self, node: DeepSyncNode, values: Mapping[str, ParamValue]) -> None:
+        self.map_frame = str(values["map_frame"])
+        self.antenna_frame = str(values["antenna_frame"])
+        self.no_fix = bool(values["publish_no_fix"])
         self.pose = node.create_publisher(PoseWithCovarianceStamped, relative_name(POSE_TOPIC), RESULTS_QOS)
         self.navsat = node.create_publisher(NavSatFix, relative_name(NAV_SAT_FIX_TOPIC), RESULTS_QOS)
+        self.gate = output_gate(node, [self.pose, self.navsat])
 
-    def publish(self, fix: Fix, frame: LocalFrame) -> None:
-        """Both messages, or ValueError (a stamp beyond builtin_interfaces/Time) and neither."""
-        pose = fix_to_pose_msg(fix, self.map_frame)
-        navsat = fix_to_navsat_msg(fix, frame, self.antenna_frame)
-        self.pose.publish(pose)
-        self.navsat.publish(navsat)
+    def publish(self, outcome: Fix | NoFix | None, stamp_ns: int, frame: LocalFrame) -> None:
+        """The messages of one stack's outcome (None: no fusion ran), or ValueError (a stamp
+        beyond builtin_interfaces/Time) and none."""
+        if isinstance(outcome, Fix):
+            pose = fix_to_pose_msg(outcome, self.map_frame)
+            navsat = fix_to_navsat_msg(outcome, frame, self.antenna_frame)
+            self.gate.publish(self.pose, pose)
+            self.gate.publish(self.navsat, navsat)
+        elif isinstance(outcome, NoFix) and self.no_fix:
+            self.gate.publish(self.navsat, no_fix_to_navsat_msg(stamp_ns, self.antenna_frame))
 
 
 class InitialPoseListener:
@@ -319,11 +443,15 @@ class PacedPlayer:
         self.node = node
         self.playback = playback
         self.consume = consume
+        # the first chunk waits for a reader of what the node publishes (made before the player)
+        self.gate = output_gate(node)
         self.clock_publisher = node.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS) if publish_clock else None
         self._pending: EnvelopeChunk | None = None
         self.timer = node.create_timer(TICK_S, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _tick(self) -> None:
+        if not self.gate.open:  # the pace starts with the first chunk played, not before
+            return
         deadline = time.monotonic() + BURST_S
         while True:
             chunk = self._pending if self._pending is not None else self.playback.next_chunk()

@@ -222,16 +222,26 @@ OUTPUT_FRAMES = (
     ParamSpec("map_frame", MAP_FRAME_ID, "frame_id of the pose (REP-105 map: ENU at the database's origin)."),
     ParamSpec("antenna_frame", ANTENNA_FRAME_ID, "frame_id of the NavSatFix (the receiver antenna)."),
 )
+WAIT_FOR_SUBSCRIBERS = ParamSpec("wait_for_subscribers_s", 10.0, "Hold the first output until a subscriber has "
+                                 "matched (the next node of the chain, a recorder), for at most this long [s]; "
+                                 "a message published before anyone listens is lost. 0: publish at once.",
+                                 range=(0.0, 3600.0))
+PUBLISH_NO_FIX = ParamSpec("publish_no_fix", True, "For a stack without a fix, publish a NavSatFix on fix with "
+                           "status STATUS_NO_FIX and covariance type UNKNOWN (as GNSS drivers do), so a consumer "
+                           "sees the receiver alive but without a position; false: publish nothing (no pose either "
+                           "way).")
 FUSION_TOWERS = ParamSpec("towers", "", "Tower database YAML placing the sites (origin, positions, timing "
                           "offsets). Required.")
 
-ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME)
+ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME, WAIT_FOR_SUBSCRIBERS)
 CELL_SYNC = (TOWERS, FRONTEND, MOTION, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the "
-                                                        "published windows (the stream's frame)."))
-CELL_TIMING = (FRONTEND, *TIMING)
-TDOA_FUSION = (FUSION_TOWERS, MOTION, *FUSION, STACK_OVERLAP, *AIDING, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES)
+                                                        "published windows (the stream's frame)."),
+             WAIT_FOR_SUBSCRIBERS)
+CELL_TIMING = (FRONTEND, *TIMING, WAIT_FOR_SUBSCRIBERS)
+TDOA_FUSION = (FUSION_TOWERS, MOTION, *FUSION, STACK_OVERLAP, *AIDING, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES,
+               PUBLISH_NO_FIX, WAIT_FOR_SUBSCRIBERS)
 DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, MOTION, *SYNC, *TIMING, *FUSION, *AIDING, INITIAL_POSE_MIN_STD,
-                     *OUTPUT_FRAMES)
+                     *OUTPUT_FRAMES, PUBLISH_NO_FIX, WAIT_FOR_SUBSCRIBERS)
 
 NODES: dict[str, tuple[ParamSpec, ...]] = {
     "envelope_adc": ENVELOPE_ADC,

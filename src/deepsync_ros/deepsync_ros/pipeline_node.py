@@ -18,12 +18,21 @@ from deepsync_msgs.msg import CellTimingArray
 
 from deepsync.bag.topics import CELL_TIMING_TOPIC, relative_name
 from deepsync.pipeline import Pipeline
-from deepsync.types import EnvelopeChunk, Fix
+from deepsync.types import EnvelopeChunk
 
 from . import params
 from .conversions import cell_timing_array_to_msg
-from .health import Playback, StageHealth
-from .node_base import RESULTS_QOS, AidingListener, DeepSyncNode, FixPublisher, InitialPoseListener, PacedPlayer, run
+from .health import CellTable, Playback, StageHealth
+from .node_base import (
+    RESULTS_QOS,
+    AidingListener,
+    DeepSyncNode,
+    FixPublisher,
+    InitialPoseListener,
+    PacedPlayer,
+    SitesMap,
+    run,
+)
 from .params import ParameterError, ParamValue
 
 
@@ -43,13 +52,16 @@ class PipelineNode(DeepSyncNode):
         self.health = StageHealth()
         self.playback = Playback(source, params.playback_config(values, self.NAME))
         self.timing_publisher = self.create_publisher(CellTimingArray, relative_name(CELL_TIMING_TOPIC), RESULTS_QOS)
-        self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
+        self.cells = CellTable()
+        self.fixes = FixPublisher(self, values)
+        self.sites_map = None if self.pipeline.fusion is None else SitesMap(self, towers, self.cells)
         self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.pipeline.fusion,
                                                 float(values["initial_pose_min_std_m"]))
         self.aiding = AidingListener(self, values, self.pipeline.fusion)
         self.updater.setHardwareID(str(values["source"]))  # the recording stands in for the ADC
         self.add_diagnostic("source", self.playback.report)
         self.add_diagnostic("localization", self.health.report)
+        self.add_diagnostic("cells", self.cells.report)
         self.player = PacedPlayer(self, self.playback, self._process, bool(values["publish_clock"]))
         self.get_logger().info(f"running the chain on {source.description}")
         if self.pipeline.fusion is None:
@@ -75,11 +87,13 @@ class PipelineNode(DeepSyncNode):
         for result in results:
             try:
                 self.timing_publisher.publish(cell_timing_array_to_msg(result.arrivals, self.frame_id))
-                fix = None if result.fusion is None else result.fusion.published
-                if isinstance(fix, Fix):
-                    self.fixes.publish(fix, self.pipeline.fusion.frame)
+                if result.fusion is not None:
+                    self.fixes.publish(result.fusion.published, result.stamp_ns, self.pipeline.fusion.frame)
             except ValueError as error:  # a stamp beyond what builtin_interfaces/Time holds
                 self.reject(self.health, error)
+            self.cells.heard(result.arrivals, () if result.fusion is None else result.fusion.sites)
+            if self.sites_map is not None:
+                self.sites_map.update()
             if result.fusion is not None:
                 self.aiding.stacked(result.stamp_ns, result.fusion.events)
             self.health.result(result, latency_s=time.monotonic() - now_s, stage_s=stage_s)

@@ -4,8 +4,10 @@ Subscribes ``cell_timing`` (CellTimingArray) and runs the core's
 :class:`~deepsync.fusion.stage.FusionStage` against the tower database; the fix (the tracker's
 when it has one, else the stack's own snapshot) goes out on ``pose``
 (PoseWithCovarianceStamped in ``map_frame``, reliable) and ``fix`` (NavSatFix in
-``antenna_frame``), stamped with the stack's ADC time. A stack without a fix publishes nothing;
-the diagnostics say why (too few sites, unknown PCIs, geometry, a lost track, ...). A pose on
+``antenna_frame``), stamped with the stack's ADC time. A stack without a fix publishes no pose,
+and on ``fix`` a NavSatFix saying ``STATUS_NO_FIX`` (``publish_no_fix``); the diagnostics say
+why (too few sites, unknown PCIs, geometry, a lost track, ...), and list every cell heard
+(``cells``); ``map_sites`` draws the database's sites for Foxglove's Map panel. A pose on
 ``/initialpose`` (RViz's "2D Pose Estimate") restarts the tracker from there: one heard site is
 then enough. With ``use_gnss`` it takes ``gnss/fix`` (NavSatFix) as anchors, with
 ``use_odometry`` ``odometry`` (Odometry) as velocities (``deepsync_ros.aiding``); with
@@ -21,12 +23,19 @@ from deepsync_msgs.msg import CellTimingArray
 
 from deepsync.bag.topics import CELL_TIMING_TOPIC, relative_name
 from deepsync.fusion.stage import FusionStage
-from deepsync.types import Fix
 
 from . import params
 from .conversions import cell_timing_array_from_msg
-from .health import StageHealth
-from .node_base import RESULTS_QOS, AidingListener, DeepSyncNode, FixPublisher, InitialPoseListener, run
+from .health import CellTable, StageHealth
+from .node_base import (
+    RESULTS_QOS,
+    AidingListener,
+    DeepSyncNode,
+    FixPublisher,
+    InitialPoseListener,
+    SitesMap,
+    run,
+)
 from .params import ParamValue
 
 
@@ -38,17 +47,21 @@ class TdoaFusionNode(DeepSyncNode):
         towers = params.towers(values, self.NAME, required=True)
         self.stage = FusionStage(towers, params.fusion_config(values, self.NAME))
         self.health = StageHealth()
-        self.fixes = FixPublisher(self, str(values["map_frame"]), str(values["antenna_frame"]))
+        self.cells = CellTable()
+        self.fixes = FixPublisher(self, values)
+        self.sites_map = SitesMap(self, towers, self.cells)
         self.initial_pose = InitialPoseListener(self, str(values["map_frame"]), self.stage,
                                                 float(values["initial_pose_min_std_m"]))
         self.aiding = AidingListener(self, values, self.stage)
         self.subscription = self.create_subscription(CellTimingArray, relative_name(CELL_TIMING_TOPIC),
                                                      self._on_arrivals, RESULTS_QOS)
         self.add_diagnostic("position fix", self.health.report)
+        self.add_diagnostic("cells", self.cells.report)
         self.get_logger().info(f"fixes against tower database {towers.name!r} ({len(towers.sites)} sites)")
 
     def _on_arrivals(self, message: CellTimingArray) -> None:
         arrived = time.monotonic()
+        self.health.arrived(message.first_sample_index)
         try:
             arrivals = cell_timing_array_from_msg(message)
         except ValueError as error:
@@ -58,11 +71,12 @@ class TdoaFusionNode(DeepSyncNode):
         result = self.stage.process(arrivals)
         stage_s = time.monotonic() - started
         fix = result.published
-        if isinstance(fix, Fix):
-            try:
-                self.fixes.publish(fix, self.stage.frame)
-            except ValueError as error:
-                self.reject(self.health, error)
+        try:
+            self.fixes.publish(fix, arrivals.stamp_ns, self.stage.frame)
+        except ValueError as error:
+            self.reject(self.health, error)
+        self.cells.heard(arrivals, result.sites)
+        self.sites_map.update()
         self.aiding.stacked(arrivals.stamp_ns, result.events)
         self.health.stack([cell.pci for cell in arrivals.cells], events=result.events,
                           sites=[site.site for site in result.sites], fix=fix,

@@ -7,6 +7,12 @@ With no arguments the envelope_adc node plays the bag installed with the package
 /clock from its stamps (use_sim_time:=true) and the nodes publish /deepsync/pose within seconds.
 ``source:=topic`` starts no envelope_adc node: the nodes are fed by ``ros2 bag play --clock``.
 ``one_process:=true`` runs the single deepsync_pipeline node instead of the four.
+``antenna_tf`` (true) also starts tf2_ros' static_transform_publisher for base_link ->
+deepsync_antenna (the frame of the NavSatFix on /deepsync/fix) at ``antenna_x/y/z``.
+
+Every node is required: when one exits while the launch runs (a parameter it cannot run with,
+a crash), the launch ends every other node and exits 1, naming it; its own error line is
+above. (A node that ended with status 0 ends the launch normally.)
 
 Before any node starts, the nodes' own interpreter (the shebang of the installed envelope_adc
 script) runs ``-m deepsync_ros.dependencies``; when a dependency is missing the launch logs what
@@ -21,7 +27,7 @@ import shlex
 import subprocess
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
 from launch.logging import get_logger
 from launch.substitutions import PathJoinSubstitution
 from launch_ros.actions import Node
@@ -32,6 +38,7 @@ FOUR_NODES = ("envelope_adc", "cell_sync", "cell_timing", "tdoa_fusion")
 ONE_PROCESS = "deepsync_pipeline"
 TOPIC_SOURCE = "topic"  # source:=topic -> no envelope_adc node; `ros2 bag play --clock` feeds the nodes
 CHECK_TIMEOUT_S = 120.0
+ANTENNA_FRAME = "deepsync_antenna"  # the NavSatFix's frame_id: tdoa_fusion's antenna_frame default
 
 
 def _share(*parts):
@@ -62,6 +69,12 @@ def generate_launch_description():
             default_value=_share("config", "deepsync_nodes.yaml"),
             description="Node parameters (keys /**/<node name>: ros__parameters:). The launch "
                         "arguments are applied on top of it.",
+        ),
+        DeclareLaunchArgument(
+            "extra_params_file",
+            default_value="",
+            description="A second parameters file applied on top of params_file, holding only what it "
+                        "changes (e.g. config/deepsync_ekf_poses.yaml); '': none.",
         ),
         DeclareLaunchArgument(
             "use_sim_time",
@@ -97,6 +110,24 @@ def generate_launch_description():
             description="How the receiver moves: pedestrian, vehicle or static, for cell_sync (its "
                         "stacks) and tdoa_fusion (its motion model) alike; '': the params file's.",
         ),
+        DeclareLaunchArgument(
+            "antenna_tf",
+            default_value="true",
+            description="Publish the static transform base_frame -> deepsync_antenna (the frame of the "
+                        "NavSatFix on fix) with tf2_ros' static_transform_publisher; false where the "
+                        "robot's URDF (robot_state_publisher) already has the antenna.",
+        ),
+        DeclareLaunchArgument(
+            "base_frame",
+            default_value="base_link",
+            description="The robot frame the antenna is mounted on (REP-105 base_link).",
+        ),
+        DeclareLaunchArgument("antenna_x", default_value="0.0",
+                              description="Antenna position in base_frame, forward [m]."),
+        DeclareLaunchArgument("antenna_y", default_value="0.0",
+                              description="Antenna position in base_frame, left [m]."),
+        DeclareLaunchArgument("antenna_z", default_value="0.0",
+                              description="Antenna position in base_frame, up [m]."),
         OpaqueFunction(function=_launch_setup),
     ])
 
@@ -201,6 +232,31 @@ def _is_address(source):
     return "://" in source
 
 
+def _number(name, text):
+    """A launch argument as a float, or why not."""
+    try:
+        value = float(str(text).strip())
+    except ValueError:
+        raise ValueError(f"{name}:={text!r} is not a number") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise ValueError(f"{name}:={text!r} is not a finite number")
+    return value
+
+
+def _end_of_a_required_node(event, context):
+    """``on_exit`` of every DeepSync node: the chain cannot run without any of them. Another
+    status than 0 while the launch runs is a failure: raised, launch logs it as one error line,
+    stops every other node and exits 1. Status 0 ends the launch normally. While the launch is
+    shutting down (Ctrl-C), the nodes' exits are expected."""
+    if context.is_shutdown:
+        return None
+    name = event.process_name
+    if event.returncode != 0:
+        raise _refusal(f"{name} exited with status {event.returncode} (its last lines above say why); "
+                       "the other nodes cannot run without it and are stopped")
+    return [Shutdown(reason=f"{name} ended (status 0); the other nodes are stopped")]
+
+
 def _refusal(message):
     """What to raise to start nothing: launch logs it as one error line (no traceback) and
     exits 1, where a Shutdown action would end the launch normally, with 0."""
@@ -215,11 +271,16 @@ def _launch_setup(context):
         one_process = _as_bool("one_process", arg["one_process"])
         loop = _as_bool("loop", arg["loop"])
         realtime = _as_bool("realtime", arg["realtime"])
+        antenna_tf = _as_bool("antenna_tf", arg["antenna_tf"])
+        antenna = [_number(f"antenna_{axis}", arg[f"antenna_{axis}"]) for axis in "xyz"]
     except ValueError as error:
         raise _refusal(str(error)) from None
+    if antenna_tf and not arg["base_frame"].strip():
+        raise _refusal("base_frame:='' names no frame for the antenna's transform (or antenna_tf:=false)")
     source = arg["source"].strip()
     towers = arg["towers"].strip()
     params_file = arg["params_file"].strip()
+    extra_params_file = arg["extra_params_file"].strip()
     namespace = arg["namespace"].strip().strip("/")
     from_topic = source == TOPIC_SOURCE
 
@@ -231,9 +292,10 @@ def _launch_setup(context):
         raise _refusal("towers:='' (a blind search, no position) needs one_process:=true: the "
                        "tdoa_fusion node needs a tower database")
     missing = [f"{name}:={path}" for name, path in
-               (("source", source), ("towers", towers), ("params_file", params_file))
+               (("source", source), ("towers", towers), ("params_file", params_file),
+                ("extra_params_file", extra_params_file))
                if not (name == "source" and (from_topic or _is_address(path))) and not (name == "towers" and blind)
-               and not os.path.exists(path)]
+               and not (name == "extra_params_file" and not path) and not os.path.exists(path)]
     if missing:
         raise _refusal("no such file or directory: " + ", ".join(missing))
 
@@ -273,10 +335,18 @@ def _launch_setup(context):
     }
     nodes = []
     for name in executables:
-        parameters = [params_file, {"use_sim_time": use_sim_time, **overrides[name]}]
+        parameters = [params_file, *([extra_params_file] if extra_params_file else []),
+                      {"use_sim_time": use_sim_time, **overrides[name]}]
         placement = {"namespace": namespace} if namespace else {}
         nodes.append(Node(package=PACKAGE, executable=name, name=name, parameters=parameters,
-                          output="screen", emulate_tty=True, **placement))
+                          output="screen", emulate_tty=True, on_exit=_end_of_a_required_node, **placement))
+    if antenna_tf:
+        base_frame = arg["base_frame"].strip()
+        # the NavSatFix's frame (tdoa_fusion's antenna_frame default); rotation: none, the antenna is a point
+        offsets = [text for axis, value in zip("xyz", antenna) for text in (f"--{axis}", repr(value))]
+        nodes.append(Node(package="tf2_ros", executable="static_transform_publisher", name="deepsync_antenna_tf",
+                          arguments=[*offsets, "--frame-id", base_frame, "--child-frame-id", ANTENNA_FRAME],
+                          parameters=[{"use_sim_time": use_sim_time}], output="screen"))
     if from_topic:
         logger.info(f"source:=topic: no envelope_adc node; play a bag into {prefix}/envelope, e.g. "
                     "ros2 bag play bags/campus --clock")

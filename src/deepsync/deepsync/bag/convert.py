@@ -309,6 +309,27 @@ def fix_to_pose_msg(fix: Fix, *, frame_id: str = MAP_FRAME_ID, store: Types = No
     )
 
 
+NAV_SAT_STATUS_NO_FIX = -1  # sensor_msgs/NavSatStatus.STATUS_NO_FIX
+NAV_SAT_COVARIANCE_UNKNOWN = 0  # sensor_msgs/NavSatFix.COVARIANCE_TYPE_UNKNOWN
+
+
+def no_fix_to_navsat_msg(stamp_ns: int, *, frame_id: str = ANTENNA_FRAME_ID, store: Types = None) -> Any:
+    """A stack without a fix -> ``sensor_msgs/msg/NavSatFix`` as a GNSS driver says it has none:
+    ``STATUS_NO_FIX``, covariance type ``COVARIANCE_TYPE_UNKNOWN``, latitude, longitude and
+    altitude NaN (no position, rather than a plausible-looking 0, 0)."""
+    types = _types(store)
+    status = types.resolve("sensor_msgs/msg/NavSatStatus")(status=NAV_SAT_STATUS_NO_FIX, service=0)
+    return types.resolve(NAV_SAT_FIX)(
+        header=make_header(stamp_ns, frame_id, types),
+        status=status,
+        latitude=math.nan,
+        longitude=math.nan,
+        altitude=math.nan,
+        position_covariance=np.zeros(9, dtype="<f8"),
+        position_covariance_type=NAV_SAT_COVARIANCE_UNKNOWN,
+    )
+
+
 def fix_to_navsat_msg(fix: Fix, frame: LocalFrame, *, frame_id: str = ANTENNA_FRAME_ID, store: Types = None) -> Any:
     """A fix -> ``sensor_msgs/msg/NavSatFix``: WGS84 latitude, longitude and ellipsoidal altitude of
     the ``map`` position, the ENU covariance as ``COVARIANCE_TYPE_KNOWN``, status ``STATUS_FIX``
@@ -327,8 +348,6 @@ def fix_to_navsat_msg(fix: Fix, frame: LocalFrame, *, frame_id: str = ANTENNA_FR
     )
 
 
-NAV_SAT_STATUS_NO_FIX = -1  # sensor_msgs/NavSatStatus.STATUS_NO_FIX
-NAV_SAT_COVARIANCE_UNKNOWN = 0  # sensor_msgs/NavSatFix.COVARIANCE_TYPE_UNKNOWN
 
 
 def gnss_fix_from_msg(msg: Any) -> GnssFix | None:

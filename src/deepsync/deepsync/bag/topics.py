@@ -28,6 +28,7 @@ POSE_TOPIC = "/deepsync/pose"  # fusion's fix in map, with covariance
 NAV_SAT_FIX_TOPIC = "/deepsync/fix"  # the same fix in WGS84
 INITIAL_POSE_TOPIC = "/initialpose"  # an operator's pose (RViz, Nav2): outside our namespace, where they publish it
 GNSS_FIX_TOPIC = "/deepsync/gnss/fix"  # a GNSS receiver's NavSatFix, fusion's anchors (remap a driver's onto it)
+MAP_SITES_TOPIC = "/deepsync/map_sites"  # the tower sites, heard or not, as GeoJSON for Foxglove's Map panel
 ODOMETRY_TOPIC = "/deepsync/odometry"  # a robot's nav_msgs/Odometry, fusion's velocities (remap onto it)
 
 # RMW_DURATION_INFINITE = INT64_MAX ns, as rosbag2 (Jazzy) records it.
