@@ -3,21 +3,21 @@
 import numpy as np
 
 from deepsync.eval.timing import (
-    CLASSICAL,
-    ESTIMATORS,
     by_coarse_error,
     by_snr,
     error_stats,
     headline,
     run_estimators,
+    side_by_side,
     time_by_frame,
 )
+from deepsync.timing.registry import ESTIMATORS, Estimator, Input
 from deepsync.training.dataset import DatasetConfig, frame_delay_key, frame_key, make_shard
 
 
 def _results(errors: np.ndarray) -> dict[str, np.ndarray]:
     results = {f"{name}_{kind}": errors.copy() if kind == "error" else np.full(errors.size, 0.5)
-               for name in ESTIMATORS for kind in ("error", "sigma")}
+               for name in side_by_side(with_frame=False) for kind in ("error", "sigma")}
     results["crlb"] = np.full(errors.size, 0.1)
     return results
 
@@ -87,7 +87,7 @@ def test_without_a_network_the_classical_estimators_run_and_the_networks_rows_st
     data = {"windows": windows, "template": np.tile(template, (3, 1)), "offset": offsets}
     results = run_estimators(data, 4, None, progress=False)
     assert np.all(np.isnan(results["network_error"])) and np.all(np.isnan(results["network_ml_error"]))
-    for name in CLASSICAL:
+    for name in (e.name for e in ESTIMATORS.values() if e.input is Input.WINDOWS):
         assert np.all(np.abs(results[f"{name}_error"]) < 0.1), name
 
 
@@ -105,7 +105,7 @@ def test_ml_frame_times_the_examples_of_a_split_that_keeps_their_mean_frames_at_
     strong = shard["snr_db"] > -25
     assert strong.sum() >= 4 and np.any(shard["cosited_pci"][strong] >= 0)
     for frames in (3, 6):
-        timed = np.array(time_by_frame(shard, frames, progress=False))
+        timed = np.array(time_by_frame(shard, frames, Estimator.named("ml_frame"), progress=False))
         errors = timed[:, 0] - shard["offset"]
         assert np.all(np.abs(errors[strong]) < np.maximum(4 * timed[strong, 1], 0.1)), (errors, timed[:, 1])
     assert "ml_frame_error" in run_estimators(shard, 6, None, progress=False)
