@@ -33,7 +33,7 @@ from deepsync.sync.stacking import StackConfig
 from deepsync.timing import network_install_hint
 from deepsync.timing.registry import ESTIMATORS, Estimator
 from deepsync.towers import load_tower_database
-from deepsync.types import FRAME_SECONDS
+from deepsync.types import FRAME_SECONDS, HealthKind
 
 REPO = Path(__file__).resolve().parents[3]
 DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus_route.yaml"
@@ -244,7 +244,7 @@ def _cmd_simulate_set(args: argparse.Namespace) -> int:
 
 def _cmd_make_dataset(args: argparse.Namespace) -> int:
     try:
-        from deepsync.training.train import load_run_config
+        from deepsync.training.train import kept_shards, load_run_config
     except ModuleNotFoundError as error:
         raise ValueError(f"the run config needs {error.name}: {network_install_hint(error.name)}") from None
     from deepsync.training.dataset import generate
@@ -253,8 +253,13 @@ def _cmd_make_dataset(args: argparse.Namespace) -> int:
     cfg = run.training
     runner = JobRunner(args.workers, args.ray)
     print(f"timing examples of {args.config} into {cfg.data_dir}, on {runner.description}")
-    made = generate(Path(cfg.data_dir), {"train": cfg.train_shards, "val": cfg.val_shards, "test": cfg.test_shards},
-                    run.dataset, workers=args.workers, ray=args.ray)
+    try:
+        made = generate(Path(cfg.data_dir), {"train": cfg.train_shards, "val": cfg.val_shards,
+                                             "test": cfg.test_shards}, run.dataset, workers=args.workers, ray=args.ray)
+    except KeyboardInterrupt:
+        print(f"deepsync make-dataset: interrupted\n  {kept_shards(cfg)}\n  the same command makes the rest",
+              file=sys.stderr)
+        return 130
     print(f"  {made} examples made; `deepsync train --config {args.config}` uses them")
     return 0
 
@@ -287,6 +292,12 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
     print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
           f"found in {config.sync.confirm_stacks} stacks in a row; timing: {config.timing.estimator.name}")
+    if verbose:
+        print(f"  tentative: found, not yet in {config.sync.confirm_stacks} stacks in a row; runners-up: the PCIs "
+              "that scored next for the same code (the envelope keeps little of a cell's identity); "
+              f"{HealthKind.MISALIGNED.value}: the receiver clock's drift smeared the stack's frames; "
+              f"{HealthKind.CLIPPED.value}: samples at the ADC's rails; {HealthKind.NO_SIGNAL.value}: nothing to "
+              "search")
     stacks, samples = [], 0
     alike: list[dict] = []  # stacks not printed: like the last printed one, with no cell and no event
     printed: list | None = None  # the flags of the last stack printed
@@ -412,8 +423,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     walked = float(np.sum(np.linalg.norm(np.diff(truth.positions[:, :2], axis=0), axis=1)))
     print(f"\n  recording   {replayed.signal_seconds:.1f} s of ADC stream, {walked:.1f} m walked (ground truth included)")
     print(f"  heard       {len(pcis)} cells (PCI {', '.join(map(str, pcis))}) on {len(summary['sites_heard'])} sites "
-          f"({', '.join(summary['sites_heard'])}); sites per stack: "
-          + ", ".join(f"{k}: {n}" for k, n in heard.items()))
+          f"({', '.join(summary['sites_heard'])}); sites per stack: {_per_stack_text(heard)}")
     print(f"  {'':11s} {'fix rate':>8s} {'median':>7s} {'p90':>7s}   horizontal error against the truth, m")
     rows = [("published", shown), ("tracked", summary["methods"]["tracked"]),
             ("snapshot", summary["methods"]["snapshot"])]
@@ -452,6 +462,27 @@ def _say(text: str) -> None:
     from tqdm import tqdm
 
     tqdm.write(f"  note: {text}")
+
+
+def _per_stack_text(heard: dict[str, int]) -> str:
+    """``sites_per_stack`` as printed: "0: 2, 3: 21" (sites heard: stacks)."""
+    return ", ".join(f"{k}: {n}" for k, n in heard.items())
+
+
+def _reasons_text(reasons: dict[str, int]) -> str:
+    """No-fix reasons with their counts, the most frequent first."""
+    return ", ".join(f"{reason} {n}" for reason, n in reasons.items())
+
+
+def _print_fixes(fixes: dict, heard: dict[str, int]) -> None:
+    """A replay's published answers: how many stacks gave a pose, why the others did not, and
+    how many sites the stacks heard (a fix needs three, or a tracker that has started)."""
+    if not fixes:
+        return
+    missing = fixes["epochs"] - fixes["fixes"]
+    print(f"  fixes       {fixes['fixes']} of {fixes['epochs']} stacks gave a pose ({fixes['fix_rate']:.0%})"
+          + (f"; no fix: {_reasons_text(fixes['no_fix_reasons'])}" if missing else ""))
+    print(f"  sites       heard per stack (sites: stacks) {_per_stack_text(heard)}")
 
 
 def _print_health(health: dict[str, int]) -> None:
@@ -530,6 +561,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
           f"{summary.wall_seconds:.1f} s ({summary.realtime_factor:.1f}x real time)")
     print(f"  written to {summary.out}: " + (", ".join(f"{t} {n}" for t, n in summary.written.items()) or "nothing"))
+    _print_fixes(summary.fixes, summary.sites_heard_per_stack)
     _print_health(summary.health)
     if summary.damage:
         print(f"deepsync replay: the input is damaged, replayed up to the damage: {summary.damage}; "
@@ -540,21 +572,26 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     try:
-        from deepsync.training.train import load_run_config, train
+        from deepsync.training.train import destination, final_metrics, kept_after_interrupt, load_run_config, train
     except ModuleNotFoundError as error:
         raise ValueError(f"training needs {error.name}: {network_install_hint(error.name)} (scripts/setup.sh "
                          "installs everything)") from None
 
     run = load_run_config(args.config)
+    shipping = destination(run.training, args.replace_shipped)
     print(f"training the timing network from {args.config}: {run.training.steps} steps of "
-          f"{run.training.batch_size}, run directory {run.training.run_dir}")
+          f"{run.training.batch_size}, run directory {run.training.run_dir}; the network goes to "
+          f"{shipping or Path(run.training.run_dir) / 'best.pt'}")
     try:
-        path = train(run, args.config)
+        path = train(run, args.config, args.replace_shipped)
     except KeyboardInterrupt:
-        print(f"deepsync train: interrupted; {run.training.run_dir} keeps the run so far (the same command resumes "
-              f"it), {run.training.model_path} is as it was", file=sys.stderr)
+        print("deepsync train: interrupted", file=sys.stderr)
+        for line in kept_after_interrupt(run, args.config, args.replace_shipped):
+            print(f"  {line}", file=sys.stderr)
         return 130
-    print(f"  best checkpoint: {path}")
+    for line in final_metrics(run.training.run_dir):
+        print(f"  {line}")
+    print(f"  trained network: {path}")
     return 0
 
 
@@ -623,7 +660,7 @@ def _metres(value: float | None) -> str:
 def _print_route(summary: dict) -> None:
     if summary["interrupted"]:
         print("  interrupted: the numbers cover what was replayed")
-    heard = ", ".join(f"{k}: {n}" for k, n in summary["sites_heard_per_stack"].items())
+    heard = _per_stack_text(summary["sites_heard_per_stack"])
     print(f"  {summary['stacks']} stacks over {summary['seconds']:.1f} s; sites heard per stack ({heard}); "
           f"heard at all: {', '.join(summary['sites_heard']) or 'none'}")
     print(f"  {'method':10s} {'fix rate':>8s} {'median':>7s} {'p90':>7s} {'p95':>7s} {'NEES':>6s}  "
@@ -633,7 +670,7 @@ def _print_route(summary: dict) -> None:
             print(f"  {name:10s} no path-loss model: {summary['rssi_model']['why']}")
             continue
         nees = "     -" if method["nees_mean"] is None else f"{method['nees_mean']:6.1f}"
-        reasons = ", ".join(f"{reason} {n}" for reason, n in method["no_fix_reasons"].items())
+        reasons = _reasons_text(method["no_fix_reasons"])
         print(f"  {name:10s} {method['fix_rate']:8.0%} {_metres(method['median_m'])} {_metres(method['p90_m'])} "
               f"{_metres(method['p95_m'])} {nees}  {reasons}")
     bound = summary["position_bound"]
@@ -781,6 +818,9 @@ def build_parser() -> argparse.ArgumentParser:
     training = commands.add_parser("train", help="train the timing network (makes its simulated examples first "
                                    "if missing; resumes an interrupted run)")
     training.add_argument("--config", required=True, help="run YAML (config/timing/timing_net.yaml)")
+    training.add_argument("--replace-shipped", action="store_true",
+                          help="when the run ends, replace the network shipped with deepsync by its best checkpoint "
+                          "(otherwise it stays <run_dir>/best.pt, or goes to the config's training.model_path)")
     training.set_defaults(run=_cmd_train)
 
     dataset = commands.add_parser("make-dataset", help="make a run config's missing timing examples, in local "
@@ -812,7 +852,8 @@ def build_parser() -> argparse.ArgumentParser:
     onnx.set_defaults(run=_cmd_export_onnx)
 
     info = commands.add_parser("info", help="describe a bag")
-    info.add_argument("--bag", required=True)
+    info.add_argument("--bag", required=True, help="bag directory or .mcap file: its topics and message counts, "
+                      "length, integrity, what made it and the ground truth it holds")
     info.set_defaults(run=_cmd_info)
 
     demo = commands.add_parser("demo", help="the main job on the bundled walk (no ROS needed): replay it through "
@@ -821,7 +862,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--verbose", action="store_true", help="print every stack: cells, sites, fix errors")
     demo.add_argument("--simulate", type=_seconds, metavar="SECONDS",
                       help="simulate a fresh recording of the demo's scenario this long and use it instead")
-    demo.add_argument("--workers", type=_workers, default=workers)
+    demo.add_argument("--workers", type=_workers, default=workers,
+                      help=f"processes simulating a --simulate recording (default {workers})")
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(run=_cmd_demo)
     return parser

@@ -1,0 +1,76 @@
+"""A new user's first hour (#45): what the commands say about themselves and their output."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from deepsync.cli import build_parser, main
+from deepsync.eval.cell_search import runners_up
+from deepsync.sync.search import Candidate
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _help(capsys, *command: str) -> str:
+    with pytest.raises(SystemExit):
+        build_parser().parse_args([*command, "--help"])
+    return " ".join(capsys.readouterr().out.split())
+
+
+@pytest.mark.parametrize("command, option, said", [
+    (("info",), "--bag", "message counts"),
+    (("demo",), "--workers", "simulating a --simulate recording"),
+    (("evaluate-timing",), "--split", "default test"),
+    (("evaluate-timing",), "--data", "default data/timing"),
+    (("train",), "--replace-shipped", "shipped"),
+])
+def test_every_option_says_what_it_does(capsys, command, option, said):
+    text = _help(capsys, *command)
+    assert said in text.split(option, 1)[1], text
+
+
+def test_a_cell_is_never_its_own_runner_up():
+    """The tower database may report a PCI from below the top of the ranking: its runners-up
+    are the others, best first."""
+    ranked = [Candidate(121, 0.9, 0), Candidate(120, 0.8, 0), Candidate(57, 0.5, 0), Candidate(407, 0.4, 0),
+              Candidate(3, 0.3, 0)]
+    assert runners_up(120, ranked) == [121, 57, 407]
+    assert runners_up(121, ranked) == [120, 57, 407]
+    assert runners_up(5, ranked[:1]) == [121] and runners_up(121, ranked[:1]) == []
+
+
+def test_detect_explains_its_words_once(capsys):
+    assert main(["detect", "--bag", str(REPO / "bags" / "campus"), "--towers",
+                 str(REPO / "config" / "towers" / "campus.yaml"), "--frames", "10"]) == 0
+    out = capsys.readouterr().out
+    legend = [line for line in out.splitlines() if line.strip().startswith("tentative:")]
+    assert len(legend) == 1 and "runners-up:" in legend[0] and "misaligned:" in legend[0]
+    for line in out.splitlines():
+        if "runners-up" in line and "PCI" in line:
+            pci = line.split()[1]
+            assert pci not in line.split("runners-up", 1)[1].split("(")[0].replace(",", " ").split(), line
+
+
+def test_replay_says_how_many_stacks_gave_no_pose_and_why(tmp_path, capsys):
+    """replay said "no stage reported a problem" while most stacks of a bag gave no pose: it now
+    counts the published answers as evaluate-route does (one summary, ``answer_counts``)."""
+    from deepsync.bag import POSE_TOPIC
+    from deepsync.replay import replay_bag
+    from deepsync.towers import load_tower_database
+
+    towers = load_tower_database(REPO / "config" / "towers" / "campus.yaml")
+    summary = replay_bag(REPO / "bags" / "campus_route", tmp_path / "out", towers, progress=False)
+    fixes = summary.fixes
+    assert fixes["fixes"] == summary.written[POSE_TOPIC] and fixes["epochs"] == summary.stacks
+    assert sum(fixes["no_fix_reasons"].values()) == fixes["epochs"] - fixes["fixes"] > 0
+    assert sum(summary.sites_heard_per_stack.values()) == summary.stacks
+    assert main(["replay", "--in", str(REPO / "bags" / "campus_route"), "--towers",
+                 str(REPO / "config" / "towers" / "campus.yaml"), "--out", str(tmp_path / "again"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    reasons = ", ".join(f"{reason} {n}" for reason, n in fixes["no_fix_reasons"].items())
+    assert f"{fixes['fixes']} of {fixes['epochs']} stacks gave a pose" in out and f"no fix: {reasons}" in out
+    assert "heard per stack" in out
+    blind = replay_bag(REPO / "bags" / "campus_route", tmp_path / "blind", None, progress=False)
+    assert blind.fixes == {}  # no fusion, nothing to count
