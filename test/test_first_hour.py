@@ -74,3 +74,26 @@ def test_replay_says_how_many_stacks_gave_no_pose_and_why(tmp_path, capsys):
     assert "heard per stack" in out
     blind = replay_bag(REPO / "bags" / "campus_route", tmp_path / "blind", None, progress=False)
     assert blind.fixes == {}  # no fusion, nothing to count
+
+
+def test_export_onnx_says_what_it_does_before_its_long_steps(tmp_path, capsys, monkeypatch):
+    """The export takes a minute and a half: what it is doing is said before it starts."""
+    pytest.importorskip("torch", reason="the export needs torch")
+    from deepsync.timing import export
+
+    said_before = {}
+
+    def export_onnx(checkpoint, path):
+        said_before["export"] = capsys.readouterr().out
+        return tmp_path / "net.onnx"
+
+    def check_onnx(path, checkpoint):
+        said_before["check"] = capsys.readouterr().out
+        return 1e-6
+
+    monkeypatch.setattr(export, "export_onnx", export_onnx)
+    monkeypatch.setattr(export, "check_onnx", check_onnx)
+    assert main(["export-onnx", "--out", str(tmp_path / "net.onnx")]) == 0
+    assert "exporting: torch's exporter traces the network" in said_before["export"]
+    assert "done in" in said_before["check"] and "checking it in onnxruntime" in said_before["check"]
+    assert "docs/timing_network.md" in said_before["check"] and "1.00e-06" in capsys.readouterr().out

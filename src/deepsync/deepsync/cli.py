@@ -7,13 +7,15 @@ over a source (``deepsync.sources``), and reported by ``deepsync.eval``."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import reprlib
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -633,9 +635,38 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
     from deepsync.timing.network import DEFAULT_CHECKPOINT
 
     checkpoint = load_checkpoint(args.checkpoint or DEFAULT_CHECKPOINT)
-    path = export_onnx(checkpoint, args.out)
-    print(f"written {path}: largest |onnxruntime - torch| on random inputs {check_onnx(path, checkpoint):.2e}")
+    with _ticking("exporting: torch's exporter traces the network (about a minute and a half on 2 cores)"):
+        path = export_onnx(checkpoint, args.out)
+    print(f"  written {path} (one self-contained file; its inputs and outputs: docs/timing_network.md)")
+    with _ticking("checking it in onnxruntime against torch on random inputs"):
+        difference = check_onnx(path, checkpoint)
+    print(f"  largest |onnxruntime - torch| {difference:.2e}")
     return 0
+
+
+@contextlib.contextmanager
+def _ticking(step: str) -> Iterator[None]:
+    """Says what a long step does before it starts and how long it took; on a terminal, the
+    seconds count up meanwhile."""
+    print(f"  {step} ...", flush=True)
+    started = time.monotonic()
+    done = threading.Event()
+
+    def tick() -> None:
+        while not done.wait(1.0):
+            print(f"\r    {time.monotonic() - started:4.0f} s", end="", file=sys.stderr, flush=True)
+
+    ticker = threading.Thread(target=tick, daemon=True) if sys.stderr.isatty() else None
+    if ticker is not None:
+        ticker.start()
+    try:
+        yield
+    finally:
+        done.set()
+        if ticker is not None:
+            ticker.join()
+            print("\r", end="", file=sys.stderr, flush=True)
+    print(f"    done in {time.monotonic() - started:.0f} s", flush=True)
 
 
 def _cmd_compare_poses(args: argparse.Namespace) -> int:
@@ -832,7 +863,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser("evaluate-timing", help="every timing estimator (network, ML, FFT-upsampled, ...) side "
                                    "by side against the true first path and the CRLB: JSON and a figure")
     evaluate.add_argument("--data", default="data/timing", help="timing data directory (default %(default)s; "
-                          "`deepsync make-dataset` or `deepsync train` makes it, about 40 minutes on 2 cores)")
+                          "`deepsync make-dataset` makes it, about 20 minutes on 2 cores; `deepsync train` too)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test"),
                           help="which examples to score (default %(default)s: those nobody trained or chose on)")
     evaluate.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")

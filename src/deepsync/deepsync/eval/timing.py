@@ -216,8 +216,9 @@ def check_split_made(data_dir: str | Path, split: str) -> None:
     if not any(where.glob("shard_*.npz")):
         raise ValueError(
             f"no timing examples in {where}: make them first with `deepsync make-dataset --config {SHIPPED_RUN}` "
-            "(every split of the shipped run: about 40 minutes on 2 cores; `deepsync train` makes them too, then "
-            "trains), or score a simulated recording instead, in a minute: `deepsync evaluate-timing --bag "
+            "(every split of the shipped run: about 20 minutes on 2 cores; `deepsync train` makes them too, then "
+            "trains: about 40 minutes), or score a simulated recording instead, in seconds: `deepsync "
+            "evaluate-timing --bag "
             "bags/campus_route --towers config/towers/campus.yaml`")
 
 
