@@ -97,3 +97,33 @@ def test_export_onnx_says_what_it_does_before_its_long_steps(tmp_path, capsys, m
     assert "exporting: torch's exporter traces the network" in said_before["export"]
     assert "done in" in said_before["check"] and "checking it in onnxruntime" in said_before["check"]
     assert "docs/timing_network.md" in said_before["check"] and "1.00e-06" in capsys.readouterr().out
+
+
+def test_calibrate_keeps_the_tower_files_comments_and_layout(tmp_path, capsys):
+    """calibrate wrote its database with yaml.safe_dump: every comment of the input was lost.
+    Now only the values that changed are written into the input's text, and the file still
+    reads back as the calibrated database exactly."""
+    import dataclasses
+
+    from deepsync.towers import load_tower_database, tower_database_to_dict, write_tower_database
+
+    source = REPO / "config" / "towers" / "campus.yaml"
+    original = source.read_text()
+    out = tmp_path / "calibrated.yaml"
+    assert main(["calibrate", "--bag", str(REPO / "bags" / "campus_route"), "--towers", str(source),
+                 "--out", str(out), "--quiet"]) == 0
+    assert "without the comments" not in capsys.readouterr().out
+    written = out.read_text()
+    comments = [line for line in original.splitlines() if line.lstrip().startswith("#")]
+    assert comments and all(line in written.splitlines() for line in comments)
+    assert "- {pci: 120, earfcn: 2000, bandwidth_mhz: 10}" in written  # the flow style kept
+    calibrated = load_tower_database(out)
+    assert calibrated.sites[1].timing_drift_ns_per_s is not None  # the calibration is in it
+    # a changed value, a key added and one removed: read back exactly, the rest untouched
+    site = dataclasses.replace(calibrated.sites[0], timing_offset_us=1.25, timing_drift_ns_per_s=None)
+    changed = dataclasses.replace(calibrated, sites=(site, *calibrated.sites[1:]))
+    again = tmp_path / "again.yaml"
+    assert write_tower_database(changed, again, like=out)
+    assert tower_database_to_dict(load_tower_database(again)) == tower_database_to_dict(changed)
+    assert all(line in again.read_text().splitlines() for line in comments)
+    assert write_tower_database(load_tower_database(source), again, like=source) and again.read_text() == original

@@ -545,8 +545,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"    site {site.site}: offset {site.offset_correction_s * 1e9:+9.1f} +- {site.offset_std_s * 1e9:5.1f} ns, "
               f"drift {site.drift_correction * 1e9:+7.2f} +- {site.drift_std * 1e9:5.2f} ns/s  "
               f"({site.n_arrivals} arrivals, residual RMS {site.residual_rms_m:.1f} m)")
-    write_tower_database(calibration.database, Path(args.out))
-    print(f"  written: {args.out}")
+    kept = write_tower_database(calibration.database, Path(args.out), like=args.towers)
+    print(f"  written: {args.out}" + ("" if kept else f" (without the comments of {args.towers}: merged into its text, "
+                                       "the values would not read back exactly)"))
     return 0
 
 
