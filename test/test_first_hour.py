@@ -127,3 +127,61 @@ def test_calibrate_keeps_the_tower_files_comments_and_layout(tmp_path, capsys):
     assert tower_database_to_dict(load_tower_database(again)) == tower_database_to_dict(changed)
     assert all(line in again.read_text().splitlines() for line in comments)
     assert write_tower_database(load_tower_database(source), again, like=source) and again.read_text() == original
+
+
+@pytest.fixture(scope="module")
+def walk():
+    """The demo's walk replayed and fused, as the demo's figures see it."""
+    from deepsync.eval.route import replay_route
+    from deepsync.fusion.anchors import Anchors
+    from deepsync.sources import BagSource
+    from deepsync.towers import load_tower_database
+
+    towers = load_tower_database(REPO / "config" / "towers" / "campus.yaml")
+    return replay_route(BagSource(REPO / "bags" / "campus_route"), towers, progress=False), Anchors(towers)
+
+
+def test_the_route_map_draws_every_fix_and_its_zoom_has_units_and_hides_no_site(walk):
+    import matplotlib.pyplot as plt
+
+    from deepsync.eval.route_figures import map_figure
+
+    run, anchors = walk
+    figure = map_figure(run, anchors)
+    try:
+        ax = figure.axes[0]
+        labels = ax.get_legend_handles_labels()[1]
+        assert "snapshot fixes" in labels and "tracked fixes" in labels
+        (inset,) = ax.child_axes  # the walk is metres long among sites hundreds of metres apart
+        assert "(m)" in inset.get_xlabel() and "(m)" in inset.get_ylabel()
+        assert any(line.get_label() == "snapshot fixes" for line in inset.get_lines())
+        figure.canvas.draw()
+        box = inset.get_tightbbox()
+        names = [text for text in ax.texts if text.get_text() in anchors.anchors]
+        assert len(names) == len(anchors.anchors)
+        assert not [t.get_text() for t in names if t.get_window_extent().overlaps(box)]
+        assert "campus_route" in ax.get_title()
+    finally:
+        plt.close(figure)
+
+
+def test_the_cdf_names_its_bag_and_the_timeline_has_a_title_integer_site_counts_and_says_what_nees_is(walk):
+    import matplotlib.pyplot as plt
+
+    from deepsync.eval.route_figures import cdf_figure, timeline_figure
+
+    run, _ = walk
+    cdf = cdf_figure(run)
+    timeline = timeline_figure(run)
+    try:
+        assert "campus_route" in cdf.axes[0].get_title()
+        errors, sites, scores = timeline.axes[:3]
+        assert "campus_route" in errors.get_title()
+        timeline.canvas.draw()
+        ticks = [t for t in sites.get_yticks() if sites.get_ylim()[0] <= t <= sites.get_ylim()[1]]
+        assert ticks and all(float(t).is_integer() for t in ticks)
+        assert "covariance" in scores.get_ylabel()
+        assert any("honest" in label for label in scores.get_legend_handles_labels()[1])
+    finally:
+        plt.close(cdf)
+        plt.close(timeline)
