@@ -185,3 +185,71 @@ def test_the_cdf_names_its_bag_and_the_timeline_has_a_title_integer_site_counts_
     finally:
         plt.close(cdf)
         plt.close(timeline)
+
+
+# -- scripts/debian_packages.sh (scripts/setup.sh's optional packages), against fake apt tools --
+
+LOCKED = "E: Could not get lock /var/lib/dpkg/lock-frontend. It is held by process 4242 (unattended-upgr)"
+
+
+def _debian_packages(where, apt_get: str, uid: int = 0, wait: int = 30, sudo: bool = False):
+    """Runs the script in a fresh folder ``where`` with dpkg-query saying nothing is installed,
+    ``apt_get`` as apt-get's body (its calls listed in ``calls``), ``id -u`` printing ``uid``,
+    sleep returning at once; returns (exit code, output, calls)."""
+    import subprocess
+
+    bin_dir = where / "bin"
+    bin_dir.mkdir(parents=True)
+    calls = where / "calls"
+    tools = {"dpkg-query": "echo unknown", "id": f'[ "$1" = -u ] && echo {uid} || /usr/bin/id "$@"',
+             "apt-get": f'echo "$@" >> {calls}\nn=$(wc -l < {calls})\n{apt_get}', "sleep": "exit 0"}
+    if sudo:
+        tools["sudo"] = '[ "$1" = -n ] && shift; [ "$1" = true ] && exit 0; "$@"'
+    for name, body in tools.items():
+        (bin_dir / name).write_text(f"#!/bin/bash\n{body}\n")
+        (bin_dir / name).chmod(0o755)
+    env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "DEEPSYNC_APT_WAIT": str(wait), "DEEPSYNC_APT_RETRY": "1",
+           "HOME": str(where)}
+    if not sudo:  # a machine without sudo: the fake bin comes first, and /usr/bin's is hidden
+        env["PATH"] = f"{bin_dir}:{_without_sudo(where)}"
+    done = subprocess.run(["bash", str(REPO / "scripts" / "debian_packages.sh")], capture_output=True, text=True,
+                          env=env, timeout=60, stdin=subprocess.DEVNULL)
+    return done.returncode, done.stdout + done.stderr, calls.read_text().splitlines() if calls.exists() else []
+
+
+def _without_sudo(tmp_path) -> str:
+    """A directory of links to /usr/bin's and /bin's tools, sudo left out."""
+    import os
+
+    tools = tmp_path / "tools"
+    if not tools.exists():
+        tools.mkdir()
+        for root in ("/usr/bin", "/bin"):
+            for name in os.listdir(root):
+                if name != "sudo" and not (tools / name).exists():
+                    (tools / name).symlink_to(os.path.join(root, name))
+    return str(tools)
+
+
+def test_setup_waits_for_the_dpkg_lock_and_says_what_it_installs_first(tmp_path):
+    code, out, calls = _debian_packages(tmp_path / "held", f'[ "$n" -le 2 ] && {{ echo "{LOCKED}" >&2; exit 100; }}; exit 0')
+    assert code == 0 and "Debian packages installed" in out, out
+    assert out.index("installing them with") < out.index("apt-get update")  # said before it is done
+    assert out.count("holds the dpkg lock (held by process 4242 (unattended-upgr)); waiting up to 30 s") == 1, out
+    assert "E: Could not" not in out  # apt's raw error is not what the user reads
+    assert [c.split()[1] for c in calls] == ["update", "update", "update", "install"]
+
+
+def test_setup_skips_the_optional_packages_with_a_line_when_the_lock_stays_held_or_apt_fails(tmp_path):
+    code, out, _ = _debian_packages(tmp_path / "held", f'echo "{LOCKED}" >&2; exit 100', wait=2)
+    assert code == 0 and "still holds the dpkg lock after 2 s" in out and "tests will skip" in out, out
+    code, out, calls = _debian_packages(tmp_path / "offline", 'echo "E: Failed to fetch http://deb.debian.org/x  '
+                                        'Temporary failure" >&2; exit 100')
+    assert code == 0 and "apt-get update failed" in out and "Temporary failure" in out and len(calls) == 1, out
+
+
+def test_setup_without_root_or_sudo_says_how_to_add_the_packages_later(tmp_path):
+    code, out, calls = _debian_packages(tmp_path / "user", "exit 0", uid=1000)
+    assert code == 0 and "needs root or sudo" in out and "apt-get install python3-rosidl" in out and not calls, out
+    code, out, calls = _debian_packages(tmp_path / "sudoer", "exit 0", uid=1000, sudo=True)
+    assert code == 0 and "as root through sudo" in out and "Debian packages installed" in out, out
