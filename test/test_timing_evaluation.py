@@ -140,3 +140,22 @@ def test_the_headline_and_the_statistics_print_as_tables_without_none_or_nan():
     network = next(line for line in lines if line.startswith("network "))
     # RMSE 0.4 against a bound of 0.1 in every bin, up to the last (+5..+10 dB); errors beyond a sample: ~1 %
     assert network.split()[1:4] == ["+10", "dB", "never"], network
+
+
+def test_evaluate_timing_writes_the_json_and_the_figure_it_promises_and_prints_tables(tmp_path, capsys):
+    """On a split of one small shard (12 frames, as the shipped network takes them)."""
+    import pytest
+
+    pytest.importorskip("torch", reason="the side by side runs the network")
+    from deepsync.cli import main
+    from deepsync.training.dataset import _write_shard
+
+    _write_shard(DatasetConfig(max_frames=12, re_power_dbm=(-90.0, -75.0), examples_per_shard=12), tmp_path / "data",
+                 "test", 0)
+    out = tmp_path / "out"
+    assert main(["evaluate-timing", "--data", str(tmp_path / "data"), "--frames", "10", "--out", str(out),
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert (out / "timing.json").stat().st_size > 0 and (out / "timing.png").read_bytes()[:4] == b"\x89PNG"
+    assert "RMSE > 2 CRLB" in printed and "within 1 sigma" in printed
+    assert not any(word in printed for word in ("None", "nan", "{'"))
