@@ -33,7 +33,8 @@ from deepsync.bag import read_envelope
 from deepsync.sources import bag_frontend
 from deepsync.sync.search import SearchConfig
 from deepsync.sync.stage import SyncConfig, SyncStage
-from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
+from deepsync.timing.registry import ESTIMATORS, Estimator
+from deepsync.timing.stage import TimingConfig, TimingStage
 from deepsync.towers import load_tower_database
 from replay_speed import CHUNKS_PER_SECOND, ROUTE, ROUTE_TOWERS, ROUTE_WARMUP_S  # the dense walk, where made
 from soak import Stream  # benchmarks/soak.py: the bag looped on one stream
@@ -147,10 +148,10 @@ def main() -> None:
             print_stream("known, dense walk", out["known_stream_dense_walk"])
         else:
             print(f"{ROUTE.relative_to(REPO)} not made: the dense walk is not timed")
-        for estimator in Estimator:
+        for estimator in ESTIMATORS.values():
             median, p90 = time_timing(chunks, database, args.repeats, estimator)
-            out[f"timing_{estimator.value}"] = {"median_ms": median, "p90_ms": p90}
-            print(f"{'timing, ' + estimator.value:40s}: {median:6.1f} ms median, {p90:6.1f} ms p90 per stack "
+            out[f"timing_{estimator.name}"] = {"median_ms": median, "p90_ms": p90}
+            print(f"{'timing, ' + estimator.name:40s}: {median:6.1f} ms median, {p90:6.1f} ms p90 per stack "
                   "(4 cells), one core")
     path = REPO / "docs" / "results" / "sync_speed.json"
     path.parent.mkdir(parents=True, exist_ok=True)

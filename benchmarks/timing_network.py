@@ -66,7 +66,7 @@ def main() -> None:
         with torch.inference_mode():
             model(signal, code)
 
-    network_stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=args.checkpoint))
+    network_stage = TimingStage(frontend, TimingConfig(estimator=Estimator.named("network"), checkpoint=args.checkpoint))
     ml_stage = TimingStage(frontend)
     result = {
         "checkpoint": str(args.checkpoint),

@@ -7,30 +7,32 @@ cd "$(dirname "$0")/.."
 VENV=.venv
 STAMP=$VENV/.installed
 
-# ROS 2 itself is not installable here; these Debian packages carry the same .msg parser,
-# package.xml validator and colcon that a ROS build runs, so the tests can check those files.
-DEBIAN_PACKAGES="python3-rosidl rosidl-tools colcon python3-colcon-ros python3-catkin-pkg"
-missing=""
-if command -v dpkg-query >/dev/null; then
-  for p in $DEBIAN_PACKAGES; do
-    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing="$missing $p"
-  done
-fi
-if [ -n "$missing" ]; then
-  SUDO=""; [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null && SUDO="sudo"
-  if [ "$(id -u)" -eq 0 ] || [ -n "$SUDO" ]; then
-    echo "setup: installing Debian packages:$missing"
-    $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $missing >/dev/null
-  else
-    echo "setup: cannot install$missing (no root); the ROS-tooling tests will skip"
-  fi
-fi
+# the optional Debian packages of the ROS-tooling tests: said, and skipped with a line when
+# they cannot be installed (no root, the package lock held, no network)
+scripts/debian_packages.sh
 
 PYTHON=${PYTHON:-python3}
 if [ ! -f "$STAMP" ] || [ constraints.txt -nt "$STAMP" ] || [ src/deepsync/setup.py -nt "$STAMP" ] || [ src/deepsync_ros/setup.py -nt "$STAMP" ]; then
-  echo "setup: creating $VENV with pinned dependencies"
+  echo "setup: 1/2 creating the virtual environment $VENV ($("$PYTHON" --version 2>&1))"
   "$PYTHON" -m venv "$VENV"
-  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -c constraints.txt -e "src/deepsync[network,onnx,ray]" -e src/deepsync_ros pytest hypothesis
+  echo "setup: 2/2 installing the pinned Python dependencies of constraints.txt into $VENV: numpy, scipy,"
+  echo "setup:     rosbags, matplotlib, torch (CPU), onnx, onnxruntime, ray, pytest and their own;"
+  echo "setup:     a few minutes and about 2 GB on a first run (one line per package below)"
+  # pip's lines that say where it is, one per package; the end of its output when it fails
+  log=$(mktemp)
+  set +e
+  "$VENV/bin/python" -m pip install --disable-pip-version-check -c constraints.txt \
+    -e "src/deepsync[network,onnx,ray]" -e src/deepsync_ros pytest hypothesis 2>&1 | tee "$log" \
+    | grep --line-buffered -E "^(Collecting|Installing collected|Successfully installed)" | sed -u 's/^/setup:     /'
+  status=${PIPESTATUS[0]}
+  set -e
+  if [ "$status" -ne 0 ]; then
+    echo "setup: pip failed (exit $status); the end of its output:"
+    tail -n 40 "$log"
+    rm -f "$log"
+    exit 1
+  fi
+  rm -f "$log"
   touch "$VENV/COLCON_IGNORE" "$STAMP"  # keep colcon out of the venv's packages
+  echo "setup: done"
 fi

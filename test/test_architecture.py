@@ -75,3 +75,42 @@ def test_sync_holds_only_the_cell_search():
 def test_shared_helpers_and_constants_live_in_one_place(pattern, home):
     where = [str(p.relative_to(CORE)) for p in CORE.rglob("*.py") if re.search(pattern, p.read_text(), re.M)]
     assert where == [home]
+
+
+# -- the timing estimators: one registry (deepsync.timing.registry) ------------------------------
+
+ROS_BINDING = CORE.parents[2] / "deepsync_ros" / "deepsync_ros"
+# the registry, and the estimator functions' own labels of what they return
+ESTIMATOR_HOMES = {"timing/registry.py", "timing/estimators.py"}
+
+
+def test_estimator_names_are_written_only_in_the_registry():
+    """An estimator's name in a branch, a list of choices or a table's columns anywhere else is
+    a place that adding or renaming one would miss."""
+    from deepsync.timing.registry import ESTIMATORS
+
+    where = []
+    for root in (CORE, ROS_BINDING):
+        for path in sorted(root.rglob("*.py")):
+            if root is CORE and path.relative_to(CORE).as_posix() in ESTIMATOR_HOMES:
+                continue
+            where += [f"{path.relative_to(root.parent)}:{node.lineno} {node.value!r}"
+                      for node in ast.walk(ast.parse(path.read_text()))
+                      if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in ESTIMATORS]
+    assert not where, f"estimator names outside timing/registry.py: {where}"
+
+
+def test_the_timing_stage_names_no_estimator():
+    """The stage dispatches on what an estimator times a cell from (``Input``) and calls its
+    functions; it never singles one out (no ``Estimator.X``, no registry lookup, no ``==``)."""
+    tree = ast.parse((CORE / "timing" / "stage.py").read_text())
+    from_registry = {alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+                     and node.module == "deepsync.timing.registry" for alias in node.names}
+    assert from_registry <= {"DEFAULT", "Estimator", "Input"}, from_registry
+    singled_out = [ast.unparse(node) for node in ast.walk(tree)
+                   if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                   and node.value.id == "Estimator" and node.attr != "names"]
+    assert not singled_out, singled_out
+    compared = [ast.unparse(node) for node in ast.walk(tree) if isinstance(node, ast.Compare)
+                and "estimator" in ast.unparse(node) and "estimator.input" not in ast.unparse(node)]
+    assert not compared, compared

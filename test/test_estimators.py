@@ -429,7 +429,7 @@ def test_a_receiver_clock_off_moves_the_mean_frame_not_the_arrival_the_timing_st
     from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
     from deepsync.types import StackWindows, SyncWindow
 
-    stage = TimingStage(templates.config, TimingConfig(Estimator.ML_FRAME), templates)
+    stage = TimingStage(templates.config, TimingConfig(Estimator.named("ml_frame")), templates)
     rng = np.random.default_rng(9)
     errors = []
     for seed in range(4):

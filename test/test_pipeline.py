@@ -14,7 +14,8 @@ from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources import BagSource
 from deepsync.sync.stage import SyncConfig
 from deepsync.timing import stage as timing_stage
-from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
+from deepsync.timing.registry import ESTIMATORS, Estimator
+from deepsync.timing.stage import TimingConfig, TimingStage
 from deepsync.towers import load_tower_database
 from deepsync.types import HealthKind, Severity
 
@@ -76,7 +77,7 @@ def test_a_known_cells_whole_frame_times_it_closer_to_the_truth_than_its_codes(c
     (measured on the bag: 0.02-0.03 samples RMS per site against ML's 0.08-0.11)."""
     source, results = campus
     truth = source.truth_arrivals()
-    codes = TimingStage(source.frontend, TimingConfig(estimator=Estimator.ML))
+    codes = TimingStage(source.frontend, TimingConfig(estimator=Estimator.named("ml")))
     errors = {"ml_frame": [], "ml": []}
     for result in results:
         assert (result.sync.stack_windows.frame is not None) == bool(result.sync.cells)
@@ -159,13 +160,13 @@ def test_the_pipelines_stages_share_one_set_of_templates_of_its_front_end():
         TimingStage(other, templates=pipeline.sync.templates)
 
 
-@pytest.mark.parametrize("estimator", [e for e in Estimator if not e.uses_network])
+@pytest.mark.parametrize("estimator", [e for e in ESTIMATORS.values() if not e.uses_network])
 def test_every_classical_estimator_times_the_campus_cells(campus, estimator):
     source, results = campus
     stage = TimingStage(source.frontend, TimingConfig(estimator=estimator))
     reference = {t.pci: t.toa for t in results[-1].timing.cells}
     timed = stage.process(results[-1].sync.stack_windows).cells
-    assert sorted(t.pci for t in timed) == sorted(reference) and all(t.estimator == estimator.value for t in timed)
+    assert sorted(t.pci for t in timed) == sorted(reference) and all(t.estimator == estimator.name for t in timed)
     for t in timed:  # within what multipath makes them differ by on the campus (ML's error there: 0.1 RMS)
         assert t.toa == pytest.approx(reference[t.pci], abs=0.2)
 

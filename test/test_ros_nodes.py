@@ -409,13 +409,13 @@ def test_runtime_changes_are_checked_and_read_only_ones_refused(ros) -> None:
         assert not refused.successful and "cell_timing.weak_std_samples" in refused.reason
         (refused,) = node.set_parameters([Parameter("frontend", value=CAMPUS_BAG)])
         assert not refused.successful  # read-only: the templates are built once
-        assert node.stage.config.estimator is Estimator.ML_FRAME
+        assert node.stage.config.estimator is Estimator.named("ml_frame")
         refused = node.set_parameters_atomically([Parameter("estimator", value="parabolic"),
                                                   Parameter("weak_std_samples", value=0.0)])
-        assert not refused.successful and node.stage.config.estimator is Estimator.ML_FRAME  # none applied
+        assert not refused.successful and node.stage.config.estimator is Estimator.named("ml_frame")  # none applied
         (accepted,) = node.set_parameters([Parameter("estimator", value="parabolic")])
         assert accepted.successful
-        assert node.stage.config.estimator is Estimator.PARABOLIC
+        assert node.stage.config.estimator is Estimator.named("parabolic")
         assert node.get_parameter("estimator").value == "parabolic"
     finally:
         node.destroy_node()

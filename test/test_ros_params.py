@@ -83,9 +83,9 @@ def test_every_parameter_is_described_and_every_number_has_a_range(node: str, sp
 
 def test_the_estimator_choices_are_the_cores_estimators() -> None:
     (estimator,) = [spec for spec in params.CELL_TIMING if spec.name == "estimator"]
-    assert set(estimator.choices) == {e.value for e in Estimator}
+    assert set(estimator.choices) == set(Estimator.names())
     for choice in estimator.choices:
-        assert params.timing_config({**defaults("cell_timing"), "estimator": choice}).estimator is Estimator(choice)
+        assert params.timing_config({**defaults("cell_timing"), "estimator": choice}).estimator is Estimator.named(choice)
 
 
 @pytest.mark.parametrize("node, name, value, says", [
@@ -239,7 +239,7 @@ def test_the_readmes_node_table_lists_every_parameter_and_estimator() -> None:
         if node != "deepsync_pipeline":
             missing = [spec.name for spec in specs if f"`{spec.name}`" not in rows[node]]
             assert not missing, f"README's {node} row lacks {missing}"
-    assert all(f"`{estimator.value}`" in rows["cell_timing"] for estimator in Estimator)
+    assert all(f"`{name}`" in rows["cell_timing"] for name in Estimator.names())
 
 
 def test_the_yaml_with_the_campus_paths_builds_every_node() -> None:

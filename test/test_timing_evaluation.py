@@ -3,21 +3,23 @@
 import numpy as np
 
 from deepsync.eval.timing import (
-    CLASSICAL,
-    ESTIMATORS,
     by_coarse_error,
     by_snr,
     error_stats,
     headline,
+    headline_table,
     run_estimators,
+    side_by_side,
+    stats_table,
     time_by_frame,
 )
+from deepsync.timing.registry import ESTIMATORS, Estimator, Input
 from deepsync.training.dataset import DatasetConfig, frame_delay_key, frame_key, make_shard
 
 
 def _results(errors: np.ndarray) -> dict[str, np.ndarray]:
     results = {f"{name}_{kind}": errors.copy() if kind == "error" else np.full(errors.size, 0.5)
-               for name in ESTIMATORS for kind in ("error", "sigma")}
+               for name in side_by_side(with_frame=False) for kind in ("error", "sigma")}
     results["crlb"] = np.full(errors.size, 0.1)
     return results
 
@@ -87,7 +89,7 @@ def test_without_a_network_the_classical_estimators_run_and_the_networks_rows_st
     data = {"windows": windows, "template": np.tile(template, (3, 1)), "offset": offsets}
     results = run_estimators(data, 4, None, progress=False)
     assert np.all(np.isnan(results["network_error"])) and np.all(np.isnan(results["network_ml_error"]))
-    for name in CLASSICAL:
+    for name in (e.name for e in ESTIMATORS.values() if e.input is Input.WINDOWS):
         assert np.all(np.abs(results[f"{name}_error"]) < 0.1), name
 
 
@@ -105,8 +107,55 @@ def test_ml_frame_times_the_examples_of_a_split_that_keeps_their_mean_frames_at_
     strong = shard["snr_db"] > -25
     assert strong.sum() >= 4 and np.any(shard["cosited_pci"][strong] >= 0)
     for frames in (3, 6):
-        timed = np.array(time_by_frame(shard, frames, progress=False))
+        timed = np.array(time_by_frame(shard, frames, Estimator.named("ml_frame"), progress=False))
         errors = timed[:, 0] - shard["offset"]
         assert np.all(np.abs(errors[strong]) < np.maximum(4 * timed[strong, 1], 0.1)), (errors, timed[:, 1])
     assert "ml_frame_error" in run_estimators(shard, 6, None, progress=False)
     assert "ml_frame_error" not in run_estimators(shard, 5, None, progress=False)
+
+
+def test_evaluate_timing_without_examples_says_what_to_run_first_and_exits_2(tmp_path, capsys):
+    from deepsync.cli import main
+
+    assert main(["evaluate-timing", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert "deepsync make-dataset --config config/timing/timing_net.yaml" in error and "minutes" in error
+    assert "--bag" in error  # what can be scored without them
+
+
+def test_the_headline_and_the_statistics_print_as_tables_without_none_or_nan():
+    rng = np.random.default_rng(3)
+    snr = np.repeat(np.arange(-27.5, 10, 5.0), 30)
+    results = _results(rng.normal(scale=0.4, size=snr.size))
+    results["ml_error"][:] = np.nan  # an estimator that timed nothing
+    data = {"snr_db": snr, "coarse_error": np.zeros(snr.size)}
+    everything = np.ones(snr.size, dtype=bool)
+    rows = by_snr(data, results, everything)
+    lines = headline_table(headline(data, {"frames": {"10": {"by_snr": rows, "los_by_snr": rows}}}))
+    stats = stats_table({name: error_stats(results[f"{name}_error"][np.isfinite(results[f"{name}_error"])])
+                         for name in side_by_side(with_frame=False)})
+    text = "\n".join([*lines, *stats])
+    assert not any(word in text for word in ("None", "nan", "{", "["))
+    assert len(lines) == 2 + len(side_by_side(with_frame=False)) and "never" in text and "no cell timed" in text
+    network = next(line for line in lines if line.startswith("network "))
+    # RMSE 0.4 against a bound of 0.1 in every bin, up to the last (+5..+10 dB); errors beyond a sample: ~1 %
+    assert network.split()[1:4] == ["+10", "dB", "never"], network
+
+
+def test_evaluate_timing_writes_the_json_and_the_figure_it_promises_and_prints_tables(tmp_path, capsys):
+    """On a split of one small shard (12 frames, as the shipped network takes them)."""
+    import pytest
+
+    pytest.importorskip("torch", reason="the side by side runs the network")
+    from deepsync.cli import main
+    from deepsync.training.dataset import _write_shard
+
+    _write_shard(DatasetConfig(max_frames=12, re_power_dbm=(-90.0, -75.0), examples_per_shard=12), tmp_path / "data",
+                 "test", 0)
+    out = tmp_path / "out"
+    assert main(["evaluate-timing", "--data", str(tmp_path / "data"), "--frames", "10", "--out", str(out),
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert (out / "timing.json").stat().st_size > 0 and (out / "timing.png").read_bytes()[:4] == b"\x89PNG"
+    assert "RMSE > 2 CRLB" in printed and "within 1 sigma" in printed
+    assert not any(word in printed for word in ("None", "nan", "{'"))

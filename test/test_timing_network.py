@@ -49,7 +49,7 @@ def window(pci: int, frames: int = 10, snr_db: float = 0.0, seed: int = 0, pair:
 
 
 def test_every_cell_of_a_stack_goes_through_one_batch_and_gets_what_it_would_alone(checkpoint, frontend):
-    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
+    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.named("network"), checkpoint=str(checkpoint)))
     cells = [window(pci, seed=pci) for pci in (10, 200, 301, 77)]
     together = stage.process(cells)
     assert [c.estimator for c in together.cells] == ["network"] * 4 and not together.fallbacks
@@ -61,7 +61,7 @@ def test_every_cell_of_a_stack_goes_through_one_batch_and_gets_what_it_would_alo
 
 
 def test_a_dead_or_corrupt_window_is_reported_and_changes_no_other_cell(checkpoint, frontend):
-    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
+    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.named("network"), checkpoint=str(checkpoint)))
     good = window(10, seed=10)
     dead = window(11)
     dead = SyncWindow(0, 11, 5000, np.full_like(dead.windows, 0.25), 12.0, 0.0)
@@ -74,7 +74,7 @@ def test_a_dead_or_corrupt_window_is_reported_and_changes_no_other_cell(checkpoi
 
 
 def test_the_stage_feeds_the_network_what_training_fed_it(checkpoint, frontend):
-    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
+    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.named("network"), checkpoint=str(checkpoint)))
     cell = window(120, seed=3)
     model = load_checkpoint(checkpoint).model
     inputs = network_inputs(torch.from_numpy(cell.windows[None]),
@@ -92,7 +92,7 @@ def test_the_stage_feeds_the_network_what_training_fed_it(checkpoint, frontend):
     (window(5, snr_db=30.0), "above the training range"),
 ], ids=["pair", "too_many_frames", "too_few_frames", "snr"])
 def test_a_cell_outside_the_training_range_is_timed_by_ml_and_says_why(checkpoint, frontend, cell, reason):
-    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
+    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.named("network"), checkpoint=str(checkpoint)))
     result = stage.process([cell, window(9)])
     assert sorted(c.estimator for c in result.cells) == ["ml", "network"]
     assert len(result.fallbacks) == 1 and result.fallbacks[0][0] == 5 and reason in result.fallbacks[0][1]
@@ -102,7 +102,7 @@ def test_a_checkpoint_trained_on_pairs_times_both_sectors_of_a_pair_with_their_f
     torch.manual_seed(0)
     path = tmp_path / "pairs.pt"
     save_checkpoint(path, TimingNet().eval(), dataclasses.replace(RANGE, cosited_pairs=True), Normalisation(1.3))
-    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(path)))
+    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.named("network"), checkpoint=str(path)))
     pair = [window(5, pair=6), dataclasses.replace(window(5, pair=6), pci=6, cosited_pci=5)]
     result = stage.process(pair)
     assert not result.fallbacks and [c.estimator for c in result.cells] == ["network", "network"]
@@ -113,20 +113,20 @@ def test_a_checkpoint_trained_on_pairs_times_both_sectors_of_a_pair_with_their_f
 
 def test_a_bad_or_missing_checkpoint_fails_at_construction_and_keeps_the_running_stage(checkpoint, frontend, tmp_path):
     with pytest.raises(CheckpointError, match="no such file"):
-        TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(tmp_path / "none.pt")))
+        TimingStage(frontend, TimingConfig(estimator=Estimator.named("network"), checkpoint=str(tmp_path / "none.pt")))
     running = TimingStage(frontend)
     with pytest.raises(ValueError, match="none.pt"):
-        running.with_config(TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(tmp_path / "none.pt")))
-    assert running.config.estimator is Estimator.ML_FRAME
-    parabolic = running.with_config(TimingConfig(estimator=Estimator.PARABOLIC))
+        running.with_config(TimingConfig(estimator=Estimator.named("network"), checkpoint=str(tmp_path / "none.pt")))
+    assert running.config.estimator is Estimator.named("ml_frame")
+    parabolic = running.with_config(TimingConfig(estimator=Estimator.named("parabolic")))
     assert parabolic.templates is running.templates  # nothing to load or build
-    assert running.config.estimator is Estimator.ML_FRAME  # the running stage is never changed
-    switched = running.with_config(TimingConfig(estimator=Estimator.NETWORK, checkpoint=str(checkpoint)))
+    assert running.config.estimator is Estimator.named("ml_frame")  # the running stage is never changed
+    switched = running.with_config(TimingConfig(estimator=Estimator.named("network"), checkpoint=str(checkpoint)))
     assert switched.network is not None and switched.templates is running.templates and running.network is None
-    same = switched.with_config(TimingConfig(estimator=Estimator.NETWORK_ML, checkpoint=str(checkpoint)))
-    assert same.network is switched.network and switched.config.estimator is Estimator.NETWORK  # not reloaded
+    same = switched.with_config(TimingConfig(estimator=Estimator.named("network_ml"), checkpoint=str(checkpoint)))
+    assert same.network is switched.network and switched.config.estimator is Estimator.named("network")  # not reloaded
     back = switched.with_config(TimingConfig())
-    assert back.network is None and back.config.estimator is Estimator.ML_FRAME and switched.network is not None
+    assert back.network is None and back.config.estimator is Estimator.named("ml_frame") and switched.network is not None
 
 
 def test_the_shipped_checkpoint_times_simulated_cells_as_its_evaluation_says(frontend):
@@ -142,13 +142,13 @@ def test_the_shipped_checkpoint_times_simulated_cells_as_its_evaluation_says(fro
     strong = shard["snr_db"] > -15
     cells = [SyncWindow(0, int(pci), 1000, w[:10], 10.0, -30.0) for pci, w in zip(shard["pci"], shard["windows"])]
     errors = {}
-    for estimator in (Estimator.NETWORK, Estimator.NETWORK_ML):
+    for estimator in (Estimator.named("network"), Estimator.named("network_ml")):
         timed = TimingStage(frontend, TimingConfig(estimator=estimator)).process(cells).cells
-        assert [c.estimator for c in timed] == [estimator.value] * len(cells)
+        assert [c.estimator for c in timed] == [estimator.name] * len(cells)
         error = np.array([c.toa - 1000 for c in timed]) - shard["offset"]
         errors[estimator] = np.abs(error[strong])
         assert np.mean(np.abs(error) <= 3 * np.array([c.toa_std for c in timed])) >= 0.75
-    assert np.median(errors[Estimator.NETWORK]) < 0.3 and np.median(errors[Estimator.NETWORK_ML]) < 0.3
+    assert np.median(errors[Estimator.named("network")]) < 0.3 and np.median(errors[Estimator.named("network_ml")]) < 0.3
 
 
 def test_nothing_but_the_network_imports_torch():
@@ -169,9 +169,9 @@ def test_without_torch_a_network_estimator_is_refused_with_the_cpu_wheel_to_inst
             "sys.meta_path.insert(0, NoTorch())\n"
             "from deepsync.frontend.config import FrontendConfig\n"
             "from deepsync.timing.stage import Estimator, TimingConfig, TimingStage\n"
-            "TimingStage(FrontendConfig(), TimingConfig(estimator=Estimator.ML))\n"
+            "TimingStage(FrontendConfig(), TimingConfig(estimator=Estimator.named('ml')))\n"
             "try:\n"
-            "    TimingStage(FrontendConfig(), TimingConfig(estimator=Estimator.NETWORK))\n"
+            "    TimingStage(FrontendConfig(), TimingConfig(estimator=Estimator.named('network')))\n"
             "except ValueError as error:\n"
             "    print(error)\n")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
@@ -197,9 +197,9 @@ def test_the_onnx_export_computes_what_torch_computes(checkpoint, tmp_path):
 def test_network_ml_times_inside_the_networks_interval_with_mls_precision(checkpoint, frontend):
     """An untrained network is unsure (a wide interval): ML then finds the code anyway, and its
     sigma carries the multipath floor."""
-    from deepsync.timing.stage import MULTIPATH_FLOOR_SAMPLES
+    from deepsync.timing.registry import MULTIPATH_FLOOR_SAMPLES
 
-    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.NETWORK_ML, checkpoint=str(checkpoint)))
+    stage = TimingStage(frontend, TimingConfig(estimator=Estimator.named("network_ml"), checkpoint=str(checkpoint)))
     cell = stage.process([window(42, snr_db=-5.0, seed=1)]).cells[0]
     assert cell.estimator == "network_ml"
     assert abs(cell.toa - 5001.0) < 0.05 and cell.toa_std >= MULTIPATH_FLOOR_SAMPLES

@@ -374,7 +374,8 @@ def test_an_interrupted_run_keeps_the_file_it_would_replace_and_a_cut_history_na
     monkeypatch.setattr(training, "plot_history", interrupt_after_the_first_evaluation)
     assert main(["train", "--config", config]) == 130
     err = capsys.readouterr().err
-    assert f"interrupted; {tmp_path / 'run'} keeps the run so far (the same command resumes it), {shipped} is as it was" in err
+    assert f"kept: {tmp_path / 'run' / 'last.pt'} (step 5 of 10)" in err and f"{shipped} is as it was" in err
+    assert f"resume: deepsync train --config {config}" in err and "nothing was written" not in err
     assert shipped.read_bytes() == b"the network that was there"
     assert load_checkpoint(tmp_path / "run" / "best.pt").step == 5 and load_checkpoint(tmp_path / "run" / "last.pt").step == 5
     assert not list((tmp_path / "run").glob(".*.partial"))
@@ -386,3 +387,27 @@ def test_an_interrupted_run_keeps_the_file_it_would_replace_and_a_cut_history_na
     history.unlink()
     assert main(["train", "--config", config]) == 0
     assert load_checkpoint(shipped).step == 10
+
+
+def test_a_copied_config_never_replaces_the_shipped_network_unless_asked(tmp_path, capsys):
+    """A config copied from the shipped one once replaced the shipped timing_net.pt when its run
+    ended. Now a run's network stays in its run directory; a config naming the shipped file is
+    refused at the door unless --replace-shipped asks for it; the end prints the metrics."""
+    from deepsync.cli import main
+    from deepsync.timing.network import DEFAULT_CHECKPOINT
+
+    shipped = DEFAULT_CHECKPOINT.read_bytes()
+    naming = run_yaml(tmp_path, steps=5, model_path=str(DEFAULT_CHECKPOINT))
+    assert main(["train", "--config", naming]) == 2
+    error = capsys.readouterr().err
+    assert "--replace-shipped" in error and str(tmp_path / "run" / "best.pt") in error
+    assert not (tmp_path / "data").exists()  # refused before any work
+    elsewhere = run_yaml(tmp_path, steps=5, model_path=str(tmp_path / "other.pt"))
+    assert main(["train", "--config", elsewhere, "--replace-shipped"]) == 2
+    assert "remove one of them" in capsys.readouterr().err
+    plain = run_yaml(tmp_path, steps=5, model_path="")
+    assert main(["train", "--config", plain]) == 0
+    out = capsys.readouterr().out
+    assert f"trained network: {tmp_path / 'run' / 'best.pt'}" in out
+    assert "best checkpoint (step 5), validation errors in samples" in out and "RMSE" in out
+    assert DEFAULT_CHECKPOINT.read_bytes() == shipped

@@ -16,6 +16,7 @@ setup(
         "numpy>=1.24",
         "scipy>=1.10",
         "PyYAML>=6.0",
+        "ruamel.yaml>=0.18",  # rewriting a tower database with its comments kept (deepsync calibrate)
         "rosbags>=0.11,<0.12",
         "mcap>=1.1",
         "pyproj>=3.6",

@@ -7,13 +7,15 @@ over a source (``deepsync.sources``), and reported by ``deepsync.eval``."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import reprlib
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -31,8 +33,9 @@ from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
 from deepsync.sources import BagSource, LiveSource, SampleFormat, Source, open_source
 from deepsync.sync.stacking import StackConfig
 from deepsync.timing import network_install_hint
+from deepsync.timing.registry import ESTIMATORS, Estimator
 from deepsync.towers import load_tower_database
-from deepsync.types import FRAME_SECONDS
+from deepsync.types import FRAME_SECONDS, HealthKind
 
 REPO = Path(__file__).resolve().parents[3]
 DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus_route.yaml"
@@ -243,7 +246,7 @@ def _cmd_simulate_set(args: argparse.Namespace) -> int:
 
 def _cmd_make_dataset(args: argparse.Namespace) -> int:
     try:
-        from deepsync.training.train import load_run_config
+        from deepsync.training.train import kept_shards, load_run_config
     except ModuleNotFoundError as error:
         raise ValueError(f"the run config needs {error.name}: {network_install_hint(error.name)}") from None
     from deepsync.training.dataset import generate
@@ -252,8 +255,13 @@ def _cmd_make_dataset(args: argparse.Namespace) -> int:
     cfg = run.training
     runner = JobRunner(args.workers, args.ray)
     print(f"timing examples of {args.config} into {cfg.data_dir}, on {runner.description}")
-    made = generate(Path(cfg.data_dir), {"train": cfg.train_shards, "val": cfg.val_shards, "test": cfg.test_shards},
-                    run.dataset, workers=args.workers, ray=args.ray)
+    try:
+        made = generate(Path(cfg.data_dir), {"train": cfg.train_shards, "val": cfg.val_shards,
+                                             "test": cfg.test_shards}, run.dataset, workers=args.workers, ray=args.ray)
+    except KeyboardInterrupt:
+        print(f"deepsync make-dataset: interrupted\n  {kept_shards(cfg)}\n  the same command makes the rest",
+              file=sys.stderr)
+        return 130
     print(f"  {made} examples made; `deepsync train --config {args.config}` uses them")
     return 0
 
@@ -285,7 +293,13 @@ def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth
     pipeline = Pipeline(source.frontend, config, towers)
     mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
     print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
-          f"found in {config.sync.confirm_stacks} stacks in a row; timing: {config.timing.estimator.value}")
+          f"found in {config.sync.confirm_stacks} stacks in a row; timing: {config.timing.estimator.name}")
+    if verbose:
+        print(f"  tentative: found, not yet in {config.sync.confirm_stacks} stacks in a row; runners-up: the PCIs "
+              "that scored next for the same code (the envelope keeps little of a cell's identity); "
+              f"{HealthKind.MISALIGNED.value}: the receiver clock's drift smeared the stack's frames; "
+              f"{HealthKind.CLIPPED.value}: samples at the ADC's rails; {HealthKind.NO_SIGNAL.value}: nothing to "
+              "search")
     stacks, samples = [], 0
     alike: list[dict] = []  # stacks not printed: like the last printed one, with no cell and no event
     printed: list | None = None  # the flags of the last stack printed
@@ -411,8 +425,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     walked = float(np.sum(np.linalg.norm(np.diff(truth.positions[:, :2], axis=0), axis=1)))
     print(f"\n  recording   {replayed.signal_seconds:.1f} s of ADC stream, {walked:.1f} m walked (ground truth included)")
     print(f"  heard       {len(pcis)} cells (PCI {', '.join(map(str, pcis))}) on {len(summary['sites_heard'])} sites "
-          f"({', '.join(summary['sites_heard'])}); sites per stack: "
-          + ", ".join(f"{k}: {n}" for k, n in heard.items()))
+          f"({', '.join(summary['sites_heard'])}); sites per stack: {_per_stack_text(heard)}")
     print(f"  {'':11s} {'fix rate':>8s} {'median':>7s} {'p90':>7s}   horizontal error against the truth, m")
     rows = [("published", shown), ("tracked", summary["methods"]["tracked"]),
             ("snapshot", summary["methods"]["snapshot"])]
@@ -451,6 +464,27 @@ def _say(text: str) -> None:
     from tqdm import tqdm
 
     tqdm.write(f"  note: {text}")
+
+
+def _per_stack_text(heard: dict[str, int]) -> str:
+    """``sites_per_stack`` as printed: "0: 2, 3: 21" (sites heard: stacks)."""
+    return ", ".join(f"{k}: {n}" for k, n in heard.items())
+
+
+def _reasons_text(reasons: dict[str, int]) -> str:
+    """No-fix reasons with their counts, the most frequent first."""
+    return ", ".join(f"{reason} {n}" for reason, n in reasons.items())
+
+
+def _print_fixes(fixes: dict, heard: dict[str, int]) -> None:
+    """A replay's published answers: how many stacks gave a pose, why the others did not, and
+    how many sites the stacks heard (a fix needs three, or a tracker that has started)."""
+    if not fixes:
+        return
+    missing = fixes["epochs"] - fixes["fixes"]
+    print(f"  fixes       {fixes['fixes']} of {fixes['epochs']} stacks gave a pose ({fixes['fix_rate']:.0%})"
+          + (f"; no fix: {_reasons_text(fixes['no_fix_reasons'])}" if missing else ""))
+    print(f"  sites       heard per stack (sites: stacks) {_per_stack_text(heard)}")
 
 
 def _print_health(health: dict[str, int]) -> None:
@@ -511,8 +545,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"    site {site.site}: offset {site.offset_correction_s * 1e9:+9.1f} +- {site.offset_std_s * 1e9:5.1f} ns, "
               f"drift {site.drift_correction * 1e9:+7.2f} +- {site.drift_std * 1e9:5.2f} ns/s  "
               f"({site.n_arrivals} arrivals, residual RMS {site.residual_rms_m:.1f} m)")
-    write_tower_database(calibration.database, Path(args.out))
-    print(f"  written: {args.out}")
+    kept = write_tower_database(calibration.database, Path(args.out), like=args.towers)
+    print(f"  written: {args.out}" + ("" if kept else f" (without the comments of {args.towers}: merged into its text, "
+                                       "the values would not read back exactly)"))
     return 0
 
 
@@ -529,6 +564,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
           f"{summary.wall_seconds:.1f} s ({summary.realtime_factor:.1f}x real time)")
     print(f"  written to {summary.out}: " + (", ".join(f"{t} {n}" for t, n in summary.written.items()) or "nothing"))
+    _print_fixes(summary.fixes, summary.sites_heard_per_stack)
     _print_health(summary.health)
     if summary.damage:
         print(f"deepsync replay: the input is damaged, replayed up to the damage: {summary.damage}; "
@@ -539,51 +575,57 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     try:
-        from deepsync.training.train import load_run_config, train
+        from deepsync.training.train import destination, final_metrics, kept_after_interrupt, load_run_config, train
     except ModuleNotFoundError as error:
         raise ValueError(f"training needs {error.name}: {network_install_hint(error.name)} (scripts/setup.sh "
                          "installs everything)") from None
 
     run = load_run_config(args.config)
+    shipping = destination(run.training, args.replace_shipped)
     print(f"training the timing network from {args.config}: {run.training.steps} steps of "
-          f"{run.training.batch_size}, run directory {run.training.run_dir}")
+          f"{run.training.batch_size}, run directory {run.training.run_dir}; the network goes to "
+          f"{shipping or Path(run.training.run_dir) / 'best.pt'}")
     try:
-        path = train(run, args.config)
+        path = train(run, args.config, args.replace_shipped)
     except KeyboardInterrupt:
-        print(f"deepsync train: interrupted; {run.training.run_dir} keeps the run so far (the same command resumes "
-              f"it), {run.training.model_path} is as it was", file=sys.stderr)
+        print("deepsync train: interrupted", file=sys.stderr)
+        for line in kept_after_interrupt(run, args.config, args.replace_shipped):
+            print(f"  {line}", file=sys.stderr)
         return 130
-    print(f"  best checkpoint: {path}")
+    for line in final_metrics(run.training.run_dir):
+        print(f"  {line}")
+    print(f"  trained network: {path}")
     return 0
 
 
 def _cmd_evaluate_timing(args: argparse.Namespace) -> int:
-    from deepsync.eval.timing import evaluate_timing
+    from deepsync.eval.timing import evaluate_timing, headline_table, stats_table
 
     frames = args.frames
     if args.bag:
-        from deepsync.eval.timing import evaluate_timing_bag
+        from deepsync.eval.timing import evaluate_timing_bag, side_by_side
 
         source = BagSource(args.bag)
         towers = None if args.towers is None else load_tower_database(args.towers)
         summary = evaluate_timing_bag(source, towers, args.out, args.checkpoint, frames[0], progress=not args.quiet)
         print(f"timing side by side on {source.description}, {frames[0]} frames: {summary['cells_timed']} cells timed, "
-              f"{summary['fallbacks_to_ml']} of them by ML instead of the network")
-        for name in ("ml_frame", "network", "network_ml", "ml", "fft_upsampled", "parabolic"):
-            stats = summary[name]
-            print(f"  {name:14s} median {stats['median']:.3f}  p90 {stats['p90']:.3f}  RMSE {stats['rmse']:.3f} samples, "
-                  f"{100 * stats['within_1_sigma']:.0f} % within 1 sigma")
+              f"{summary['fallbacks_to_ml']} of them by ML instead of the network; errors against the true "
+              "arrival, samples (one is 156 m)")
+        for line in stats_table({name: summary[name] for name in side_by_side()}):
+            print(f"  {line}")
         print(f"  written: {Path(args.out) / 'timing_bag.json'}")
         return 0
     print(f"timing side by side on {args.data}/{args.split}, {', '.join(map(str, frames))} frames; "
           f"network {args.checkpoint or 'shipped'}")
     summary = evaluate_timing(args.data, args.out, args.checkpoint, frames, args.split, progress=not args.quiet)
     for count, result in summary["frames"].items():
-        line = ", ".join(f"{name} {result['all'][name]['median']:.3f}/{result['all'][name]['rmse']:.3f}"
-                         for name in ("network", "network_ml", "ml", "fft_upsampled", "parabolic"))
-        print(f"  {count} frames, median/RMSE (samples): {line}; median CRLB {result['all']['crlb_median']:.3f}")
-    for key, value in summary["headline"].items():
-        print(f"  {key}: {value}")
+        print(f"  {count} frames, errors against the true first path, samples (one is 156 m); median CRLB "
+              f"{result['all']['crlb_median']:.3f}")
+        rows = {name: stats for name, stats in result["all"].items() if isinstance(stats, dict)}
+        for line in stats_table(rows):
+            print(f"    {line}")
+    for line in headline_table(summary["headline"]):
+        print(f"  {line}")
     print(f"  written: {Path(args.out) / 'timing.json'}, {Path(args.out) / 'timing.png'}")
     return 0
 
@@ -594,9 +636,38 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
     from deepsync.timing.network import DEFAULT_CHECKPOINT
 
     checkpoint = load_checkpoint(args.checkpoint or DEFAULT_CHECKPOINT)
-    path = export_onnx(checkpoint, args.out)
-    print(f"written {path}: largest |onnxruntime - torch| on random inputs {check_onnx(path, checkpoint):.2e}")
+    with _ticking("exporting: torch's exporter traces the network (about a minute and a half on 2 cores)"):
+        path = export_onnx(checkpoint, args.out)
+    print(f"  written {path} (one self-contained file; its inputs and outputs: docs/timing_network.md)")
+    with _ticking("checking it in onnxruntime against torch on random inputs"):
+        difference = check_onnx(path, checkpoint)
+    print(f"  largest |onnxruntime - torch| {difference:.2e}")
     return 0
+
+
+@contextlib.contextmanager
+def _ticking(step: str) -> Iterator[None]:
+    """Says what a long step does before it starts and how long it took; on a terminal, the
+    seconds count up meanwhile."""
+    print(f"  {step} ...", flush=True)
+    started = time.monotonic()
+    done = threading.Event()
+
+    def tick() -> None:
+        while not done.wait(1.0):
+            print(f"\r    {time.monotonic() - started:4.0f} s", end="", file=sys.stderr, flush=True)
+
+    ticker = threading.Thread(target=tick, daemon=True) if sys.stderr.isatty() else None
+    if ticker is not None:
+        ticker.start()
+    try:
+        yield
+    finally:
+        done.set()
+        if ticker is not None:
+            ticker.join()
+            print("\r", end="", file=sys.stderr, flush=True)
+    print(f"    done in {time.monotonic() - started:.0f} s", flush=True)
 
 
 def _cmd_compare_poses(args: argparse.Namespace) -> int:
@@ -621,7 +692,7 @@ def _metres(value: float | None) -> str:
 def _print_route(summary: dict) -> None:
     if summary["interrupted"]:
         print("  interrupted: the numbers cover what was replayed")
-    heard = ", ".join(f"{k}: {n}" for k, n in summary["sites_heard_per_stack"].items())
+    heard = _per_stack_text(summary["sites_heard_per_stack"])
     print(f"  {summary['stacks']} stacks over {summary['seconds']:.1f} s; sites heard per stack ({heard}); "
           f"heard at all: {', '.join(summary['sites_heard']) or 'none'}")
     print(f"  {'method':10s} {'fix rate':>8s} {'median':>7s} {'p90':>7s} {'p95':>7s} {'NEES':>6s}  "
@@ -631,7 +702,7 @@ def _print_route(summary: dict) -> None:
             print(f"  {name:10s} no path-loss model: {summary['rssi_model']['why']}")
             continue
         nees = "     -" if method["nees_mean"] is None else f"{method['nees_mean']:6.1f}"
-        reasons = ", ".join(f"{reason} {n}" for reason, n in method["no_fix_reasons"].items())
+        reasons = _reasons_text(method["no_fix_reasons"])
         print(f"  {name:10s} {method['fix_rate']:8.0%} {_metres(method['median_m'])} {_metres(method['p90_m'])} "
               f"{_metres(method['p95_m'])} {nees}  {reasons}")
     bound = summary["position_bound"]
@@ -673,10 +744,9 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
     command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
                          f"{defaults.sync.search_every}; between, the cells found are tracked; while none finds a new "
                          f"cell the gap doubles up to {defaults.sync.max_search_interval_s:g} s of stream)")
-    command.add_argument("--estimator", default=defaults.timing.estimator.value, metavar="NAME",
-                         help="sub-sample timing estimator: ml_frame (default: a known cell's whole frame where the "
-                              "tower database gives its bandwidth, else ml), ml, ml_white, fft_upsampled, parabolic, "
-                              "network, network_ml (the last two need torch)")
+    command.add_argument("--estimator", default=defaults.timing.estimator.name, choices=Estimator.names(),
+                         metavar="NAME", help="sub-sample timing estimator (default %(default)s): " + "; ".join(
+                             f"{e.name}: {e.summary}" for e in ESTIMATORS.values()))
     command.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -780,6 +850,9 @@ def build_parser() -> argparse.ArgumentParser:
     training = commands.add_parser("train", help="train the timing network (makes its simulated examples first "
                                    "if missing; resumes an interrupted run)")
     training.add_argument("--config", required=True, help="run YAML (config/timing/timing_net.yaml)")
+    training.add_argument("--replace-shipped", action="store_true",
+                          help="when the run ends, replace the network shipped with deepsync by its best checkpoint "
+                          "(otherwise it stays <run_dir>/best.pt, or goes to the config's training.model_path)")
     training.set_defaults(run=_cmd_train)
 
     dataset = commands.add_parser("make-dataset", help="make a run config's missing timing examples, in local "
@@ -788,10 +861,12 @@ def build_parser() -> argparse.ArgumentParser:
     _job_arguments(dataset, workers)
     dataset.set_defaults(run=_cmd_make_dataset)
 
-    evaluate = commands.add_parser("evaluate-timing", help="network, ML, FFT-upsampled and parabolic timing side "
+    evaluate = commands.add_parser("evaluate-timing", help="every timing estimator (network, ML, FFT-upsampled, ...) side "
                                    "by side against the true first path and the CRLB: JSON and a figure")
-    evaluate.add_argument("--data", default="data/timing", help="timing data directory (deepsync train makes it)")
-    evaluate.add_argument("--split", default="test", choices=("train", "val", "test"))
+    evaluate.add_argument("--data", default="data/timing", help="timing data directory (default %(default)s; "
+                          "`deepsync make-dataset` makes it, about 20 minutes on 2 cores; `deepsync train` too)")
+    evaluate.add_argument("--split", default="test", choices=("train", "val", "test"),
+                          help="which examples to score (default %(default)s: those nobody trained or chose on)")
     evaluate.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
     evaluate.add_argument("--frames", type=_frame_counts, default="5,10,12",
                           help="stacked frames to evaluate, comma-separated "
@@ -799,7 +874,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--bag", help="instead of the test set: a simulated bag with ground truth")
     evaluate.add_argument("--towers", help="with --bag: tower database YAML (known-PCI cell search)")
     evaluate.add_argument("--out", default=str(REPO / "out" / "timing"), type=_output_file,
-                          help="where timing.json and timing.png go")
+                          help="where timing.json and timing.png go (with --bag: timing_bag.json)")
     evaluate.add_argument("--quiet", action="store_true", help="no progress bar")
     evaluate.set_defaults(run=_cmd_evaluate_timing)
 
@@ -809,7 +884,8 @@ def build_parser() -> argparse.ArgumentParser:
     onnx.set_defaults(run=_cmd_export_onnx)
 
     info = commands.add_parser("info", help="describe a bag")
-    info.add_argument("--bag", required=True)
+    info.add_argument("--bag", required=True, help="bag directory or .mcap file: its topics and message counts, "
+                      "length, integrity, what made it and the ground truth it holds")
     info.set_defaults(run=_cmd_info)
 
     demo = commands.add_parser("demo", help="the main job on the bundled walk (no ROS needed): replay it through "
@@ -818,7 +894,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--verbose", action="store_true", help="print every stack: cells, sites, fix errors")
     demo.add_argument("--simulate", type=_seconds, metavar="SECONDS",
                       help="simulate a fresh recording of the demo's scenario this long and use it instead")
-    demo.add_argument("--workers", type=_workers, default=workers)
+    demo.add_argument("--workers", type=_workers, default=workers,
+                      help=f"processes simulating a --simulate recording (default {workers})")
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(run=_cmd_demo)
     return parser

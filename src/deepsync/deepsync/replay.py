@@ -59,11 +59,11 @@ from deepsync.bag import (
 )
 from deepsync.bag.convert import CELL_TIMING_ARRAY, ENVELOPE_SAMPLES, SYNC_WINDOW_ARRAY
 from deepsync.frontend.config import FrontendConfig
-from deepsync.fusion.stage import FusionResult
+from deepsync.fusion.stage import FusionResult, answer_counts, sites_per_stack
 from deepsync.pipeline import Pipeline, PipelineConfig, TimedStack, places_sites
 from deepsync.sources.bagfile import bag_dir, check_same_frame, recorded_frontend
 from deepsync.towers import TowerDatabase
-from deepsync.types import FRAME_SECONDS, Fix, Health, StackArrivals
+from deepsync.types import FRAME_SECONDS, Fix, Health, NoFix, StackArrivals
 
 STAGES = ("sync", "timing", "fusion")
 STAGE_INPUT: dict[str, tuple[str, str]] = {
@@ -105,6 +105,8 @@ class ReplaySummary:
     stacks: int  # stacks that went through timing (or fusion, when it was the first stage)
     written: dict[str, int]  # topic -> messages written
     health: dict[str, int]  # health kind -> how often the stages reported it
+    fixes: dict  # the published answers (``answer_counts``): fix rate and no-fix reasons; empty without fusion
+    sites_heard_per_stack: dict[str, int]  # ``sites_per_stack`` of the fused stacks
     notes: tuple[str, ...]  # what the user should know: a blind search, fusion skipped, unknown PCIs
     damage: str | None  # where and why reading the input stopped early (None: it was read to its end)
     signal_seconds: float  # of ADC stream the input covered
@@ -177,6 +179,8 @@ class _Replayer:
     health: Counter = field(default_factory=Counter)
     unknown_pcis: set[int] = field(default_factory=set)
     invalid: list[str] = field(default_factory=list)
+    answers: list[Fix | NoFix] = field(default_factory=list)  # what fusion published (or why not) per stack
+    site_counts: list[int] = field(default_factory=list)  # sites fusion heard per stack
 
     def write(self, topic: str, message: Any) -> None:
         self.out.write(topic, message)
@@ -250,6 +254,8 @@ class _Replayer:
         if self.towers is not None:
             self.unknown_pcis |= {cell.pci for cell in arrivals.cells} - set(self.towers.pcis)
         fix = fusion.published
+        self.answers.append(fix)
+        self.site_counts.append(len(fusion.sites))
         if isinstance(fix, Fix):
             assert self.pipeline is not None and self.pipeline.fusion is not None
             self.write(POSE_TOPIC, fix_to_pose_msg(fix, store=self.out.store))
@@ -359,7 +365,9 @@ def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | Non
     _closing_notes(replayer, note)
     return ReplaySummary(
         out=str(out_dir), stages=stages, inputs=replayer.inputs, stacks=replayer.stacks,
-        written=dict(replayer.written), health=dict(replayer.health.most_common()), notes=tuple(notes),
+        written=dict(replayer.written), health=dict(replayer.health.most_common()),
+        fixes=answer_counts(replayer.answers) if replayer.answers else {},
+        sites_heard_per_stack=sites_per_stack(replayer.site_counts), notes=tuple(notes),
         damage=damage, signal_seconds=_signal_seconds(replayer, config), wall_seconds=time.perf_counter() - started)
 
 

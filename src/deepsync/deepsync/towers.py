@@ -406,9 +406,68 @@ def _epoch_utc(epoch_ns: int) -> str:
     return instant.strftime("%Y-%m-%dT%H:%M:%S") + fraction + "Z"
 
 
-def write_tower_database(db: TowerDatabase, path: str | Path) -> None:
+def write_tower_database(db: TowerDatabase, path: str | Path, like: str | Path | None = None) -> bool:
     """Write ``db`` as YAML, atomically (:func:`deepsync.outputs.replacing`): a reader, or a crash,
-    never meets half a database, and an existing file's permissions are kept."""
+    never meets half a database, and an existing file's permissions are kept. ``like``: the
+    database file ``db`` was made from (a calibration's input): its comments, order and layout
+    are kept and only what changed is written (``ruamel.yaml``'s round trip). Returns whether
+    they were: False where the merged text would not read back as ``db`` exactly (then the plain
+    dump is written, which always does)."""
     text = yaml.safe_dump(tower_database_to_dict(db), sort_keys=False)
+    kept = False
+    if like is not None:
+        merged = _merged_text(Path(like), tower_database_to_dict(db))
+        if tower_database_to_dict(parse_tower_database(yaml.safe_load(merged))) == tower_database_to_dict(db):
+            text, kept = merged, True
     with replacing(path) as temporary:
         temporary.write_text(text, encoding="utf-8")
+    return kept
+
+
+def _merged_text(original: Path, values: dict) -> str:
+    """``original``'s YAML text with ``values`` written into it where they differ."""
+    import io
+
+    from ruamel.yaml import YAML
+
+    yaml_rt = YAML()  # round trip: comments, key order, flow style and quoting as they were
+    yaml_rt.preserve_quotes = True
+    yaml_rt.width = 4096  # no new line breaks in long flow mappings
+    yaml_rt.indent(mapping=2, sequence=4, offset=2)  # the layout of config/towers: "  - name: A"
+    document = yaml_rt.load(original.read_text(encoding="utf-8"))
+    out = io.StringIO()
+    yaml_rt.dump(_merge(document, values), out)
+    return out.getvalue()
+
+
+def _merge(old: object, new: object) -> object:
+    """``new`` written into ``old`` (ruamel's commented mappings and sequences) in place, so what
+    did not change keeps its comments and layout; keys and items ``new`` lacks are removed."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in [k for k in old if k not in new]:
+            del old[key]
+        order = list(new)
+        for key, value in new.items():
+            if key in old:
+                old[key] = _merge(old[key], value)
+                continue
+            # a new key goes where ``new`` has it: before the first old key that follows it there
+            later = [k for k in order[order.index(key) + 1:] if k in old]
+            position = list(old).index(later[0]) if later else len(old)
+            old.insert(position, key, value)
+        return old
+    if isinstance(old, list) and isinstance(new, list):
+        for index, value in enumerate(new):
+            if index < len(old):
+                old[index] = _merge(old[index], value)
+            else:
+                old.append(value)
+        del old[len(new):]
+        return old
+    if isinstance(old, bool) != isinstance(new, bool):
+        return new
+    if old == new:
+        return old  # unchanged: its spelling stays (3120.40, an epoch in quotes)
+    if isinstance(old, str) and isinstance(new, str) and type(old) is not str:
+        return type(old)(new)  # quoted as it was: an epoch unquoted would read as a YAML timestamp
+    return new

@@ -168,8 +168,8 @@ SYNC = (
               "database gives none from their stacks."),
 )
 TIMING = (
-    ParamSpec("estimator", _TIMING.estimator.value, "Sub-sample timing estimator.",
-              choices=tuple(e.value for e in Estimator), read_only=False),
+    ParamSpec("estimator", _TIMING.estimator.name, "Sub-sample timing estimator.",
+              choices=Estimator.names(), read_only=False),
     ParamSpec("weak_std_samples", _TIMING.weak_std_samples, "Flag an arrival whose 1-sigma exceeds this "
               "[samples] (1 sample = 156 m at 1.92 MS/s).", range=(0.0, 1e3), read_only=False),
     ParamSpec("checkpoint", "", "Timing-network checkpoint for estimator network; empty: the one shipped with "

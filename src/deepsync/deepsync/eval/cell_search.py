@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from deepsync.pipeline import StackResult
+from deepsync.sync.search import Candidate
 
 
 def timing_error(toa: float, truth: np.ndarray) -> float:
@@ -23,6 +24,15 @@ def timing_error(toa: float, truth: np.ndarray) -> float:
     i = int(np.searchsorted(truth, toa))
     neighbours = truth[max(i - 1, 0) : i + 1]  # the true arrivals either side
     return float(toa - neighbours[np.argmin(np.abs(neighbours - toa))])
+
+
+RUNNERS_UP = 3  # the other PCIs a reported cell lists
+
+
+def runners_up(pci: int, candidates: Sequence[Candidate]) -> list[int]:
+    """The PCIs ranked next for a reported cell: the best ``RUNNERS_UP`` of ``candidates`` other
+    than the cell itself (which the tower database may have chosen from below the top)."""
+    return [c.pci for c in candidates if c.pci != pci][:RUNNERS_UP]
 
 
 def stack_record(result: StackResult, truth: Mapping[int, np.ndarray], sample_rate: float) -> dict:
@@ -44,7 +54,7 @@ def stack_record(result: StackResult, truth: Mapping[int, np.ndarray], sample_ra
             "snr_db": timing.snr_db,
             "peak_sigma": detection.peak_metric,
             "truth_error": timing_error(timing.toa, truth[cell.pci]) if cell.pci in truth else None,
-            "runners_up": [c.pci for c in detection.candidates[1:4]],
+            "runners_up": runners_up(cell.pci, detection.candidates),
         })
     return {
         "time_s": result.sync.first_sample_index / sample_rate,

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +30,7 @@ from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.rssi import RssiAverager, RssiConfig, fit_path_loss, solve_rssi
 from deepsync.fusion.snapshot import chi_square_limit, position_bound
-from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
+from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage, answer_counts, sites_per_stack
 from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
 from deepsync.sources import BagSource
 from deepsync.towers import TowerDatabase
@@ -301,19 +300,19 @@ def nees(fix: Fix, truth_enu: np.ndarray) -> float:
 
 def method_summary(answers: Sequence[Fix | NoFix | None], truths: Sequence[np.ndarray]) -> dict:
     """Fix rate, error percentiles, NEES and no-fix reasons of one method along a route."""
-    pairs = [(a, t) for a, t in zip(answers, truths) if a is not None]
-    fixes = [(a, t) for a, t in pairs if isinstance(a, Fix)]
+    paired = list(zip(answers, truths))  # an answer without its truth is not scored
+    counts = answer_counts([answer for answer, _ in paired])
+    fixes = [(a, t) for a, t in paired if isinstance(a, Fix)]
     errors = np.array([horizontal_error(a, t) for a, t in fixes])
     scores = np.array([nees(a, t) for a, t in fixes])
-    reasons = Counter(a.reason.value for a, _ in pairs if isinstance(a, NoFix))
 
     def percentile(q: float) -> float | None:
         return float(np.percentile(errors, q)) if errors.size else None
 
     return {
-        "epochs": len(pairs),
-        "fixes": len(fixes),
-        "fix_rate": len(fixes) / len(pairs) if pairs else 0.0,
+        "epochs": counts["epochs"],
+        "fixes": counts["fixes"],
+        "fix_rate": counts["fix_rate"],
         "median_m": percentile(50),
         "p90_m": percentile(90),
         "p95_m": percentile(95),
@@ -322,7 +321,7 @@ def method_summary(answers: Sequence[Fix | NoFix | None], truths: Sequence[np.nd
         "nees_within_95": float(np.mean(scores <= CHI2_2DOF_95)) if scores.size else None,
         "median_gdop": float(np.nanmedian([a.gdop for a, _ in fixes])) if fixes and any(
             math.isfinite(a.gdop) for a, _ in fixes) else None,
-        "no_fix_reasons": dict(reasons.most_common()),
+        "no_fix_reasons": counts["no_fix_reasons"],
     }
 
 
@@ -336,7 +335,6 @@ METHODS: dict[str, Callable[[RouteEpoch], Fix | NoFix | None]] = {
 def summarize_route(run: RouteRun) -> dict:
     """The route's table: per method, and what was heard."""
     truths = [epoch.truth_enu for epoch in run.epochs]
-    heard = Counter(len(epoch.sites) for epoch in run.epochs)
     bounds = np.array([epoch.bound_m for epoch in run.epochs])
     finite = bounds[np.isfinite(bounds)]
     return {
@@ -344,7 +342,7 @@ def summarize_route(run: RouteRun) -> dict:
         "interrupted": run.interrupted,
         "stacks": len(run.epochs),
         "seconds": (run.epochs[-1].stamp_ns - run.epochs[0].stamp_ns) * 1e-9 if run.epochs else 0.0,
-        "sites_heard_per_stack": {str(k): heard[k] for k in sorted(heard)},
+        "sites_heard_per_stack": sites_per_stack(len(epoch.sites) for epoch in run.epochs),
         "sites_heard": sorted({site.site for epoch in run.epochs for site in epoch.sites}),
         "methods": {name: method_summary([pick(epoch) for epoch in run.epochs], truths)
                     for name, pick in METHODS.items()},

@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,14 +37,9 @@ from deepsync.frontend.templates import SyncTemplates
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources.bagfile import BagSource
 from deepsync.timing.crlb import delay_crlb, fit_amplitude
-from deepsync.timing.estimators import (
-    SIGMA_CALIBRATION_BAND,
-    estimate_fft_upsampled,
-    estimate_ml,
-    estimate_parabolic,
-    noise_psd,
-)
-from deepsync.timing.stage import Estimator, TimingConfig, TimingStage, refine_with_ml
+from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND, noise_psd
+from deepsync.timing.registry import ESTIMATORS, Estimator, Input
+from deepsync.timing.stage import TimingConfig, TimingStage
 from deepsync.towers import TowerDatabase
 from deepsync.training.dataset import LOS_PROFILES, PROFILES, frame_delay_key, frame_key, load_split
 from deepsync.types import StackWindows, SyncWindow
@@ -53,15 +48,19 @@ if TYPE_CHECKING:
     from deepsync.timing.network import NetworkEstimator
 
 SNR_EDGES_DB = np.arange(-30.0, 12.5, 5.0)
-CLASSICAL: dict[str, Callable] = {
-    "ml": lambda w, t, m, psd: estimate_ml(w, t, m, psd),
-    "fft_upsampled": lambda w, t, m, psd: estimate_fft_upsampled(w, t, m),
-    "parabolic": lambda w, t, m, psd: estimate_parabolic(w, t, m),
-}
-ESTIMATORS = ("network", "network_ml", *CLASSICAL)
-# where the stack's mean frame comes along (a recording; a split that keeps it), a known cell
-# can also be timed by its whole frame
-ALL_ESTIMATORS = ("ml_frame", *ESTIMATORS)
+
+def of_input(kind: Input) -> tuple[Estimator, ...]:
+    """The registered estimators that time a cell from ``kind``."""
+    return tuple(e for e in ESTIMATORS.values() if e.input is kind)
+
+
+def side_by_side(with_frame: bool = True) -> tuple[str, ...]:
+    """Every registered estimator's name in the side by side's order: those of the frame (where
+    the stack's mean frame comes along: a recording, a split that keeps it; ``with_frame``), the
+    network's, the windows'."""
+    kinds = (Input.FRAME, Input.NETWORK, Input.WINDOWS) if with_frame else (Input.NETWORK, Input.WINDOWS)
+    return tuple(e.name for kind in kinds for e in of_input(kind))
+
 FRAME_BOUND = "crlb_frame"  # ml_frame's own bound, beside the code windows' "crlb"
 
 
@@ -97,36 +96,37 @@ def run_estimators(data: dict[str, np.ndarray], frames: int, network: NetworkEst
     margin = (windows.shape[2] - templates.shape[1]) // 2
     rate = FrontendConfig().adc_rate_hz
     n = len(windows)
-    names = ALL_ESTIMATORS if frame_key(frames) in data else ESTIMATORS
+    with_frame = frame_key(frames) in data
+    names = side_by_side(with_frame)
     results = {f"{name}_{kind}": np.full(n, np.nan) for name in names for kind in ("error", "sigma")}
     results["crlb"] = np.full(n, np.nan)
-    if frame_key(frames) in data:
-        timed = np.array(time_by_frame(data, frames, progress)).reshape(n, 3)
-        results["ml_frame_error"], results["ml_frame_sigma"] = timed[:, 0] - data["offset"], timed[:, 1]
+    for estimator in of_input(Input.FRAME) if with_frame else ():
+        timed = np.array(time_by_frame(data, frames, estimator, progress)).reshape(n, 3)
+        results[f"{estimator.name}_error"], results[f"{estimator.name}_sigma"] = timed[:, 0] - data["offset"], timed[:, 1]
         results[FRAME_BOUND] = timed[:, 2]
+    outputs = np.full((n, 2), np.nan)  # the network's offset and sigma per example
     for start in range(0, n if network is not None else 0, 256):
         batch = network.estimate(list(windows[start : start + 256]), list(templates[start : start + 256]))
-        for i, (offset, sigma) in enumerate(batch, start):
-            results["network_error"][i], results["network_sigma"][i] = offset - data["offset"][i], sigma
+        outputs[start : start + len(batch)] = batch
     for i in tqdm(range(n), desc=f"classical estimators, {frames} frames", disable=not progress):
         w, t = windows[i].astype(np.float64), templates[i].astype(np.float64)
         psd = noise_psd(w)
-        for name, estimate in CLASSICAL.items():
-            result = estimate(w, t, margin, psd)
-            results[f"{name}_error"][i], results[f"{name}_sigma"][i] = result.offset - data["offset"][i], result.std
+        estimates = [(e, e.on_windows(w, t, margin, psd)) for e in of_input(Input.WINDOWS)]
         if network is not None:
-            offset = results["network_error"][i] + data["offset"][i]
-            result = refine_with_ml(w, t, margin, psd, offset, results["network_sigma"][i])
-            results["network_ml_error"][i], results["network_ml_sigma"][i] = result.offset - data["offset"][i], result.std
+            estimates += [(e, e.after_network(w, t, margin, psd, float(outputs[i, 0]), float(outputs[i, 1])))
+                          for e in of_input(Input.NETWORK)]
+        for estimator, result in estimates:
+            results[f"{estimator.name}_error"][i] = result.offset - data["offset"][i]
+            results[f"{estimator.name}_sigma"][i] = result.std
         amplitude = fit_amplitude(w.mean(axis=0), t, margin, float(data["offset"][i]), psd)
         if amplitude > 0:
             results["crlb"][i] = delay_crlb(t, amplitude, psd, frames, rate, w.shape[1]).std_samples
     return results
 
 
-def time_by_frame(data: dict[str, np.ndarray], frames: int,
+def time_by_frame(data: dict[str, np.ndarray], frames: int, estimator: Estimator,
                   progress: bool = True) -> list[tuple[float, float, float]]:
-    """(offset, sigma, Cramer-Rao bound) of each example by ``ml_frame`` through the timing
+    """(offset, sigma, Cramer-Rao bound) of each example by ``estimator`` (of the frame) through the timing
     stage, as a stack of ``frames`` frames hands it the cell: its windows, its bandwidth from the
     tower database, a pair's fit, and the stack's mean frame (its sample 0 at the coarse code
     start) with its delay."""
@@ -134,7 +134,7 @@ def time_by_frame(data: dict[str, np.ndarray], frames: int,
     templates = SyncTemplates(frontend)
     means, delays = data[frame_key(frames)], data[frame_delay_key(frames)]
     out = []
-    for i in tqdm(range(len(means)), desc=f"ml_frame, {frames} frames", disable=not progress):
+    for i in tqdm(range(len(means)), desc=f"{estimator.name}, {frames} frames", disable=not progress):
         pair = int(data["cosited_pci"][i]) >= 0
         window = SyncWindow(
             stamp_ns=0, pci=int(data["pci"][i]), coarse_index=0, windows=data["windows"][i, :frames],
@@ -143,7 +143,7 @@ def time_by_frame(data: dict[str, np.ndarray], frames: int,
             site_coefficients=tuple(map(float, data["site_coefficients"][i])) if pair else None)
         # a stage per example: its cache of known frames (0.5 MB per PCI and bandwidth) would
         # otherwise hold every example's; the shared templates' CRS caches still grow, by less
-        stage = TimingStage(frontend, TimingConfig(Estimator.ML_FRAME), templates)
+        stage = TimingStage(frontend, TimingConfig(estimator), templates)
         timed = stage.process(StackWindows(0, 0, frontend.adc_rate_hz, (window,), frame=means[i],
                                            frame_delay=float(delays[i])))
         cell = timed.cells[0] if timed.cells else None
@@ -153,12 +153,12 @@ def time_by_frame(data: dict[str, np.ndarray], frames: int,
 
 def estimator_names(results: dict[str, np.ndarray]) -> tuple[str, ...]:
     """The estimators ``results`` holds, in the side by side's order."""
-    return tuple(name for name in ALL_ESTIMATORS if f"{name}_error" in results)
+    return tuple(name for name in side_by_side() if f"{name}_error" in results)
 
 
 def estimators_in(row: dict) -> tuple[str, ...]:
     """The estimators a summary row (``breakdown``'s) has statistics of, in the same order."""
-    return tuple(name for name in ALL_ESTIMATORS if name in row)
+    return tuple(name for name in side_by_side() if name in row)
 
 
 def breakdown(data: dict[str, np.ndarray], results: dict[str, np.ndarray], mask: np.ndarray) -> dict:
@@ -193,9 +193,9 @@ def by_coarse_error(data: dict[str, np.ndarray], results: dict[str, np.ndarray])
 
 def threshold_snr_db(rows: list[dict], name: str) -> dict[str, float | None]:
     """Upper edge of the highest SNR bin (None: none) where the RMSE exceeds 2x the (median)
-    bound (``ml_frame``: its own), and where more than 10 % of the errors are outliers (beyond
+    bound (an estimator of the frame: its own), and where more than 10 % of the errors are outliers (beyond
     ``OUTLIER_SAMPLES``)."""
-    bound = f"{FRAME_BOUND}_median" if name == "ml_frame" else "crlb_median"
+    bound = f"{FRAME_BOUND}_median" if ESTIMATORS[name].input is Input.FRAME else "crlb_median"
     filled = [row for row in rows if row[name].get("n", 0) >= 10]
     rmse = [row["snr_db"][1] for row in filled if row[name]["rmse"] > 2 * row[bound]]
     outliers = [row["snr_db"][1] for row in filled if row[name]["outliers"] > 0.1]
@@ -207,9 +207,25 @@ def threshold_text(value: float | None) -> str:
     return "never" if value is None else f"{value:+.0f} dB"
 
 
+SHIPPED_RUN = "config/timing/timing_net.yaml"  # the run that made the shipped network, and its data
+
+
+def check_split_made(data_dir: str | Path, split: str) -> None:
+    """ValueError saying what to run first (and how long it takes) where ``split`` has no examples."""
+    where = Path(data_dir) / split
+    if not any(where.glob("shard_*.npz")):
+        raise ValueError(
+            f"no timing examples in {where}: make them first with `deepsync make-dataset --config {SHIPPED_RUN}` "
+            "(every split of the shipped run: about 20 minutes on 2 cores; `deepsync train` makes them too, then "
+            "trains: about 40 minutes), or score a simulated recording instead, in seconds: `deepsync "
+            "evaluate-timing --bag "
+            "bags/campus_route --towers config/towers/campus.yaml`")
+
+
 def evaluate_timing(data_dir: str | Path, out: str | Path, checkpoint: str | Path | None = None,
                     frames: Sequence[int] = (5, 10, 12), split: str = "test", progress: bool = True) -> dict:
     """The side by side on a split of the timing data; writes timing.json and timing.png to ``out``."""
+    check_split_made(data_dir, split)
     from deepsync.timing.network import NetworkEstimator  # torch: only for this command
 
     data = load_split(Path(data_dir), split)
@@ -282,6 +298,46 @@ def headline(data: dict[str, np.ndarray], summary: dict) -> dict:
     }
 
 
+def stats_text(stats: dict) -> str:
+    """One estimator's ``error_stats`` as a table row's cells (samples)."""
+    if not stats.get("n"):
+        return "no cell timed"
+    within = stats.get("within_1_sigma")
+    return (f"{stats['median']:7.3f} {stats['p90']:7.3f} {stats['rmse']:7.3f} {100 * stats['outliers']:8.1f} %"
+            + ("" if within is None else f" {100 * within:10.0f} %"))
+
+
+STATS_HEADER = " median     p90    RMSE  outliers  within 1 sigma"
+
+
+def stats_table(rows: dict[str, dict], first: str = "estimator") -> list[str]:
+    """``error_stats`` per estimator (or per bin) as aligned lines, samples (one is 156 m at 1.92 MHz)."""
+    return [f"{first:14s}{STATS_HEADER}", *(f"{name:14s}{stats_text(stats)}" for name, stats in rows.items())]
+
+
+def headline_table(headline: dict) -> list[str]:
+    """``headline``'s numbers as aligned lines, one per estimator: "never" where no SNR bin
+    crosses a threshold, "-" where nothing was measured."""
+
+    def number(value: float | None, form: str) -> str:
+        return "-" if value is None or not math.isfinite(value) else format(value, form)
+
+    def share(span: list[float] | None) -> str:
+        return "-" if span is None else f"{100 * span[0]:.0f}-{100 * span[1]:.0f} %"
+
+    lines = ["10 frames      LOS threshold SNR (per frame)   RMSE (samples)       within +-1 sigma over SNR bins",
+             "estimator      RMSE > 2 CRLB  outliers > 10 %  -10..0 dB  LOS >= 0 dB  range      bins in band"]
+    for name, threshold in headline.get("threshold_snr_db_los", {}).items():
+        bins = headline["within_1_sigma_snr_bins"][name]
+        lines.append(f"{name:14s} {threshold_text(threshold['rmse_over_2_crlb']):>13s}  "
+                     f"{threshold_text(threshold['outliers_over_10_percent']):>15s}  "
+                     f"{number(headline['multipath_rmse_-10_to_0_db'][name], '.3f'):>9s}  "
+                     f"{number(headline['high_snr_los_rmse_from_0_db'][name], '.3f'):>11s}  "
+                     f"{share(headline['within_1_sigma_range_over_snr_bins'][name]):10s} "
+                     f"{bins['in_band']} of {bins['bins']}")
+    return lines
+
+
 def plot(summary: dict, path: Path) -> None:
     import matplotlib
 
@@ -333,9 +389,11 @@ def evaluate_timing_bag(source: BagSource, towers: TowerDatabase | None, out: st
         raise ValueError(f"{source.description} holds no ground truth (/deepsync/truth/cell_timing): "
                          "only a simulated recording can be scored")
     pipeline = Pipeline(source.frontend, PipelineConfig().with_choices(frames), towers)
-    stages = {name: TimingStage(source.frontend, TimingConfig(Estimator(name), checkpoint=None if checkpoint is None
-                                                              else str(checkpoint)))
-              for name in ALL_ESTIMATORS}
+    stages = {name: TimingStage(source.frontend, TimingConfig(Estimator.named(name), checkpoint=None
+                                                              if checkpoint is None else str(checkpoint)))
+              for name in side_by_side()}
+    # the network estimators fall back for the same cells: one of them says which
+    reporting = next((e.name for e in of_input(Input.NETWORK)), None)
     records: dict[str, list[tuple[float, float, float]]] = {name: [] for name in stages}
     fallbacks: list[str] = []
     for chunk in tqdm(source.chunks(), desc="timing on the recording", unit="chunk", disable=not progress):
@@ -344,13 +402,13 @@ def evaluate_timing_bag(source: BagSource, towers: TowerDatabase | None, out: st
             windows = dataclasses.replace(stack, windows=tuple(w for w in stack.windows if w.pci in truth))
             for name, stage in stages.items():
                 timed = stage.process(windows)
-                if name == "network":  # network_ml falls back for the same cells
+                if name == reporting:
                     fallbacks += [f"PCI {pci}: {reason}" for pci, reason in timed.fallbacks]
                 for cell in timed.cells:
                     records[name].append((timing_error(cell.toa, truth[cell.pci]), cell.toa_std, cell.snr_db))
     summary = {"bag": source.description, "frames": frames, "fallbacks_to_ml": len(fallbacks),
                "fallback_examples": sorted(set(fallbacks))[:5],
-               "cells_timed": len(records["ml"])}
+               "cells_timed": max(map(len, records.values()))}
     for name, rows in records.items():
         values = np.array(rows).reshape(-1, 3)
         summary[name] = error_stats(values[:, 0], values[:, 1])

@@ -26,7 +26,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -119,6 +120,22 @@ class FusionResult:
         """What a node publishes for this stack: the tracker's fix when it has one, else the
         snapshot's answer (whose :class:`NoFix` says why the stack alone gave none)."""
         return self.tracked if isinstance(self.tracked, Fix) else self.snapshot
+
+
+def answer_counts(answers: Sequence[Fix | NoFix | None]) -> dict:
+    """How many of a run's answers (None: none was asked for at that stack) were fixes, and why
+    the others were not, the most frequent reason first."""
+    given = [answer for answer in answers if answer is not None]
+    fixes = sum(isinstance(answer, Fix) for answer in given)
+    reasons = Counter(answer.reason.value for answer in given if isinstance(answer, NoFix))
+    return {"epochs": len(given), "fixes": fixes, "fix_rate": fixes / len(given) if given else 0.0,
+            "no_fix_reasons": dict(reasons.most_common())}
+
+
+def sites_per_stack(site_counts: Iterable[int]) -> dict[str, int]:
+    """How many stacks heard how many sites (the number of sites as text, ascending)."""
+    heard = Counter(site_counts)
+    return {str(k): heard[k] for k in sorted(heard)}
 
 
 class FusionStage:

@@ -15,23 +15,22 @@ estimate is from the best possible. A window that cannot be timed at all (no var
 length that fits no template) is reported as ``UNTIMEABLE`` and skipped; the stage never raises
 on what it is fed.
 
-Estimators: the classical ones of ``timing.estimators``; ``ml_frame`` (the default), ML over
-everything a known cell sends the same in every frame, its codes and its CRS
-(``estimate_ml_frame``), in the stack's mean frame (``StackWindows.frame``, sent by the sync
-stage when the tower database gives a reported cell's bandwidth), searched within the windows'
-margin of the sync stage's code lock, which picks the CRS comb's period; where the frame or the
-bandwidth is missing, ``ml``. ``network``, the DeepSync timing
-network (``timing.network``, all cells of a stack in one batch, its own sigma); and
-``network_ml``, ML's maximum inside the network's interval: the network says which lobe (where
-ML alone locks onto a wrong one below threshold or next to other cells' codes), ML says where in
-it. A cell outside the network's training range is timed by ML, and ``TimingResult.fallbacks``
-says which and why. torch is imported only when a network estimator is chosen.
+Estimators: every one registered in ``timing.registry`` (``Estimator.named``), chosen once by
+what it times a cell from (``Input``): the classical ones of ``timing.estimators`` from the
+windows; ``ml_frame`` (the default), ML over everything a known cell sends the same in every
+frame, its codes and its CRS (``estimate_ml_frame``), in the stack's mean frame
+(``StackWindows.frame``, sent by the sync stage when the tower database gives a reported cell's
+bandwidth), searched within the windows' margin of the sync stage's code lock, which picks the
+CRS comb's period; ``network`` and ``network_ml`` from the DeepSync timing network
+(``timing.network``, all cells of a stack in one batch). Where an estimator's input is missing
+(no frame or bandwidth; a cell outside the network's training range) its ``fallback`` times the
+cell, and ``TimingResult.fallbacks`` says which network cells and why. torch is imported only
+when a network estimator is chosen.
 """
 
 from __future__ import annotations
 
 import copy
-import enum
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -51,70 +50,19 @@ from deepsync.frontend.templates import (
 )
 from deepsync.timing import network_install_hint
 from deepsync.timing.crlb import delay_crlb, fit_amplitude, snr_db
-from deepsync.timing.estimators import (
-    SNR_FLOOR_DB,
-    FrameTiming,
-    TimingEstimate,
-    estimate_fft_upsampled,
-    estimate_ml,
-    estimate_ml_frame,
-    estimate_parabolic,
-    frame_spectrum,
-    noise_psd,
-)
+from deepsync.timing.estimators import SNR_FLOOR_DB, FrameTiming, estimate_ml_frame, frame_spectrum, noise_psd
+from deepsync.timing.registry import DEFAULT, Estimator, Input
 from deepsync.types import FRAME_SECONDS, CellTiming, Health, HealthKind, StackWindows, SyncWindow
-
-# network_ml's sigma, added in quadrature: ML's own std covers noise and the lobe, not the
-# first path that multipath hides behind the envelope's peak. 0.2 samples (31 m) puts 60-72 %
-# of the errors within +-1 sigma in every SNR bin of the validation split (38.901 TDL-A..E).
-MULTIPATH_FLOOR_SAMPLES = 0.2
-
-
-def refine_with_ml(windows: np.ndarray, template: np.ndarray, margin: int, psd: np.ndarray, offset: float,
-                   std: float) -> TimingEstimate:
-    """``network_ml``: ML's maximum within the network's ``offset`` +- 2 ``std`` (at least a
-    sample; where the network is unsure, ML searches widely), its std with the multipath floor."""
-    half = max(1.0, 2 * std)
-    refined = estimate_ml(windows, template, margin, psd, within=(offset - half, offset + half))
-    return TimingEstimate(refined.offset, math.hypot(refined.std, MULTIPATH_FLOOR_SAMPLES), refined.snr_db,
-                          Estimator.NETWORK_ML.value)
-
-
-class Estimator(enum.Enum):
-    """The sub-sample estimators: the classical ones (``timing.estimators``) and the network's;
-    the value is the name a ``CellTiming`` carries."""
-
-    ML = "ml"  # maximum likelihood, prewhitened by the noise spectrum measured from the rows
-    ML_FRAME = "ml_frame"  # ML over a known cell's whole frame (codes and CRS) where the stack's frame comes along, else ML
-    ML_WHITE = "ml_white"  # maximum likelihood with white weights
-    FFT_UPSAMPLED = "fft_upsampled"  # band-limited correlation on a 32x finer grid
-    PARABOLIC = "parabolic"  # integer-lag correlation and a parabola through its peak
-    NETWORK = "network"  # the DeepSync timing network (``timing.network``; needs torch), ML outside its range
-    NETWORK_ML = "network_ml"  # ML's maximum inside the network's interval (estimate +- 2 sigma, >= 1 sample)
-
-    @classmethod
-    def named(cls, name: str) -> Estimator:
-        """The estimator called ``name``; ValueError listing the names."""
-        try:
-            return cls(name)
-        except ValueError:
-            raise ValueError(f"estimator must be one of {', '.join(e.value for e in cls)}, got {name!r}") from None
-
-    @property
-    def uses_network(self) -> bool:
-        """Whether the stage must load the timing network (and torch) for it."""
-        return self in (Estimator.NETWORK, Estimator.NETWORK_ML)
-
 
 @dataclass(frozen=True)
 class TimingConfig:
-    estimator: Estimator = Estimator.ML_FRAME
+    estimator: Estimator = DEFAULT  # one of ``timing.registry.ESTIMATORS`` (``Estimator.named``)
     weak_std_samples: float = 1.0  # flag an arrival whose 1-sigma exceeds this (1 sample = 156 m at 1.92 MHz)
     checkpoint: str | None = None  # the network's checkpoint; None: the one shipped with deepsync
 
     def __post_init__(self) -> None:
         if not isinstance(self.estimator, Estimator):
-            raise ValueError(f"estimator must be one of {', '.join(e.value for e in Estimator)}, got {self.estimator!r}")
+            raise ValueError(f"estimator must be one of {', '.join(Estimator.names())}, got {self.estimator!r}")
         if not (math.isfinite(self.weak_std_samples) and 0 < self.weak_std_samples <= 1e6):
             raise ValueError(f"weak_std_samples must be a positive number up to 1e6, got {self.weak_std_samples!r}")
 
@@ -185,7 +133,7 @@ class TimingStage:
                 if spectrum is not None and window.bandwidth_mhz is not None:
                     cells.append(self._frame_cell(window, stack, spectrum, frame_fits))
                     continue
-                cells.append(self.time_cell(window, Estimator.ML if reason else self.config.estimator))
+                cells.append(self.time_cell(window, self.config.estimator.on_windows_only))
             except ValueError as error:
                 events.append(self._untimeable(window, error))
         if for_network:
@@ -200,10 +148,10 @@ class TimingStage:
 
     def _network_cell(self, window: SyncWindow, template: np.ndarray, offset: float, std: float) -> CellTiming:
         psd = noise_psd(window.windows)
-        if self.config.estimator is Estimator.NETWORK:
-            return self._cell(window, template, psd, offset, std, Estimator.NETWORK)
-        refined = refine_with_ml(window.windows, template, self._margin(window, template), psd, offset, std)
-        return self._cell(window, template, psd, refined.offset, refined.std, Estimator.NETWORK_ML, refined.snr_db)
+        estimator = self.config.estimator
+        estimate = estimator.after_network(window.windows, template, self._margin(window, template), psd, offset, std)
+        return self._cell(window, template, psd, estimate.offset, estimate.std, estimator,
+                          None if math.isnan(estimate.snr_db) else estimate.snr_db)
 
     @staticmethod
     def _untimeable(window: SyncWindow, error: ValueError) -> Health:
@@ -211,24 +159,21 @@ class TimingStage:
                       window.coarse_index)
 
     def time_cell(self, window: SyncWindow, estimator: Estimator | None = None) -> CellTiming:
-        """One cell's arrival by a classical estimator (default: the configured one); ValueError if
-        its windows cannot be timed."""
-        estimator = estimator or self.config.estimator
-        if estimator.uses_network:
-            raise ValueError("time_cell runs the classical estimators; the network times a stack in process()")
-        if estimator is Estimator.ML_FRAME:  # without the stack's frame: the codes
-            estimator = Estimator.ML
+        """One cell's arrival from its windows alone, by ``estimator`` (default: the configured
+        one) or, for one that needs more (the stack's frame, the network), by its fallback;
+        ValueError if the windows cannot be timed."""
+        estimator = (estimator or self.config.estimator).on_windows_only
         template = self._template(window)
         margin = self._margin(window, template)
         psd = noise_psd(window.windows)
-        estimate = self._estimate(estimator, window.windows, template, margin, psd)
+        estimate = estimator.on_windows(window.windows, template, margin, psd)
         return self._cell(window, template, psd, estimate.offset, estimate.std, estimator, estimate.snr_db)
 
     def _frame_spectrum(self, stack: StackWindows | None) -> np.ndarray | None:
         """The spectrum of the stack's mean frame, if ``ml_frame`` is to use it: sent, one frame
         long at this stage's rate, finite and varying (else its cells are timed on their windows,
         which then say what is wrong)."""
-        if (self.config.estimator is not Estimator.ML_FRAME or stack is None or stack.frame is None
+        if (self.config.estimator.input is not Input.FRAME or stack is None or stack.frame is None
                 or stack.frame.size != round(self.sample_rate * FRAME_SECONDS)):
             return None
         try:
@@ -259,7 +204,7 @@ class TimingStage:
             toa_std=estimate.std,
             # the codes' SNR at the fitted scale, as for the other estimators
             snr_db=max(snr_db(timing.amplitude, codes, noise), SNR_FLOOR_DB),
-            estimator=Estimator.ML_FRAME.value,
+            estimator=self.config.estimator.name,
             crlb_std=timing.crlb_std,
             flags=self._weak(window, estimate.std),
             earfcn=window.earfcn,
@@ -308,7 +253,7 @@ class TimingStage:
             toa=window.coarse_index + offset,
             toa_std=std,
             snr_db=snr,
-            estimator=estimator.value,
+            estimator=estimator.name,
             crlb_std=bound.std_samples,
             flags=self._weak(window, std),
             earfcn=window.earfcn,
@@ -330,14 +275,3 @@ class TimingStage:
         if window.pci not in self._single:
             self._single[window.pci] = code_template(self.templates, window.pci)
         return self._single[window.pci]
-
-    @staticmethod
-    def _estimate(estimator: Estimator, windows: np.ndarray, template: np.ndarray, margin: int,
-                  psd: np.ndarray) -> TimingEstimate:
-        if estimator is Estimator.ML:
-            return estimate_ml(windows, template, margin, psd)
-        if estimator is Estimator.ML_WHITE:
-            return estimate_ml(windows, template, margin)
-        if estimator is Estimator.FFT_UPSAMPLED:
-            return estimate_fft_upsampled(windows, template, margin)
-        return estimate_parabolic(windows, template, margin)

@@ -24,8 +24,10 @@ resumed run takes the same path as an uninterrupted one. The checkpoint with the
 validation RMSE over the examples with a code to find (at least ``huber_min_stacked_snr_db``
 after stacking 10 frames) is kept as ``<run_dir>/best.pt`` (no optimiser: the file to ship), and
 again with its sigma calibrated; the curve to ``<run_dir>/training_curve.png`` and
-``history.json``, each replaced whole. Only a finished run copies ``best.pt`` to ``model_path``:
-an interrupted one leaves the file there (with the shipped config, the shipped network) as it was.
+``history.json``, each replaced whole. ``best.pt`` is the run's network; only a finished run
+copies it to ``model_path`` where one is set, so an interrupted one leaves the file there as it
+was. The shipped network's file is replaced only when asked (``replace_shipped``,
+``deepsync train --replace-shipped``): a copied config that still names it is refused.
 
 Devices: a GPU when there is one, else the CPU. Under ``torchrun`` every rank trains on its own
 batches and DistributedDataParallel averages the gradients; rank 0 evaluates and writes, and
@@ -54,6 +56,7 @@ from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_chec
 from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND
 from deepsync.timing.inputs import Normalisation, network_inputs, noise_normalised
 from deepsync.timing.model import TimingNet, TimingNetConfig
+from deepsync.timing.network import DEFAULT_CHECKPOINT
 from deepsync.training.dataset import DatasetConfig, generate, load_split
 
 
@@ -96,7 +99,7 @@ class TrainConfig:
     val_shards: int = 6
     test_shards: int = 8
     run_dir: str = "runs/timing"
-    model_path: str = "src/deepsync/deepsync/timing/timing_net.pt"
+    model_path: str = ""  # where a finished run copies best.pt; empty: nowhere (the network is <run_dir>/best.pt)
     steps: int = 10000
     batch_size: int = 128
     learning_rate: float = 1e-3
@@ -270,10 +273,30 @@ def evaluate(model: TimingNet, examples: Examples, normalisation: Normalisation,
 # -- the loop ----------------------------------------------------------------------------------
 
 
-def train(run: RunConfig, config_path: str = "") -> Path:
-    """Train (or resume) as ``run`` says; returns the path of the best checkpoint."""
+def destination(cfg: TrainConfig, replace_shipped: bool = False) -> Path | None:
+    """Where a finished run copies its best checkpoint (None: it stays in the run directory):
+    ``model_path``, or with ``replace_shipped`` the shipped network's file; ValueError where
+    ``model_path`` names the shipped file unasked, or another file than the one asked for."""
+    shipped = DEFAULT_CHECKPOINT.resolve()
+    named = Path(cfg.model_path).resolve() if cfg.model_path else None
+    if replace_shipped:
+        if named not in (None, shipped):
+            raise ValueError(f"--replace-shipped replaces {DEFAULT_CHECKPOINT}, but training.model_path names "
+                             f"{cfg.model_path}: remove one of them")
+        return DEFAULT_CHECKPOINT
+    if named == shipped:
+        raise ValueError(f"training.model_path is the shipped network ({cfg.model_path}): add --replace-shipped to "
+                         f"replace it, or remove the line (the run's network is then {Path(cfg.run_dir) / BEST})")
+    return None if named is None else Path(cfg.model_path)
+
+
+def train(run: RunConfig, config_path: str = "", replace_shipped: bool = False) -> Path:
+    """Train (or resume) as ``run`` says; returns the path of the trained network (the best
+    checkpoint, or where ``destination`` copied it)."""
     cfg = run.training
-    check_writable(cfg.model_path, "trained network")  # at the door, not after an hour of training
+    shipping = destination(cfg, replace_shipped)
+    if shipping is not None:
+        check_writable(shipping, "trained network")  # at the door, not after an hour of training
     check_writable(Path(cfg.run_dir) / "last.pt", "run's checkpoints")
     distributed = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1
     rank = int(os.environ.get("RANK", 0))
@@ -304,8 +327,8 @@ def train(run: RunConfig, config_path: str = "") -> Path:
     step = 0
     calibrating_since = None  # the step the sigma's calibration started at, where last.pt is mid-way
     if last.exists():
-        if not (run_dir / BEST).exists() and Path(cfg.model_path).exists():
-            shutil.copyfile(cfg.model_path, run_dir / BEST)  # a run from before best.pt kept its best there
+        if not (run_dir / BEST).exists() and shipping is not None and shipping.exists():
+            shutil.copyfile(shipping, run_dir / BEST)  # a run from before best.pt kept its best there
         resumed = load_checkpoint(last)
         if resumed.model.config != run.model:
             raise ValueError(f"{last} is a run of another model config ({resumed.model.config}): remove "
@@ -367,16 +390,65 @@ def train(run: RunConfig, config_path: str = "") -> Path:
             optimiser = torch.optim.Adam(model.parameters(), lr=cfg.calibration_learning_rate)
         calibrate_sigma(model, optimiser, step, since, train_set, val_set, normalisation, trained_on, meta, history,
                         device, cfg)
-    if rank == 0:  # the run is done: only now is the file to ship replaced
-        with replacing(cfg.model_path) as temporary:
+    if rank == 0 and shipping is not None:  # the run is done: only now is the file to ship replaced
+        with replacing(shipping) as temporary:
             shutil.copyfile(run_dir / BEST, temporary)
-    return Path(cfg.model_path)
+    return run_dir / BEST if shipping is None else shipping
 
 
 BEST = "best.pt"
 """The run's best checkpoint so far, in its run directory: ``model_path`` (the shipped network,
 with the shipped config) is replaced by it only when the run ends, so an interrupted run leaves
 it as it was."""
+
+
+def final_metrics(run_dir: str | Path) -> list[str]:
+    """What a finished run reached on the validation split (10 frames), from its history: the
+    best checkpoint's errors, and the share within +-1 sigma once the sigma is calibrated."""
+    history = read_history(Path(run_dir) / "history.json")
+    trained = [h for h in history if "val_rmse_with_code" in h and "huber" in h]
+    if not trained:
+        return [f"no validation yet in {run_dir}/history.json"]
+    best = min(trained, key=lambda h: h["val_rmse_with_code"])
+    lines = [f"best checkpoint (step {best['step']}), validation errors in samples (one is 156 m): RMSE "
+             f"{best['val_rmse_with_code']:.3f} where there is a code to find, {best['val_rmse']:.3f} over all, "
+             f"median |error| {best['val_median_abs_error']:.3f}; {100 * best['val_within_1_sigma']:.0f} % within "
+             "+-1 sigma"]
+    calibrated = [h for h in history if "quantile_loss" in h]
+    if calibrated:
+        lines.append(f"sigma calibrated (step {calibrated[-1]['step']}): {100 * calibrated[-1]['val_within_1_sigma']:.0f} "
+                     "% within +-1 sigma (68 % if honest)")
+    return lines
+
+
+def kept_shards(cfg: TrainConfig) -> str:
+    """How many of the run's shards are made (each written whole: a rerun makes the rest)."""
+    wanted = {"train": cfg.train_shards, "val": cfg.val_shards, "test": cfg.test_shards}
+    made = {split: len(list((Path(cfg.data_dir) / split).glob("shard_*.npz"))) for split in wanted}
+    return f"kept: {cfg.data_dir}: " + ", ".join(f"{made[k]} of {wanted[k]} {k} shards" for k in wanted)
+
+
+def kept_after_interrupt(run: RunConfig, config_path: str, replace_shipped: bool = False) -> list[str]:
+    """What an interrupted ``deepsync train`` leaves and how to go on from it."""
+    cfg = run.training
+    lines = [kept_shards(cfg)]
+    last = Path(cfg.run_dir) / "last.pt"
+    if last.exists():
+        try:
+            step = read_history(Path(cfg.run_dir) / "history.json")[-1]["step"]
+        except (ValueError, IndexError, KeyError):  # cut or empty: last.pt still resumes
+            step = "?"
+        lines.append(f"kept: {last} (step {step} of {cfg.steps + cfg.calibration_steps}) and the best checkpoint so "
+                     f"far, {Path(cfg.run_dir) / BEST}")
+    try:
+        shipping = destination(cfg, replace_shipped)
+    except ValueError:
+        shipping = None
+    if shipping is not None:
+        lines.append(f"{shipping} is as it was (replaced only when the run ends)")
+    again = " --replace-shipped" if replace_shipped else ""
+    lines.append(f"resume: deepsync train --config {config_path}{again} (it picks up where it stopped)")
+    return lines
 
 
 def read_history(path: Path) -> list[dict]:
