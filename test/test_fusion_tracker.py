@@ -610,3 +610,47 @@ def test_an_arrival_older_than_the_filter_is_skipped_and_counted():
 def test_config_refuses_what_is_out_of_range_by_name(field, value):
     with pytest.raises(ValueError, match=field):
         TrackerConfig(**{field: value})
+
+
+# --------------------------------------------------------------------------- false locks at a start, lost tracks
+
+
+def test_with_a_site_to_spare_a_start_catches_a_false_lock_three_sites_cannot():
+    """Site A locked 400 m late: three sites fit it exactly, the track starts far off claiming
+    a few metres, and then refuses the true sites that join. Where the database has more sites
+    the start waits for a fourth: four sites show that one is wrong, not which (no start), five
+    leave A out."""
+    rng = np.random.default_rng(21)
+    route = Route(rng, 30.0, lambda k, rng: list("ABC") if k < 40 else list("ABCD") if k < 80 else list("ABCDE"),
+                  site_errors={"A": (400.0, 0.0)})
+    rate = PPM * 1e-6  # as the sync stage measures it
+    fooled = route.track(clock_rate=rate)
+    assert all(horizontal_error(fix, truth) > 10 * fix.horizontal_std_m
+               for fix, truth in zip(fooled[40:], route.truth[40:]) if isinstance(fix, Fix))
+    checked = route.track(clock_rate=rate, tracker=Tracker(CONFIG, sites_known=6))
+    assert all(isinstance(outcome, NoFix) for outcome in checked[:80])
+    assert "contradict their sigmas" in checked[60].message
+    fixes = [(fix, truth) for fix, truth in zip(checked[80:], route.truth[80:]) if isinstance(fix, Fix)]
+    assert len(fixes) > 200 and fixes[0][0].rejected == ("A",)
+    assert all(horizontal_error(fix, truth) < 3 * fix.horizontal_std_m for fix, truth in fixes)
+    known_three = route.track(clock_rate=rate, tracker=Tracker(CONFIG, sites_known=3))[45]
+    assert known_three.position_enu == fooled[45].position_enu  # three sites known: started as before
+
+
+def test_a_lost_track_starts_again_and_no_single_site_steers_it():
+    """Heard by one site for a minute the track grows past max_std_m and is lost; then a site
+    locked 400 m late is heard alone: it must not pull a pose out of the lost track. The track
+    starts again when three other sites are heard (once B's arrivals have left the start's
+    window: with them the start is inconsistent and waits)."""
+    rng = np.random.default_rng(22)
+    def hear(k: int, rng: np.random.Generator) -> list[str]:
+        return list("ACD") if k < 50 or k >= 1500 else ["A"] if k < 900 else ["B"]
+    route = Route(rng, 180.0, hear, site_errors={"B": (400.0, 0.0)}, moving=False)  # a steady 1.4 m/s
+    tracker = Tracker(CONFIG)
+    outcomes = route.track(clock_rate=PPM * 1e-6, tracker=tracker)
+    lost = next(k for k, outcome in enumerate(outcomes) if isinstance(outcome, NoFix) and outcome.reason is NoFixReason.TRACK_LOST)
+    assert 50 < lost < 900
+    assert all(isinstance(outcome, NoFix) for outcome in outcomes[lost:1500])
+    assert "the track was lost" in (tracker.last_restart or "")
+    restarted = [(fix, truth) for fix, truth in zip(outcomes[1500:], route.truth[1500:]) if isinstance(fix, Fix)]
+    assert len(restarted) > 50 and all(horizontal_error(fix, truth) < 3 * fix.horizontal_std_m for fix, truth in restarted)

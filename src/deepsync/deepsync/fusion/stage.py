@@ -145,7 +145,7 @@ class FusionStage:
                  frame: LocalFrame | None = None) -> None:
         self.config = config or FusionConfig()
         self.anchors = Anchors(towers, frame)
-        self.tracker = Tracker(self.config.tracker) if self.config.track else None
+        self.tracker = Tracker(self.config.tracker, len(self.anchors.anchors)) if self.config.track else None
         self.reference_ns: int | None = None
         self._last_stamp_ns: int | None = None
         self._waiting: list[GnssFix | OdometryVelocity] = []  # aiding given before the first stack

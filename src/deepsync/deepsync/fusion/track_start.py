@@ -7,8 +7,11 @@ repeated site's range moves, one range per site at the window's mid-time solved 
 assumed static) with ``scipy.optimize.least_squares``: a Huber loss first, then the arrivals
 beyond the gate left out (named) and the rest solved plainly. The drift's prior is the sync
 stage's clock rate (sigma ``clock_rate_std_ppm``) when known, else 0 +- ``max_clock_ppm``. A
-start needs ``D + 1`` distinct sites (position and bias; a site more lets the residual test
-check them, and where two positions fit equally the snapshot step refuses), and one arrival
+start needs ``D + 1`` distinct sites (position and bias; where two positions fit equally the
+snapshot step refuses), ``D + 2`` where the tower database has them (a site more lets the
+residual test check them: on a drive, a start from three sites one of which had locked 2-5
+samples late began 740 m off claiming 130 m, and odometry aligned to it carried the track
+700 m off), and one arrival
 more when the clock rate is unknown (the drift is then solved from the data); it must pass the
 same residual test as a snapshot. Its covariance comes from the Jacobian; the motion the static
 assumption ignores enters each arrival's sigma, which grows by ``initial_speed_std_mps`` times
@@ -49,15 +52,17 @@ class Start:
 
 
 def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
-                 prior: PositionPrior | None = None) -> Start | str:
+                 prior: PositionPrior | None = None, redundant: bool = False) -> Start | str:
     """Position, clock bias and drift from arrivals spread over a few seconds (the receiver taken
     as static), or a sentence saying why not. ``arrivals`` must be in time order. With a
     ``prior`` (the position's, at the arrivals' mean time) one site is enough: it measures the
-    clock, and along its range the position, by as much as the prior leaves open."""
+    clock, and along its range the position, by as much as the prior leaves open. ``redundant``:
+    without a prior, one site more than the unknowns, so that the residual test can catch a
+    false lock among them (with ``D + 1`` sites any one of them fits exactly)."""
     dims = config.dims
     names = sorted({a.site for a in arrivals})
     rate_known = clock_rate is not None
-    needed = 1 if prior is not None else dims + 1
+    needed = 1 if prior is not None else dims + 1 + redundant
     if len(names) < needed:
         what = "clock bias; the initial position given" if prior is not None else "position and clock bias"
         return (f"{len(names)} site(s) heard in the last {config.init_window_s:g} s ({', '.join(names) or 'none'}); "
@@ -73,7 +78,7 @@ def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_ra
     # a false lock or a reflection among them: out (once), and the rest solved without it
     keep = np.abs(problem.residuals(theta, keep)[: keep.sum()]) ** 2 <= chi_square_limit(config.gate_probability, 1)
     kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
-    if len(kept) < needed:  # before solving again: fewer would leave the solve underdetermined
+    if len(kept) < needed - redundant:  # before solving again: fewer would leave the solve underdetermined
         return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {needed} needed"
     if not keep.all():
         theta = problem.fit(theta, keep, robust=False)

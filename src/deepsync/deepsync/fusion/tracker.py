@@ -106,12 +106,16 @@ is wrong and not the sites, is to start again: ``max_rejections`` arrivals in a 
 gate, from at least two sites, restart the tracker at once from the arrivals it could not
 explain, and ``max_coast_s`` without an accepted measurement restarts it from what is heard next
 (``last_restart`` keeps why; a NoFix says it). A track whose horizontal 1-sigma (DRMS) has grown
-beyond ``max_std_m`` is kept running (a site or an anchor may bring it back) but reported as a
-NoFix (``TRACK_LOST``): it knows it is lost, and a pose that vague guides nothing.
+beyond ``max_std_m`` is reported as a NoFix (``TRACK_LOST``): it knows it is lost, and a pose
+that vague guides nothing. At the next stack it starts again as at the beginning: kept, a
+lost track took whatever single site came next, and one that had locked a few samples late
+pulled it a kilometre off claiming 100 m (a drive).
 
-**Start** (``fusion.track_start``): from the last ``init_window_s`` of arrivals, or the
-current stack alone when it holds enough sites; ``D + 1`` sites, or one with an initial
-position. The velocity starts at 0 with ``initial_speed_std_mps`` as its sigma, so predicting to
+**Start** (``fusion.track_start``): from the last ``init_window_s`` of arrivals (8 s: long
+enough to gather the sites a city stack rarely holds at once, short enough that the speed
+prior covers the distance walked), or the current stack alone when it holds enough sites;
+``D + 2`` sites where the tower database has that many (``sites_known``: a false lock among
+``D + 1`` fits exactly and cannot be caught), else ``D + 1``; one with an initial position. The velocity starts at 0 with ``initial_speed_std_mps`` as its sigma, so predicting to
 the window's end widens the position by the distance travelled meanwhile. The batch takes each
 arrival's ``std_m`` as white (its bias included); the filter it starts then gets bias states for
 the sites used, at their priors, independent of the position the batch solved with their
@@ -184,7 +188,7 @@ class TrackerConfig:
     clock_bias_std_m_per_sqrt_s: float = 0.1  # receiver white frequency noise (TCXO)
     gate_probability: float = 1e-3  # chance of gating out a Gaussian innovation (chi-square)
     max_coast_s: float = 10.0  # start again after this long without an accepted measurement
-    init_window_s: float = 3.0  # arrivals kept for a start when no stack has enough sites
+    init_window_s: float = 8.0  # arrivals kept for a start when no stack has enough sites
     initial_speed_std_mps: float = _WALKER.initial_speed_std_mps  # speed prior at a start
     clock_rate_std_ppm: float = 0.5  # uncertainty of the sync stage's clock rate, as a drift prior
     max_clock_ppm: float = 50.0  # drift prior (1-sigma) at a start when the clock rate is unknown
@@ -286,9 +290,12 @@ class Tracker:
     """Follows the receiver through stacks of 0..N site arrivals, and positions and velocities
     from outside (see the module docstring)."""
 
-    def __init__(self, config: TrackerConfig | None = None) -> None:
+    def __init__(self, config: TrackerConfig | None = None, sites_known: int | None = None) -> None:
+        """``sites_known``: how many placed sites the tower database holds; where they are at
+        least ``D + 2``, a start without an initial position needs that many heard."""
         self.config = config or TrackerConfig()
         c = self.config
+        self._redundant_start = sites_known is not None and sites_known >= c.dims + 2
         self._gate = chi_square_limit(c.gate_probability, 1)
         self._gate2 = chi_square_limit(c.gate_probability, 2)
         self._gate_position = chi_square_limit(c.gate_probability, c.dims)
@@ -431,6 +438,11 @@ class Tracker:
             return self._start_aided(stamp_ns, time_s, clock_rate, arrivals, aids)
         first = min([a.time_s for a in arrivals] + [a.time_s for a in aids], default=time_s)
         now = min(time_s, first)
+        lost = math.sqrt(max(self._P[0, 0] + self._P[1, 1], 0.0))
+        if lost > self.config.max_std_m:  # single sites would steer it: one false lock pulls it anywhere
+            return self._restart(f"the track was lost (horizontal 1-sigma {lost:.0f} m, max_std_m "
+                                 f"{self.config.max_std_m:g} m); started again as at the beginning",
+                                 stamp_ns, time_s, clock_rate, ())
         if now - self._last_accepted > self.config.max_coast_s:
             return self._restart(f"no measurement accepted for {now - self._last_accepted:.1f} s "
                                  f"(max_coast_s {self.config.max_coast_s:g} s)", stamp_ns, time_s, clock_rate, ())
@@ -848,7 +860,7 @@ class Tracker:
         candidates.append(sorted(self._window, key=lambda a: a.time_s))
         outcome: Start | str = ""
         for candidate in candidates:
-            outcome = batch_start(candidate, self.config, clock_rate, prior)
+            outcome = batch_start(candidate, self.config, clock_rate, prior, self._redundant_start)
             if isinstance(outcome, Start):
                 break
         if isinstance(outcome, str):
