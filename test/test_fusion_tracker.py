@@ -639,9 +639,10 @@ def test_with_a_site_to_spare_a_start_catches_a_false_lock_three_sites_cannot():
 
 def test_a_lost_track_starts_again_and_no_single_site_steers_it():
     """Heard by one site for a minute the track grows past max_std_m and is lost; then a site
-    locked 400 m late is heard alone: it must not pull a pose out of the lost track. The track
-    starts again when three other sites are heard (once B's arrivals have left the start's
-    window: with them the start is inconsistent and waits)."""
+    locked 400 m late is heard alone: it narrows the lost track where it likes, and no pose may
+    come of that. Three other sites then place the receiver elsewhere (once B's arrivals have
+    left the start's window: with them the start is inconsistent and waits), and the track
+    starts again from them."""
     rng = np.random.default_rng(22)
     def hear(k: int, rng: np.random.Generator) -> list[str]:
         return list("ACD") if k < 50 or k >= 1500 else ["A"] if k < 900 else ["B"]

@@ -106,10 +106,12 @@ is wrong and not the sites, is to start again: ``max_rejections`` arrivals in a 
 gate, from at least two sites, restart the tracker at once from the arrivals it could not
 explain, and ``max_coast_s`` without an accepted measurement restarts it from what is heard next
 (``last_restart`` keeps why; a NoFix says it). A track whose horizontal 1-sigma (DRMS) has grown
-beyond ``max_std_m`` is reported as a NoFix (``TRACK_LOST``): it knows it is lost, and a pose
-that vague guides nothing. At the next stack it starts again as at the beginning: kept, a
-lost track took whatever single site came next, and one that had locked a few samples late
-pulled it a kilometre off claiming 100 m (a drive).
+beyond ``max_std_m`` is lost: reported as a NoFix (``TRACK_LOST``), as a pose that vague
+guides nothing, until an anchor pins it or the sites alone start a track where it says it is
+(one elsewhere replaces it). It runs on meanwhile, its bias states and odometry frame kept,
+but single sites narrowing it prove nothing: on a drive, one that had locked 1-5 samples late
+pulled a lost track 1 km off claiming 100 m, and the poses it published then gave the route a
+NEES of 30.
 
 **Start** (``fusion.track_start``): from the last ``init_window_s`` of arrivals (8 s: long
 enough to gather the sites a city stack rarely holds at once, short enough that the speed
@@ -371,6 +373,7 @@ class Tracker:
         self._P = np.zeros((0, 0))
         self._t = math.nan
         self._last_accepted = math.nan
+        self._lost = False  # the track's 1-sigma grew beyond max_std_m, and nothing has found it since
         self._held_since: float | None = None  # when the initial position the track rests on was given
         self._rejection_run: list[str] = []
         self._refused_positions: list[PositionAid] = []
@@ -438,11 +441,6 @@ class Tracker:
             return self._start_aided(stamp_ns, time_s, clock_rate, arrivals, aids)
         first = min([a.time_s for a in arrivals] + [a.time_s for a in aids], default=time_s)
         now = min(time_s, first)
-        lost = math.sqrt(max(self._P[0, 0] + self._P[1, 1], 0.0))
-        if lost > self.config.max_std_m:  # single sites would steer it: one false lock pulls it anywhere
-            return self._restart(f"the track was lost (horizontal 1-sigma {lost:.0f} m, max_std_m "
-                                 f"{self.config.max_std_m:g} m); started again as at the beginning",
-                                 stamp_ns, time_s, clock_rate, ())
         if now - self._last_accepted > self.config.max_coast_s:
             return self._restart(f"no measurement accepted for {now - self._last_accepted:.1f} s "
                                  f"(max_coast_s {self.config.max_coast_s:g} s)", stamp_ns, time_s, clock_rate, ())
@@ -484,15 +482,43 @@ class Tracker:
                                      "gate: the state, not the sites, was wrong", stamp_ns, time_s, clock_rate,
                                      tuple(rejected))
         self._P = 0.5 * (self._P + self._P.T)  # the updates' rounding, kept from accumulating
-        return self._reported(self._fix_at(time_s, stamp_ns, tuple(used), tuple(rejected)))
+        fix = self._reported(self._fix_at(time_s, stamp_ns, tuple(used), tuple(rejected)))
+        return self._found_again(fix, tuple(used), stamp_ns, time_s, clock_rate) if self._lost else fix
 
     def _reported(self, fix: Fix) -> Fix | NoFix:
-        """The fix, or TRACK_LOST where its horizontal 1-sigma is beyond ``max_std_m``."""
-        if fix.horizontal_std_m <= self.config.max_std_m:
+        """The fix, or TRACK_LOST where the track is lost: its horizontal 1-sigma grew beyond
+        ``max_std_m``, and it has not been found again since."""
+        if fix.horizontal_std_m > self.config.max_std_m:
+            self._lost = True
+        if not self._lost:
             return fix
         return NoFix(fix.stamp_ns, NoFixReason.TRACK_LOST,
-                     f"the track's horizontal 1-sigma grew to {fix.horizontal_std_m:.0f} m (max_std_m "
-                     f"{self.config.max_std_m:g} m): lost until sites or an anchor narrow it", fix.rejected)
+                     f"the track's horizontal 1-sigma is {fix.horizontal_std_m:.0f} m and grew beyond max_std_m "
+                     f"{self.config.max_std_m:g} m: lost until an anchor pins it or the sites alone place the "
+                     "receiver where it says", fix.rejected)
+
+    def _found_again(self, lost: NoFix, used: tuple[str, ...], stamp_ns: int, time_s: float,
+                     clock_rate: float | None) -> Fix | NoFix:
+        """A lost track runs on (its bias states, its odometry frame) but single sites narrowing
+        it prove nothing: one locked a few samples late pulls it anywhere it likes. It is found
+        again when the sites alone start a track, as a new one would need, where it says it is;
+        if they start one elsewhere, that replaces it."""
+        start = batch_start(sorted(self._window, key=lambda a: a.time_s), self.config, clock_rate, None,
+                            self._redundant_start)
+        if not isinstance(start, Start):
+            return lost
+        horizontal = self._P[:2, :2]
+        moved = (self.config.initial_speed_std_mps * (time_s - start.time_s)) ** 2  # since the start's mid-time
+        apart = self._x[:2] - start.mean[:2]
+        spread = horizontal + start.covariance[:2, :2] + moved * np.eye(2)
+        if math.sqrt(max(np.trace(horizontal), 0.0)) <= self.config.max_std_m \
+                and float(apart @ np.linalg.solve(spread, apart)) <= self._gate2:
+            self._lost = False
+            return self._fix_at(time_s, stamp_ns, used, lost.rejected)
+        self._forget()
+        self.last_restart = (f"the track was lost, and the sites alone ({', '.join(start.sites)}) placed the receiver "
+                             f"{float(np.hypot(*apart)):.0f} m from it")
+        return self._start(stamp_ns, time_s, clock_rate, [])
 
     # ------------------------------------------------------------------ the filter
 
@@ -598,6 +624,7 @@ class Tracker:
         score = self._correct_block(innovation, H, aid.covariance[:dims, :dims], self._gate_position)
         if score is None:
             self._last_accepted = aid.time_s
+            self._lost = False  # pinned
             self._refused_positions.clear()
             if self._held_since is not None:
                 self._held_since = aid.time_s  # the track rests on this position now
@@ -632,7 +659,8 @@ class Tracker:
             self._velocity_outcome(aid, self._correct_block(z - v, H, R, self._gate2), speed)
             return
         if self._odometry is None:
-            self._align_odometry(aid)
+            if self._clone is not None:  # none while the track is lost
+                self._align_odometry(aid)
             return
         psi, scale = self._x[self._odometry], self._x[self._odometry + 1]
         seen, by_v, by_psi, by_scale = odometry_velocity(v, psi, scale)
@@ -668,10 +696,13 @@ class Tracker:
     def _stretch_to(self, aid: VelocityAid) -> None:
         """Integrate the odometry frame's displacement since the stretch began, where the track's
         position was cloned into the state (its covariance with everything kept as the filter
-        runs on); a gap in the odometry starts a new stretch."""
+        runs on); a gap in the odometry starts a new stretch, and a lost track has none (its
+        displacement may be a false lock's doing, and the yaw would be read from it)."""
         stretch = self._stretch
-        if self._clone is not None and aid.time_s - stretch.last_s > ODOMETRY_GAP_S:
+        if self._clone is not None and (aid.time_s - stretch.last_s > ODOMETRY_GAP_S or self._lost):
             self._remove(range(self._clone, self._clone + 2))
+        if self._lost:
+            return
         if self._clone is None:
             n = len(self._x)
             P = np.zeros((n + 2, n + 2))
