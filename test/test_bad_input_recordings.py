@@ -294,4 +294,4 @@ def test_a_silent_recording_says_so_once_not_once_a_stack(tmp_path, capsys):
     np.zeros(FRAME * 300, np.int16).tofile(path)
     assert main(["detect", "--input", str(path), "--rate", "1.92e6"]) == 0
     out = capsys.readouterr().out
-    assert out.count("no_signal") == 1 and "... 29 more stack(s) like it, to 2.900 s" in out
+    assert out.count("the stacked frame holds one value") == 1 and "... 29 more stack(s) like it, to 2.900 s" in out
