@@ -56,7 +56,7 @@ from deepsync.pipeline import PipelineConfig
 from deepsync.recording import record_scenario
 from deepsync.sources import BagSource
 from deepsync.towers import load_tower_database
-from deepsync.types import Fix
+from deepsync.types import Fix, NoFix
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = REPO / "bags" / "generated" / "route_set"
@@ -109,19 +109,23 @@ def bag_for(route: str, load: str, seed: int, workers: int) -> Path:
     return bag
 
 
+def published(run: RouteRun) -> list[Fix | NoFix]:
+    """What a node publishes at each stack (``FusionResult.published``): the tracker's fix, else the snapshot's."""
+    return [epoch.tracked if isinstance(epoch.tracked, Fix) else epoch.snapshot for epoch in run.epochs]
+
+
 def fix_rate_after_first(run: RouteRun) -> float | None:
     """Share of the stacks after the first published fix that have a published fix."""
-    published = [epoch.tracked if isinstance(epoch.tracked, Fix) else epoch.snapshot for epoch in run.epochs]
-    first = next((k for k, answer in enumerate(published) if isinstance(answer, Fix)), None)
+    answers = published(run)
+    first = next((k for k, answer in enumerate(answers) if isinstance(answer, Fix)), None)
     if first is None:
         return None
-    return float(np.mean([isinstance(answer, Fix) for answer in published[first:]]))
+    return float(np.mean([isinstance(answer, Fix) for answer in answers[first:]]))
 
 
 def published_summary(run: RouteRun) -> dict:
-    """What a node publishes (the tracker's fix, else the snapshot's), against the truth."""
-    published = [epoch.tracked if isinstance(epoch.tracked, Fix) else epoch.snapshot for epoch in run.epochs]
-    summary = method_summary(published, [epoch.truth_enu for epoch in run.epochs])
+    """What a node publishes, against the truth."""
+    summary = method_summary(published(run), [epoch.truth_enu for epoch in run.epochs])
     return {key: summary[key] for key in ("fix_rate", "median_m", "p90_m", "nees_mean")} | {
         "fix_rate_after_first": fix_rate_after_first(run)}
 
