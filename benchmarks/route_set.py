@@ -52,6 +52,7 @@ from deepsync.eval.route import (
     summarize_route,
 )
 from deepsync.fusion.rssi import RssiConfig
+from deepsync.fusion.stage import published_answer
 from deepsync.pipeline import PipelineConfig
 from deepsync.recording import record_scenario
 from deepsync.sources import BagSource
@@ -109,25 +110,25 @@ def bag_for(route: str, load: str, seed: int, workers: int) -> Path:
     return bag
 
 
-def published(run: RouteRun) -> list[Fix | NoFix]:
-    """What a node publishes at each stack (``FusionResult.published``): the tracker's fix, else the snapshot's."""
-    return [epoch.tracked if isinstance(epoch.tracked, Fix) else epoch.snapshot for epoch in run.epochs]
+def published(run: RouteRun, max_std_m: float) -> list[Fix | NoFix]:
+    """What a node publishes at each stack (``FusionResult.published``)."""
+    return [published_answer(epoch.tracked, lambda epoch=epoch: epoch.snapshot, max_std_m) for epoch in run.epochs]
 
 
-def fix_rate_after_first(run: RouteRun) -> float | None:
+def fix_rate_after_first(answers: list[Fix | NoFix]) -> float | None:
     """Share of the stacks after the first published fix that have a published fix."""
-    answers = published(run)
     first = next((k for k, answer in enumerate(answers) if isinstance(answer, Fix)), None)
     if first is None:
         return None
     return float(np.mean([isinstance(answer, Fix) for answer in answers[first:]]))
 
 
-def published_summary(run: RouteRun) -> dict:
+def published_summary(run: RouteRun, max_std_m: float) -> dict:
     """What a node publishes, against the truth."""
-    summary = method_summary(published(run), [epoch.truth_enu for epoch in run.epochs])
+    answers = published(run, max_std_m)
+    summary = method_summary(answers, [epoch.truth_enu for epoch in run.epochs])
     return {key: summary[key] for key in ("fix_rate", "median_m", "p90_m", "nees_mean")} | {
-        "fix_rate_after_first": fix_rate_after_first(run)}
+        "fix_rate_after_first": fix_rate_after_first(answers)}
 
 
 def since_anchor_errors(run: RouteRun) -> list[tuple[float, float]]:
@@ -158,14 +159,14 @@ def measure(route: str, bag: Path) -> dict:
     row["configurations"] = {}
     for name, plan in CONFIGURATIONS.items():
         run = plain if name == "no anchor" else fuse_route(recorded, towers, config.fusion, aiding=plan)
-        row["configurations"][name] = published_summary(run)
+        row["configurations"][name] = published_summary(run, config.fusion.tracker.max_std_m)
         if name == "GNSS 60 s":
             row["since_anchor"] = since_anchor_errors(run)
     if ROUTES[route][3] == "pedestrian":
         row["interval_median_m"] = {}
         for interval in INTERVALS_S:
             run = fuse_route(recorded, towers, config.fusion, aiding=AidingPlan(interval, GNSS_STD_M))
-            row["interval_median_m"][f"{interval:g}"] = published_summary(run)["median_m"]
+            row["interval_median_m"][f"{interval:g}"] = published_summary(run, config.fusion.tracker.max_std_m)["median_m"]
     return row
 
 

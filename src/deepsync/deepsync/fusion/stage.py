@@ -110,6 +110,7 @@ class FusionResult:
     sites: tuple[SiteArrival, ...]
     events: tuple[Health, ...]
     solve: Callable[[], Fix | NoFix] = field(repr=False, compare=False)
+    max_std_m: float = math.inf  # the tracker's: no vaguer pose is published
 
     @cached_property
     def snapshot(self) -> Fix | NoFix:
@@ -117,9 +118,22 @@ class FusionResult:
 
     @property
     def published(self) -> Fix | NoFix:
-        """What a node publishes for this stack: the tracker's fix when it has one, else the
-        snapshot's answer (whose :class:`NoFix` says why the stack alone gave none)."""
-        return self.tracked if isinstance(self.tracked, Fix) else self.snapshot
+        """What a node publishes for this stack (:func:`published_answer`)."""
+        return published_answer(self.tracked, lambda: self.snapshot, self.max_std_m)
+
+
+def published_answer(tracked: Fix | NoFix | None, snapshot: Callable[[], Fix | NoFix], max_std_m: float) -> Fix | NoFix:
+    """The tracker's fix when it has one, else the stack's own, unless that is vaguer than the
+    tracker may be (``max_std_m``: a pose that vague guides nothing; on a static asset hearing
+    three sites at a bad angle, fixes 600 m off claiming more); the NoFix says why."""
+    if isinstance(tracked, Fix):
+        return tracked
+    answer = snapshot()
+    if isinstance(answer, Fix) and answer.horizontal_std_m > max_std_m:
+        return NoFix(answer.stamp_ns, NoFixReason.DEGENERATE_GEOMETRY,
+                     f"the stack's own fix is {answer.horizontal_std_m:.0f} m 1-sigma, beyond max_std_m "
+                     f"{max_std_m:g} m: too vague to publish", answer.rejected)
+    return answer
 
 
 def answer_counts(answers: Sequence[Fix | NoFix | None]) -> dict:
@@ -256,8 +270,8 @@ class FusionStage:
             prior = tracked.position_enu if isinstance(tracked, Fix) else None
         if problems and not sites:
             unknown = NoFix(arrivals.stamp_ns, NoFixReason.UNKNOWN_SITES, "; ".join(problems))
-            return FusionResult(tracked, (), tuple(events), lambda: unknown)
+            return FusionResult(tracked, (), tuple(events), lambda: unknown, self.config.tracker.max_std_m)
         sites = tuple(sites)
         return FusionResult(tracked, sites, tuple(events), functools.partial(
             solve_snapshot, sites, self.config.snapshot, stamp_ns=arrivals.stamp_ns, clock_rate=clock_rate or 0.0,
-            prior_enu=prior))
+            prior_enu=prior), self.config.tracker.max_std_m)
