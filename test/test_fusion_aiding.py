@@ -441,3 +441,19 @@ def test_a_plan_draws_the_same_fixes_for_the_same_seed_and_one_at_the_start_for_
         AidingPlan(-1.0)
     with pytest.raises(ValueError, match="odometry_std"):
         AidingPlan(odometry_std=2.0)
+
+
+def test_no_pose_vaguer_than_max_std_m_is_published_the_stacks_own_included():
+    from deepsync.fusion.stage import published_answer
+
+    def snapshot(std_m: float) -> Fix:
+        return Fix(7, (1.0, 2.0, 0.0), np.diag([std_m**2, std_m**2, UNMEASURED_VARIANCE]), ("A", "B", "C"))
+
+    lost = NoFix(7, NoFixReason.TRACK_LOST, "lost")
+    vague = published_answer(lost, lambda: snapshot(1500.0), 150.0)
+    assert isinstance(vague, NoFix) and vague.reason is NoFixReason.DEGENERATE_GEOMETRY
+    assert "2121 m 1-sigma, beyond max_std_m 150 m" in vague.message
+    fair = snapshot(50.0)
+    assert published_answer(lost, lambda: fair, 150.0) is fair
+    tracked = snapshot(10.0)
+    assert published_answer(tracked, lambda: snapshot(1500.0), 150.0) is tracked
