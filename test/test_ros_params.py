@@ -230,15 +230,16 @@ def test_the_yaml_declares_exactly_the_specd_parameters_at_their_defaults() -> N
 
 
 def test_the_readmes_node_table_lists_every_parameter_and_estimator() -> None:
-    """Users read the README's table, not params.py: a parameter or estimator added to a node
-    must appear in its row (the one-process node's row refers to the others')."""
-    rows = {line.split("`")[1]: line for line in (REPO / "README.md").read_text().splitlines()
+    """Users read docs/ros.md's parameter table, not params.py: a parameter or estimator added
+    to a node must appear in its row (the one-process node's row refers to the others'; the
+    table is the last in the file to name each node)."""
+    rows = {line.split("`")[1]: line for line in (REPO / "docs" / "ros.md").read_text().splitlines()
             if line.startswith("| `") and line.split("`")[1] in params.NODES}
     assert set(rows) == set(params.NODES)
     for node, specs in params.NODES.items():
         if node != "deepsync_pipeline":
             missing = [spec.name for spec in specs if f"`{spec.name}`" not in rows[node]]
-            assert not missing, f"README's {node} row lacks {missing}"
+            assert not missing, f"docs/ros.md's {node} row lacks {missing}"
     assert all(f"`{name}`" in rows["cell_timing"] for name in Estimator.names())
 
 

@@ -490,7 +490,7 @@ def _print_fixes(fixes: dict, heard: dict[str, int]) -> None:
 def _print_health(health: dict[str, int]) -> None:
     if health:
         print("  health      " + ", ".join(f"{kind} {n}" for kind, n in health.items())
-              + "  (stream and stage events, see README: What happens when input is bad)")
+              + "  (stream and stage events, see docs/guide.md: What happens when input is bad)")
     else:
         print("  health      no stage reported a problem")
 

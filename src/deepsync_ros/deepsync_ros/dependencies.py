@@ -15,7 +15,7 @@ import importlib.metadata
 import os
 import sys
 
-# module -> how a Jazzy user gets it (README, "ROS 2")
+# module -> how a Jazzy user gets it (docs/ros.md, "1. Install")
 REQUIRED = {
     "numpy": "sudo apt install python3-numpy  (Ubuntu 24.04 ships 1.26; the nodes need numpy < 2)",
     "scipy": "sudo apt install python3-scipy",
@@ -23,7 +23,7 @@ REQUIRED = {
     "pyproj": "sudo apt install python3-pyproj",
     "tqdm": "sudo apt install python3-tqdm",
     "matplotlib": "sudo apt install python3-matplotlib",
-    "rosbags": "pip install 'rosbags>=0.11,<0.12'  (no apt package; see the README's ROS section)",
+    "rosbags": "pip install 'rosbags>=0.11,<0.12'  (no apt package; see docs/ros.md, 1. Install)",
     "mcap": "pip install 'mcap>=1.1'",
     "sigmf": "pip install 'sigmf>=1.14'",
     "threadpoolctl": "sudo apt install python3-threadpoolctl",
@@ -69,7 +69,7 @@ def report(program: str) -> bool:
     for line in problems:
         print(f"[{program}] missing dependency: {line}", file=sys.stderr)
     if problems:
-        print(f"[{program}] Python: {sys.executable}. The README's 'ROS 2' section says how the nodes find "
+        print(f"[{program}] Python: {sys.executable}. docs/ros.md ('1. Install') says how the nodes find "
               "their dependencies.", file=sys.stderr)
     return not problems
 
