@@ -36,6 +36,16 @@ PEAK_KB = ("peak = next(int(line.split()[1]) for line in open('/proc/self/status
            "if line.startswith('VmHWM:'))")
 
 
+def samples_and_peak_kb(source: str) -> tuple[int, int]:
+    """A ``deepsync.sources`` source opened (and its length counted) in a fresh interpreter: its
+    sample count and the process's peak resident memory in kB."""
+    probe = f"from deepsync.sources import *; s = {source}; {PEAK_KB}; print(s.n_samples, peak)"
+    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    samples, peak_kb = map(int, run.stdout.split())
+    return samples, peak_kb
+
+
 def campus_codes(frames: int = 60) -> tuple[np.ndarray, int]:
     """The campus bag's first ``frames`` frames of ADC codes, and the stamp of its first sample."""
     chunks = [c for c, _ in zip(BagSource(BAG).chunks(), range(frames))]
@@ -188,10 +198,7 @@ def test_a_compressed_archive_streams_instead_of_being_read_into_memory(tmp_path
     own size: the dataset streams through a block at a time."""
     archive = write_archive(tmp_path / "zeros.sigmf.gz", "w:gz", 400 * 2**20)
     assert archive.stat().st_size < 5 * 2**20
-    probe = f"from deepsync.sources import SigmfSource; s = SigmfSource({str(archive)!r}); {PEAK_KB}; print(s.n_samples, peak)"
-    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    samples, peak_kb = map(int, run.stdout.split())
+    samples, peak_kb = samples_and_peak_kb(f"SigmfSource({str(archive)!r})")
     assert samples == 200 * 2**20
     assert peak_kb < 300 * 1024, f"{peak_kb / 1024:.0f} MB resident to open a 400 MB dataset"
 
@@ -278,10 +285,7 @@ def test_a_long_raw_recording_streams_in_bounded_memory(tmp_path):
     path = tmp_path / "long.cu8"
     with open(path, "wb") as handle:
         handle.truncate(600 * 2**20)  # sparse: no disk used, every byte 0 when read
-    probe = f"from deepsync.sources import RawFileSource; s = RawFileSource({str(path)!r}, 'cu8', 1.92e6); {PEAK_KB}; print(s.n_samples, peak)"
-    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    samples, peak_kb = map(int, run.stdout.split())
+    samples, peak_kb = samples_and_peak_kb(f"RawFileSource({str(path)!r}, 'cu8', 1.92e6)")
     assert samples == 300 * 2**20
     assert peak_kb < 350 * 1024, f"{peak_kb / 1024:.0f} MB resident to read a 600 MB recording"
 
