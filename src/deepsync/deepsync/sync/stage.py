@@ -193,8 +193,10 @@ class SyncStage:
         """Feed float samples from another source (a recorded |x|^2, a test signal)."""
         return [self._search(stack) for stack in self.stacker.push_samples(samples, first_sample_index, sample_rate, stamp_ns)]
 
-    def _new_events(self) -> tuple[Health, ...]:
-        """The stacker's events since the previous result (taken: a long run keeps none)."""
+    def take_events(self) -> tuple[Health, ...]:
+        """The stream's events (gaps, resets, bad samples) since they were last taken: every
+        result takes them, so at the end of a stream this holds what came after the last stack.
+        Taken, not copied: a long run keeps none."""
         events = tuple(self.stacker.events)
         self.stacker.events.clear()
         return events
@@ -228,7 +230,7 @@ class SyncStage:
             n_frames=stack.n_frames,
             aligned=stack.aligned,
             flags=stack.flags,
-            events=self._new_events(),
+            events=self.take_events(),
             cells=tuple(c for c in cells if c.pci in reported),
             tentative=tuple(c for c in cells if c.pci not in reported),
             clock_drift_ppm=self.stacker.measured_drift_ppm,
