@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deepsync.iq.coherent import search_cells
+from deepsync.testing.coherent import search_cells
 from deepsync.pipeline import Pipeline
 from deepsync.sources import RawFileSource, read_iq
 from deepsync.towers import load_tower_database

@@ -48,7 +48,7 @@ def test_imports_run_one_way(name, path):
     if own == "types":
         assert not used, f"types imports {sorted(used)}: it must import nothing of the project"
     if own in STAGES:
-        forbidden = {"bag", "sources", "pipeline", "cli", "recording", "twin", "iq", "eval"}
+        forbidden = {"bag", "sources", "pipeline", "cli", "recording", "twin", "testing", "eval"}
         assert not used & forbidden, f"stage module {name} imports {sorted(used & forbidden)}"
     if own not in ("timing", "training"):  # the network, and the making of it
         assert not any(m == "torch" or m.startswith("torch.") for m in imports(path)), f"{name} imports torch"
