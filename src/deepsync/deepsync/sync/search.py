@@ -31,7 +31,7 @@ only counts as a new cell if it is a PCI not yet found, shows a PSS at its PSS p
 (with a database) is not better explained by a PCI outside it: the database limits what is
 reported, not what is believed. (The stage then asks for a cell to persist over stacks.)
 
-What the envelope can tell (``benchmarks/cell_search.py``, ``docs/cell_search.md``): the PSS
+What the envelope can tell (``benchmarks/detection/cell_search.py``, ``docs/cell_search.md``): the PSS
 envelopes of N_ID2 = 1 and 2 (roots 29 and 34, complex conjugates) are identical, and the SSS
 envelopes of different N_ID1 correlate up to ~0.97, so identity is carried as ranked
 candidates with scores and a tower database decides which may be reported.
@@ -382,9 +382,9 @@ class CellSearch:
         should be, at the tracking threshold over the same ``track_lags`` and phases.
 
         The CRS adds 40 symbols per frame to the codes' 4: at 10 MHz about 8 dB of SNR for a
-        tracked cell at the same false-alarm rate (``benchmarks/full_frame_template.py``), the
+        tracked cell at the same false-alarm rate (``benchmarks/detection/full_frame_template.py``), the
         difference between hearing 3 sites per stack or 5 on the dense walk
-        (``benchmarks/full_frame_tracking.py``). Only for tracked cells: the comb of the CRS
+        (``benchmarks/detection/full_frame_tracking.py``). Only for tracked cells: the comb of the CRS
         repeats the template's fit every 21.3 samples, so a search over all positions would
         lock a period off; a track knows the period. Each cell is tested on what the search
         left of the stack (codes found, and strong cells' CRS, cancelled), its noise the
