@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from deepsync.testing.coherent import search_cells
-from deepsync.pipeline import Pipeline
+from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources import RawFileSource, read_iq
 from deepsync.towers import load_tower_database
 
@@ -34,6 +34,9 @@ OUT = REPO / "docs" / "results" / "real_recording.json"
 # the recording's carrier is not known; through its 1.92 MHz passband every carrier of 3 MHz or
 # more gives the same CRS template (10 MHz stands for them), 1.4 MHz only the middle 72 subcarriers
 BANDWIDTHS_MHZ = (1.4, 10.0)
+# the recording is one second: 10-frame stacks give nine stacks to compare, where the default
+# 100-frame stack (a walker's) would give one
+TEN_FRAMES = PipelineConfig().with_choices(n_frames=10)
 
 
 def offset(reference, position: float) -> float:
@@ -44,7 +47,7 @@ def offset(reference, position: float) -> float:
 
 def evaluate(path: Path, references: dict, towers: Path = TOWERS) -> dict:
     source = RawFileSource(path, "cu8", 1.92e6)
-    results = list(Pipeline(source.frontend, towers=load_tower_database(towers)).run(source.chunks()))
+    results = list(Pipeline(source.frontend, TEN_FRAMES, towers=load_tower_database(towers)).run(source.chunks()))
     cells: dict[int, dict[str, list]] = {}
     for result in results:
         for cell in result.sync.cells:
