@@ -11,8 +11,7 @@ holds the cell by its whole frame, and the timing stage times it so (``ml_frame`
 
 Through an I/Q radio's passband every carrier of 3 MHz or more looks the same
 (``squared_iq_frontend``), and the narrowest one that fits what the radio saw wins, which is
-what its templates should be. What it learns on the bundled and simulated bags:
-``docs/cell_search.md``.
+what its templates should be.
 """
 
 from __future__ import annotations
