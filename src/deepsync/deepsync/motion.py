@@ -7,13 +7,16 @@ part of a sample (156 m at 1.92 MS/s) and of the bias decorrelation distance, an
 stacks hear weaker sites (each doubling gains about 3 dB). Sliding stacks (a new stack every
 ``hop_frames``) keep the answers coming at 10 Hz or more whatever the length.
 
-Neutral ground (no project imports): the sync stage, fusion, the pipeline, the command line
-and the ROS parameters all read the one registry here.
+Neutral ground (it imports only ``deepsync.schema``): the sync stage, fusion, the pipeline, the
+command line and the ROS parameters all read the one registry here, and the one ``MOTION``
+setting (its help and choices) the command line's flag and the nodes' parameter are made from.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from deepsync.schema import Setting
 
 
 @dataclass(frozen=True)
@@ -50,6 +53,9 @@ MOTION_MODELS: dict[str, MotionModel] = {
     )
 }
 DEFAULT_MOTION = "pedestrian"
+MOTION = Setting("motion", str, "How the receiver moves, which sets the stacks and the tracker's motion model: "
+                 + "; ".join(f"{m.name}: {m.summary} ({m.n_frames}-frame stacks every {m.hop_frames})"
+                             for m in MOTION_MODELS.values()) + ".", choices=MOTION_MODELS)
 
 
 def motion_model(name: str) -> MotionModel:
