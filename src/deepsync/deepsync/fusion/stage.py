@@ -242,6 +242,14 @@ class FusionStage:
         epoch_ns = frame_reference_ns(self.reference_ns + round(self.tracker.time_s * 1e9))
         return calibrated_database(self.anchors.towers, corrections, epoch_ns)
 
+    def follow_stacks(self, stack_overlap: float) -> None:
+        """Count each arrival's timing variance ``stack_overlap`` times from the next stack on:
+        the stacks the arrivals come from changed (their n_frames / hop_frames)."""
+        self.config = dataclasses.replace(self.config, tracker=dataclasses.replace(self.config.tracker,
+                                                                                  stack_overlap=stack_overlap))
+        if self.tracker is not None:
+            self.tracker.config = self.config.tracker
+
     def process(self, arrivals: StackArrivals) -> FusionResult:
         """Fix (or no fix, with the reason) for one stack's arrivals."""
         if self._last_stamp_ns is not None and arrivals.stamp_ns < self._last_stamp_ns:

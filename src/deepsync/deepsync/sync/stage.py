@@ -119,6 +119,7 @@ class SyncResult:
     first_sample_index: int
     sample_rate: float
     n_frames: int
+    hop_frames: int  # frames from this stack's start to the next's
     aligned: bool
     flags: tuple[Health, ...]  # what makes this stack less trustworthy
     events: tuple[Health, ...]  # input problems since the previous result
@@ -142,7 +143,7 @@ class SyncResult:
     def stack_windows(self) -> StackWindows:
         """The confirmed cells with the stack's time base: what ``cell_sync`` publishes."""
         return StackWindows(self.stamp_ns, self.first_sample_index, self.sample_rate, self.windows,
-                            self.clock_drift_ppm, self.frame, self.frame_delay)
+                            self.clock_drift_ppm, self.frame, self.frame_delay, (self.n_frames, self.hop_frames))
 
 
 class SyncStage:
@@ -215,6 +216,7 @@ class SyncStage:
             first_sample_index=stack.first_sample_index,
             sample_rate=self.stacker.sample_rate,
             n_frames=stack.n_frames,
+            hop_frames=self.config.stack.hop,
             aligned=stack.aligned,
             flags=stack.flags,
             events=self._new_events(),
