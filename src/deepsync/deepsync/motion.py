@@ -24,11 +24,16 @@ class MotionModel:
     """One way of moving: the tracker's process model and the stacks it allows."""
 
     name: str
-    summary: str  # what it assumes, in a sentence (the CLI's and ROS parameter's help)
+    assumes: str  # what it assumes, in a sentence
     acceleration_std_mps2: float  # velocity random walk: m/s gained or lost per second, 1-sigma
     initial_speed_std_mps: float  # speed prior (1-sigma per axis) when a track starts
     n_frames: int  # frames (10 ms) per stack
     hop_frames: int  # frames from one stack's start to the next
+
+    @property
+    def summary(self) -> str:
+        """What it assumes and the stacks it allows: the command line's and the nodes' help."""
+        return f"{self.assumes} ({self.n_frames}-frame stacks every {self.hop_frames})"
 
     @property
     def stack_seconds(self) -> float:
@@ -53,9 +58,8 @@ MOTION_MODELS: dict[str, MotionModel] = {
     )
 }
 DEFAULT_MOTION = "pedestrian"
-MOTION = Setting("motion", str, "How the receiver moves, which sets the stacks and the tracker's motion model: "
-                 + "; ".join(f"{m.name}: {m.summary} ({m.n_frames}-frame stacks every {m.hop_frames})"
-                             for m in MOTION_MODELS.values()) + ".", choices=MOTION_MODELS)
+MOTION = Setting("motion", str, "How the receiver moves, which sets the stacks and the tracker's motion model.",
+                 choices=MOTION_MODELS)
 
 
 def motion_model(name: str) -> MotionModel:

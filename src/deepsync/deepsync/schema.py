@@ -54,8 +54,13 @@ class Setting:
 
     @property
     def described(self) -> str:
-        """The help with the unit, as ``--help`` and ``ros2 param describe`` show it."""
-        return f"{self.help} [{self.unit}]" if self.unit else self.help
+        """The help with the unit, and each choice's own summary where its registry has one,
+        as ``--help`` and ``ros2 param describe`` show it."""
+        text = f"{self.help} [{self.unit}]" if self.unit else self.help
+        summaries = {name: getattr(item, "summary", None) for name, item in (self.choices or {}).items()}
+        if all(summaries.values()) and summaries:
+            text += " " + "; ".join(f"{name}: {summary}" for name, summary in summaries.items()) + "."
+        return text
 
     def name_of(self, value: object) -> object:
         """A config's value as a user writes it: a choice's name (the config may hold the
@@ -172,6 +177,7 @@ def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, describe
     shown = described.name_of(default) if default is not None else None
     told = f"default {shown}" if unset is None else f"default: {unset}"
     bounds = f"; {described.interval}" if described.bounds is not None else ""
-    action = parser.add_argument(flag, default=shown, help=f"{described.help.rstrip('.')} ({told}{bounds})", **more)
+    text = described.described.replace(f" [{described.unit}]", "") if bounds else described.described
+    action = parser.add_argument(flag, default=shown, help=f"{text.rstrip('.')} ({told}{bounds})", **more)
     action.setting = described
     return action

@@ -112,8 +112,8 @@ class StackConfig:
                                        unit="samples", bounds=(0.0, 1000.0), open_low=True)
     clip_fraction: float = setting(1e-3, help="Flag a stack with more clipped samples than this fraction.",
                                    bounds=(0.0, 1.0))
-    hop_frames: int | None = setting(None, help="Frames from one stack's start to the next (unset: n_frames, back "
-                                     "to back); fewer gives sliding stacks: n_frames 100, hop_frames 20 hears as 100 "
+    hop_frames: int | None = setting(None, help="Frames from one stack's start to the next; fewer than n_frames "
+                                     "gives sliding stacks: n_frames 100, hop_frames 20 hears as 100 "
                                      "frames do and answers at 5 Hz.", unit="frames", bounds=(1, 1000))
 
     def __post_init__(self) -> None:
