@@ -86,7 +86,7 @@ class Setting:
                 self.kind is int and not isinstance(value, int)):
             raise ValueError(f"{name} must be {'an integer' if self.kind is int else 'a number'}, got "
                              f"{reprlib.repr(value)}")
-        if not math.isfinite(value):
+        if isinstance(value, float) and not math.isfinite(value):  # an int is (and 10**400 overflows a float)
             raise ValueError(f"{name} must be a finite number, got {reprlib.repr(value)}")
         if self.bounds is not None:
             low, high = self.bounds

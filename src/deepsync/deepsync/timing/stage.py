@@ -61,8 +61,7 @@ class TimingConfig:
     estimator: Estimator = setting(DEFAULT, help="Sub-sample timing estimator.", choices=ESTIMATORS)
     weak_std_samples: float = setting(1.0, help="Flag an arrival whose 1-sigma exceeds this (1 sample = 156 m at "
                                       "1.92 MS/s).", unit="samples", bounds=(0.0, 1e6), open_low=True)
-    checkpoint: str | None = setting(None, help="Timing-network checkpoint for a network estimator; unset: the one "
-                                     "shipped with deepsync.")
+    checkpoint: str | None = setting(None, help="Timing-network checkpoint for a network estimator.")
 
     def __post_init__(self) -> None:
         if not isinstance(self.estimator, Estimator):  # a name is looked up by Estimator.named, never taken as is
