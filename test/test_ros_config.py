@@ -147,7 +147,7 @@ def test_the_deepsync_overlay_feeds_the_ekf_independent_fixes() -> None:
     values = {spec.name: spec.default for spec in params.CELL_SYNC} | sync
     stack = params.sync_config(values).stack
     assert stack.hop_frames >= stack.n_frames == motion_model(DEFAULT_MOTION).n_frames
-    assert fusion["stack_overlap"] == stack.n_frames / stack.hop_frames
+    assert "stack_overlap" not in fusion  # the arrivals say which stacks they came from (CellTimingArray)
     for node, entry in overlay.items():  # only names the nodes have, with their types
         specs = {spec.name: spec for spec in params.NODES[node.split("/")[-1]]}
         for name, value in entry["ros__parameters"].items():

@@ -27,13 +27,13 @@ from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import stack_record, summarize
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
 from deepsync.jobs import JobRunner
-from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
+from deepsync.motion import DEFAULT_MOTION, MOTION
 from deepsync.numeric import one_blas_thread
-from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
+from deepsync.pipeline import Pipeline, PipelineConfig, StackResult, setting_paths
+from deepsync.schema import Setting, add_flag
 from deepsync.sources import BagSource, LiveSource, SampleFormat, Source, open_source
 from deepsync.sync.stacking import StackConfig
 from deepsync.timing import network_install_hint
-from deepsync.timing.registry import ESTIMATORS, Estimator
 from deepsync.towers import load_tower_database
 from deepsync.types import FRAME_SECONDS, HealthKind
 
@@ -167,14 +167,8 @@ def _output_file(text: str) -> str:
 
 
 def _frame_counts(text: str) -> tuple[int, ...]:
-    """Comma-separated frame counts (``5,10,12``)."""
-    try:
-        counts = tuple(int(part) for part in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of whole numbers") from None
-    if not all(1 <= count <= 1000 for count in counts):
-        raise argparse.ArgumentTypeError(f"{text!r}: frame counts must be 1..1000")
-    return counts
+    """Comma-separated frame counts (``5,10,12``), each a stack's ``n_frames``."""
+    return tuple(_setting("n_frames").parse(part) for part in text.split(","))
 
 
 def _print_recording(summary) -> None:
@@ -497,7 +491,13 @@ def _print_health(health: dict[str, int]) -> None:
 
 def _pipeline_config(args: argparse.Namespace) -> PipelineConfig:
     """The pipeline a replaying command asked for (``_replay_arguments``)."""
-    return PipelineConfig().with_choices(args.frames, args.estimator, args.hop, args.search_every, args.motion)
+    return PipelineConfig().with_choices(n_frames=args.frames, hop_frames=args.hop, motion=args.motion,
+                                         search_every=args.search_every, estimator=args.estimator)
+
+
+def _setting(name: str) -> Setting:
+    """A stage config's setting, for its flag (``deepsync.schema.add_flag``)."""
+    return setting_paths()[name][1]
 
 
 def _stacks_text(config: PipelineConfig, motion: str) -> str:
@@ -733,20 +733,12 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
     many = {"action": "extend", "nargs": "+"} if many_bags else {}
     command.add_argument(*bag_options, dest="bag", required=True, help=bag_help, **many)
     command.add_argument("--towers", required=towers_required, help=towers_help)
-    command.add_argument("--motion", choices=tuple(MOTION_MODELS), default=DEFAULT_MOTION,
-                         help="how the receiver moves, which sets the stacks and the tracker's motion model "
-                         "(default %(default)s): " + "; ".join(f"{m.name}: {m.summary} ({m.n_frames}-frame stacks "
-                                                               f"every {m.hop_frames})" for m in MOTION_MODELS.values()))
-    command.add_argument("--frames", type=int, help="frames per stack (default: the motion model's)")
-    command.add_argument("--hop", type=int, help="frames from one stack to the next (default: the motion model's; "
-                         "with --frames alone, back to back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for "
-                         "50-frame stacks at 10 Hz)")
-    command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
-                         f"{defaults.sync.search_every}; between, the cells found are tracked; while none finds a new "
-                         f"cell the gap doubles up to {defaults.sync.max_search_interval_s:g} s of stream)")
-    command.add_argument("--estimator", default=defaults.timing.estimator.name, choices=Estimator.names(),
-                         metavar="NAME", help="sub-sample timing estimator (default %(default)s): " + "; ".join(
-                             f"{e.name}: {e.summary}" for e in ESTIMATORS.values()))
+    add_flag(command, MOTION, "--motion", default=DEFAULT_MOTION, metavar="MODEL")
+    add_flag(command, _setting("n_frames"), "--frames", unset="the motion model's")
+    add_flag(command, _setting("hop_frames"), "--hop", unset="the motion model's; with --frames alone, back to back; "
+             "e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz")
+    add_flag(command, _setting("search_every"), "--search-every", default=defaults.sync.search_every)
+    add_flag(command, _setting("estimator"), "--estimator", default=defaults.timing.estimator)
     command.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -791,8 +783,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="envelope units per ADC code for --input (default: a recording's peak, a live "
                              "stream's full scale, maps to 32766)")
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
-    frames = StackConfig().n_frames  # a cell search shows each stack: short ones, back to back
-    detect.add_argument("--frames", type=int, default=frames, help=f"frames per stack (default {frames})")
+    # a cell search shows each stack: short ones, back to back
+    add_flag(detect, _setting("n_frames"), "--frames", default=StackConfig().n_frames)
     detect.set_defaults(run=_cmd_detect)
 
     route = commands.add_parser("evaluate-route", help="fixes along a recorded route against its ground truth "
@@ -867,7 +859,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "`deepsync make-dataset` makes it, about 20 minutes on 2 cores; `deepsync train` too)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test"),
                           help="which examples to score (default %(default)s: those nobody trained or chose on)")
-    evaluate.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
+    add_flag(evaluate, _setting("checkpoint"), "--checkpoint", unset="the shipped one")
     evaluate.add_argument("--frames", type=_frame_counts, default="5,10,12",
                           help="stacked frames to evaluate, comma-separated "
                           "(with --bag: the first)")

@@ -75,13 +75,15 @@ def find_msg_dir() -> Path:
     )
 
 
-def load_typestore(msg_dir: Path) -> Typestore:
-    """ROS 2 Jazzy typestore plus our types parsed from the ``.msg`` text in ``msg_dir``."""
+def load_typestore(msg_dir: Path, older: dict[str, str] | None = None) -> Typestore:
+    """ROS 2 Jazzy typestore plus our types parsed from the ``.msg`` text in ``msg_dir``;
+    ``older``: message type -> the definition to take for it instead (a bag's, recorded before
+    the type grew)."""
     store = get_typestore(Stores.ROS2_JAZZY)
     types: dict = {}
     for name in MSG_NAMES:
         text = (msg_dir / f"{name}.msg").read_text(encoding="utf-8")
-        types.update(get_types_from_msg(text, msgtype(name)))
+        types.update(get_types_from_msg((older or {}).get(msgtype(name), text), msgtype(name)))
     store.register(types)
     return store
 
