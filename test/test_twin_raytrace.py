@@ -276,3 +276,14 @@ def test_our_interaction_flags_are_sionnas():
     constants = backend.sionna_rt().constants.InteractionType
     for flag in tracing.Interaction:
         assert int(flag) == getattr(constants, flag.name)
+
+
+def test_the_munich_example_scenario_parses_as_a_ray_traced_walk():
+    from pathlib import Path
+
+    from deepsync.twin import load_scenario
+
+    scenario = load_scenario(Path(__file__).resolve().parents[1] / "config" / "scenarios" / "munich_walk.yaml")
+    assert isinstance(scenario.channel, RayTracingSettings) and scenario.channel.scene == "munich"
+    assert len(scenario.sites) == 6 and all(len(site.cells) == 3 for site in scenario.sites)
+    assert scenario.channel.trace_settings == tracing.TraceSettings()

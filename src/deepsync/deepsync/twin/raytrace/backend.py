@@ -15,7 +15,7 @@ from types import ModuleType
 
 LLVM_LIBRARY = Path("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1")  # Debian's libllvm19
 INSTALL_HINT = ("install the optional extra: pip install -c constraints.txt -e 'src/deepsync[raytrace]' "
-                "(sionna-rt, shapely, trimesh; scripts/setup.sh does it) and Debian's libllvm19 "
+                "(sionna-rt, shapely, trimesh, mapbox-earcut; scripts/setup.sh does it) and Debian's libllvm19 "
                 "(scripts/debian_packages.sh), or set DRJIT_LIBLLVM_PATH to an LLVM >= 16 library")
 
 
@@ -32,8 +32,12 @@ def point_drjit_at_llvm() -> None:
 
 def missing() -> str | None:
     """Why ray tracing cannot run here (a sentence naming what to install), or None."""
-    for module in ("sionna.rt", "shapely", "trimesh", "mapbox_earcut"):
-        if importlib.util.find_spec(module.split(".")[0]) is None:
+    for module in ("sionna", "shapely", "trimesh", "mapbox_earcut"):
+        try:
+            found = importlib.util.find_spec(module) is not None
+        except (ImportError, ValueError):  # a broken or blocked installation
+            found = False
+        if not found:
             return f"{module} is not installed: {INSTALL_HINT}"
     point_drjit_at_llvm()
     library = os.environ.get("DRJIT_LIBLLVM_PATH")

@@ -28,6 +28,9 @@ from deepsync.twin.raytrace.scenes import RayScene
 
 RECEIVERS_PER_SOLVE = 250  # receivers added to the scene for one solver call (bounds its memory)
 CACHE_FORMAT = 1  # bump when TracedPaths' arrays change meaning
+# the share S of a wall's reflected field amplitude that scatters diffusely (sqrt(1 - S^2) stays
+# specular): measured building walls lie at 0.2-0.5 (Degli-Esposti et al., IEEE TAP 55(1), 2007)
+DIFFUSE_SCATTERING = 0.3
 
 
 class Interaction(enum.IntFlag):
@@ -43,9 +46,11 @@ class Interaction(enum.IntFlag):
 class TraceSettings:
     """Sionna's path solver settings (docs/raytracing.md says why these defaults).
 
-    ``max_depth``: most interactions per path; ``diffraction``: first-order edge diffraction
-    (around corners, over roofs); ``diffuse``: diffuse scattering off walls; ``refraction``:
-    paths through walls; ``samples_per_source``: rays shot per antenna; ``seed``: their draw.
+    ``max_depth``: most interactions per path (a pass through a wall is one, a building two);
+    ``diffraction``: first-order edge diffraction (around corners, over roofs); ``diffuse``:
+    diffuse scattering off every surface, with scattering coefficient DIFFUSE_SCATTERING (the
+    ITU materials Sionna loads have none, so without it nothing scatters); ``refraction``: paths
+    through walls; ``samples_per_source``: rays shot per antenna; ``seed``: their draw.
     """
 
     max_depth: int = 3
@@ -122,7 +127,8 @@ class TracedPaths:
 def cache_key(scene: RayScene, transmitter_enu: np.ndarray, carrier_hz: float,
               receivers_enu: np.ndarray, settings: TraceSettings) -> str:
     """The hex SHA-256 naming a trace's cache file (see the module docstring)."""
-    digest = hashlib.sha256(f"{CACHE_FORMAT} {scene.digest} {carrier_hz!r} {asdict(settings)!r}".encode())
+    digest = hashlib.sha256(f"{CACHE_FORMAT} {scene.digest} {carrier_hz!r} {asdict(settings)!r} "
+                            f"{DIFFUSE_SCATTERING!r}".encode())
     digest.update(np.ascontiguousarray(scene.to_scene(transmitter_enu), dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(scene.to_scene(receivers_enu), dtype="<f8").tobytes())
     return digest.hexdigest()
@@ -164,6 +170,8 @@ def _trace(scene: RayScene, transmitter: np.ndarray, carrier_hz: float, receiver
     if sionna_scene is None:
         sionna_scene = _LOADED[scene.digest] = rt.load_scene(str(scene.xml_path))
     sionna_scene.frequency = carrier_hz
+    for material in sionna_scene.radio_materials.values():
+        material.scattering_coefficient = DIFFUSE_SCATTERING if settings.diffuse else 0.0
     sionna_scene.tx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
     sionna_scene.rx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
     for name in list(sionna_scene.transmitters) + list(sionna_scene.receivers):
