@@ -126,6 +126,30 @@ def test_the_cache_returns_the_same_paths_and_any_changed_input_misses(scene, tm
     tracing.trace_paths(scene, TX, CARRIER_HZ + 1.0, [IN_VIEW], QUICK, tmp_path)
     tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], tracing.TraceSettings(max_depth=2, samples_per_source=100_000), tmp_path)
     assert len(traces) == 5
+    # a damaged cache file is traced again and replaced, not an error
+    [stored] = [p for p in (tmp_path / "paths").iterdir()
+                if p.name == tracing.cache_key(scene, TX, CARRIER_HZ, np.array([IN_VIEW]), QUICK) + ".npz"]
+    stored.write_bytes(stored.read_bytes()[:100])
+    again = tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], QUICK, tmp_path)
+    assert len(traces) == 6 and np.array_equal(again.delays_s, first.delays_s)
+    assert tracing.TracedPaths.load(stored).delays_s.shape == first.delays_s.shape
+
+
+@needs_sionna
+def test_rooftops_and_three_sector_sites_make_a_scenario_site(scene):
+    from deepsync.twin.raytrace.sites import rooftops, three_sector_site
+
+    [roof] = rooftops(scene, 3, min_area_m2=100.0)  # the one building
+    assert roof.building == "block" and roof.height_m == pytest.approx(BLOCK_HEIGHT_M)
+    east, north, up = roof.position_enu
+    assert 0 < east < 20 and 0 < north < 30 and up == pytest.approx(BLOCK_HEIGHT_M, abs=0.01)
+    assert rooftops(scene, 3, max_height_m=10.0) == []  # too tall a roof is no candidate
+    lat, lon, _ = FRAME.enu_to_geodetic(roof.position_enu)
+    site = three_sector_site("R", float(lat), float(lon), roof.height_m + 3.0, n_id_1=7, earfcn=300)
+    parsed = parse_scenario({"name": "x", "seed": 1, "origin": ORIGIN, "sites": [site],
+                             "receiver": {"height_m": 1.5, "position": _lat_lon(-10, 5)}})
+    assert [c.pci for c in parsed.sites[0].cells] == [21, 22, 23]
+    assert [c.azimuth_deg for c in parsed.sites[0].cells] == [0.0, 120.0, 240.0]
 
 
 def _scenario(footprints, waypoints, *, cache_dir, loop=False, site_height_m=10.0, **channel):

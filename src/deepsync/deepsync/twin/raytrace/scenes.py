@@ -26,6 +26,7 @@ from deepsync.configio import ConfigError
 from deepsync.geo import LocalFrame
 from deepsync.twin.raytrace.backend import sionna_rt
 from deepsync.twin.raytrace.buildings import (
+    Building,
     BuildingIndex,
     buildings_from_scene,
     read_footprints,
@@ -57,12 +58,14 @@ GEOJSON_SUFFIXES = (".geojson", ".json")
 @dataclass(frozen=True)
 class RayScene:
     """A scene file and where it lies: ``frame`` is the ENU frame of its x/y/z, ``map_frame``
-    the twin's. ``digest`` hashes the XML and every mesh it loads (the trace cache's key)."""
+    the twin's. ``digest`` hashes the XML and every mesh it loads (the trace cache's key).
+    ``footprints``: the buildings it was made from, where known (else derived from its meshes)."""
 
     xml_path: Path
     frame: LocalFrame
     map_frame: LocalFrame
     name: str
+    footprints: tuple[Building, ...] | None = field(default=None, repr=False, compare=False)
     digest: str = field(init=False)
 
     def __post_init__(self) -> None:
@@ -71,7 +74,7 @@ class RayScene:
     @cached_property
     def buildings(self) -> BuildingIndex:
         """The scene's buildings (footprints, roof heights), in *scene* x/y."""
-        return BuildingIndex(buildings_from_scene(self.xml_path))
+        return BuildingIndex(self.footprints if self.footprints is not None else buildings_from_scene(self.xml_path))
 
     def to_scene(self, points_enu: ArrayLike) -> np.ndarray:
         """Map-frame ENU points (trailing axis of 3) in scene x/y/z."""
@@ -143,6 +146,4 @@ def open_scene(spec: str, map_frame: LocalFrame, cache_dir: str | Path, *,
     xml = directory / "scene.xml"
     if not xml.is_file():  # written last: a scene cut short is written again
         write_city_scene(buildings, directory)
-    scene = RayScene(xml, map_frame, map_frame, path.stem)
-    scene.__dict__["buildings"] = BuildingIndex(buildings)  # the footprints as given, not re-derived
-    return scene
+    return RayScene(xml, map_frame, map_frame, path.stem, buildings)

@@ -17,6 +17,7 @@ import enum
 import hashlib
 import os
 import tempfile
+import zipfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -149,9 +150,14 @@ def trace_paths(scene: RayScene, transmitter_enu: ArrayLike, carrier_hz: float,
     if cache_dir is not None:
         path = Path(cache_dir) / "paths" / f"{cache_key(scene, transmitter, carrier_hz, receivers, settings)}.npz"
         if path.is_file():
-            if progress is not None:
-                progress.update(len(receivers))
-            return TracedPaths.load(path)
+            try:
+                cached = TracedPaths.load(path)
+            except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+                cached = None  # damaged or of another format: traced again and replaced below
+            if cached is not None:
+                if progress is not None:
+                    progress.update(len(receivers))
+                return cached
     traced = _trace(scene, transmitter, float(carrier_hz), receivers, settings, progress)
     if path is not None:
         traced.save(path)
