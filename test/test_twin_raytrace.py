@@ -133,6 +133,21 @@ def test_the_cache_returns_the_same_paths_and_any_changed_input_misses(scene, tm
     again = tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], QUICK, tmp_path)
     assert len(traces) == 6 and np.array_equal(again.delays_s, first.delays_s)
     assert tracing.TracedPaths.load(stored).delays_s.shape == first.delays_s.shape
+    # the positions are stored in the map frame: another frame is another trace
+    from deepsync.twin.raytrace.scenes import RayScene
+
+    elsewhere = RayScene(scene.xml_path, scene.frame, LocalFrame(48.0001, 11.0, 500.0), scene.name)
+    assert tracing.cache_key(elsewhere, TX, CARRIER_HZ, np.array([IN_VIEW]), QUICK) != \
+        tracing.cache_key(scene, TX, CARRIER_HZ, np.array([IN_VIEW]), QUICK)
+
+
+@needs_sionna
+def test_a_cache_that_cannot_be_written_is_a_warning_not_a_lost_trace(scene, tmp_path):
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")
+    with pytest.warns(UserWarning, match="ray-tracing cache: cannot write"):
+        traced = tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], QUICK, blocked)
+    assert traced.at(0)["los"][0]
 
 
 @needs_sionna

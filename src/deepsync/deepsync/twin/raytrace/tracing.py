@@ -6,9 +6,10 @@ each path's departure direction afterwards (``RayTracedChannel``), which for a v
 polarised element is exactly what Sionna's own pattern does (a real gain on the theta field
 component), and lets one trace serve all the sectors of a site.
 
-The cache key is a SHA-256 of the scene (its files' contents and the Sionna version), the
-antenna and receiver positions (in scene coordinates, as float64 bytes), the carrier and the
-solver settings: a second run loads the arrays, any changed input traces anew.
+The cache key is a SHA-256 of the scene (its files' contents and the Sionna version), the map
+frame, the antenna and receiver positions (in scene coordinates, as float64 bytes), the carrier
+and the solver settings: a second run loads the arrays, any changed input traces anew. A cache
+file that cannot be read is traced again; one that cannot be written is a warning.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import enum
 import hashlib
 import os
 import tempfile
+import warnings
 import zipfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -111,9 +113,13 @@ class TracedPaths:
         """Write the arrays to ``path`` (.npz) atomically."""
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz.part")
-        with os.fdopen(handle, "wb") as out:
-            np.savez(out, format=CACHE_FORMAT, **{f.name: getattr(self, f.name) for f in fields(self)})
-        os.replace(temporary, path)
+        try:
+            with os.fdopen(handle, "wb") as out:
+                np.savez(out, format=CACHE_FORMAT, **{f.name: getattr(self, f.name) for f in fields(self)})
+            os.replace(temporary, path)
+        except BaseException:
+            Path(temporary).unlink(missing_ok=True)
+            raise
 
     @classmethod
     def load(cls, path: Path) -> TracedPaths:
@@ -127,9 +133,12 @@ class TracedPaths:
 
 def cache_key(scene: RayScene, transmitter_enu: np.ndarray, carrier_hz: float,
               receivers_enu: np.ndarray, settings: TraceSettings) -> str:
-    """The hex SHA-256 naming a trace's cache file (see the module docstring)."""
+    """The hex SHA-256 naming a trace's cache file (see the module docstring); the map frame is
+    in it because the stored positions and directions are in that frame."""
+    frame = scene.map_frame
     digest = hashlib.sha256(f"{CACHE_FORMAT} {scene.digest} {carrier_hz!r} {asdict(settings)!r} "
-                            f"{DIFFUSE_SCATTERING!r}".encode())
+                            f"{DIFFUSE_SCATTERING!r} {frame.latitude_deg!r} {frame.longitude_deg!r} "
+                            f"{frame.height_m!r}".encode())
     digest.update(np.ascontiguousarray(scene.to_scene(transmitter_enu), dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(scene.to_scene(receivers_enu), dtype="<f8").tobytes())
     return digest.hexdigest()
@@ -160,7 +169,11 @@ def trace_paths(scene: RayScene, transmitter_enu: ArrayLike, carrier_hz: float,
                 return cached
     traced = _trace(scene, transmitter, float(carrier_hz), receivers, settings, progress)
     if path is not None:
-        traced.save(path)
+        try:
+            traced.save(path)
+        except OSError as error:  # the trace itself is good: use it, and say why it is not kept
+            warnings.warn(f"ray-tracing cache: cannot write {path} ({error.strerror or error}); "
+                          f"the next run traces again", stacklevel=2)
     return traced
 
 
