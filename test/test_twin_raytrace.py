@@ -251,6 +251,13 @@ def test_the_sector_pattern_and_chain_phase_weight_the_traced_gains(footprints, 
     assert position_offset < 1e-9
     assert np.abs(ratio) == pytest.approx(expected, rel=1e-9)
     assert np.ptp(np.angle(ratio)) < 1e-9
+    # a receiver standing at that point gets the same paths without Doppler
+    from deepsync.twin.raytrace.channel import static_paths
+
+    standing = static_paths(traced, k, tx.antenna)
+    assert np.array_equal(standing.delays_s, traced.delays_s[k, order]) and not standing.doppler_hz.any()
+    turned = channel.paths(0, 3.0).gains / standing.gains  # only the chain phase differs
+    assert np.abs(turned) == pytest.approx(1.0, abs=1e-9) and np.ptp(np.angle(turned)) < 1e-9
 
 
 @pytest.mark.parametrize(("channel", "named"), [

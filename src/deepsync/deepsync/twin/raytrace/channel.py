@@ -33,6 +33,7 @@ import numpy as np
 
 from deepsync.frontend.channel import Paths
 from deepsync.frontend.portable import phasor
+from deepsync.twin.antenna import SectorAntenna
 from deepsync.twin.raytrace.tracing import TracedPaths
 from deepsync.twin.route import Trajectory
 from deepsync.twin.seeding import transmit_chain_phase
@@ -50,6 +51,26 @@ def route_samples(receiver: Trajectory, step_m: float) -> tuple[np.ndarray, np.n
     count = int(math.ceil(receiver.length_m / step_m - 1e-6)) + 1  # no extra point a micrometre before the end
     along = np.minimum(np.arange(count) * step_m, receiver.length_m)
     return along, receiver.position_enu(along / receiver.speed_mps)
+
+
+def sector_gains(traced: TracedPaths, antenna: SectorAntenna, chain_phase_rad: float = 0.0) -> np.ndarray:
+    """(N, P) gains of ``traced``'s paths as one sector sends them: each weighted by the sector
+    pattern along its departure direction and turned by the sector's transmit-chain phase
+    (zero where there is no path)."""
+    pattern_db = np.where(traced.valid, antenna.gain_db(traced.departure_enu), -np.inf)
+    return traced.gains * 10.0 ** (pattern_db / 20.0) * complex(math.cos(chain_phase_rad), math.sin(chain_phase_rad))
+
+
+def static_paths(traced: TracedPaths, index: int, antenna: SectorAntenna, chain_phase_rad: float = 0.0) -> Paths:
+    """The front end's :class:`Paths` of one sector at traced position ``index`` for a receiver
+    standing there (no Doppler): e.g. ``FixedChannel`` input for a map over many positions. A
+    position no path reaches gets one path of zero gain at the straight-line delay."""
+    keep = traced.path_order(index)
+    if keep.size == 0:
+        distance = math.hypot(*(traced.receivers_enu[index] - traced.transmitter_enu))
+        return Paths([distance / SPEED_OF_LIGHT_M_S], [0j], [0.0])
+    gains = sector_gains(traced, antenna, chain_phase_rad)[index, keep]
+    return Paths(traced.delays_s[index, keep], gains, np.zeros(keep.size))
 
 
 @dataclass(frozen=True)
@@ -80,9 +101,8 @@ class RayTracedChannel:
                 raise ValueError(f"emitter {index}: traced at {len(traced)} points, the route at {len(self._along)}")
             if not math.isclose(traced.carrier_hz, tx.carrier_hz, rel_tol=1e-12):
                 raise ValueError(f"emitter {index}: traced at {traced.carrier_hz} Hz, sends at {tx.carrier_hz} Hz")
-            pattern_db = np.where(traced.valid, tx.antenna.gain_db(traced.departure_enu), -np.inf)
             chain = transmit_chain_phase(seed, tx.site, tx.pci if tx.pci >= 0 else index)
-            gains = traced.gains * 10.0 ** (pattern_db / 20.0) * complex(math.cos(chain), math.sin(chain))
+            gains = sector_gains(traced, tx.antenna, chain)
             keep = tuple(traced.path_order(k) for k in range(len(traced)))
             links.append(_Link(tx, traced, gains, keep))
         self._links = tuple(links)
