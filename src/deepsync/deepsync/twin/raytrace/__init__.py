@@ -15,4 +15,7 @@ Tracing a site to a list of positions (the map frame, ENU m)::
     scene = open_scene("munich", frame, cache_dir)
     traced = trace_paths(scene, site_enu, 2.66e9, positions_enu, TraceSettings(), cache_dir)
     traced.at(0)   # position 0's paths: delays_s, gains, los, interactions, directions
+    static_paths(traced, 0, SectorAntenna(azimuth_deg=120.0, downtilt_deg=6.0))  # a sector's Paths there
+
+(``static_paths`` from ``deepsync.twin.raytrace.channel``, ``SectorAntenna`` from ``deepsync.twin.antenna``.)
 """
