@@ -48,7 +48,7 @@ def route_samples(receiver: Trajectory, step_m: float) -> tuple[np.ndarray, np.n
         raise ValueError(f"step_m must be positive, got {step_m!r}")
     if receiver.speed_mps == 0:
         return np.zeros(1), receiver.position_enu(0.0)[None]
-    count = int(math.ceil(receiver.length_m / step_m - 1e-6)) + 1  # no extra point a micrometre before the end
+    count = int(math.ceil(receiver.length_m / step_m - 1e-3)) + 1  # no extra point a millimetre from the end
     along = np.minimum(np.arange(count) * step_m, receiver.length_m)
     return along, receiver.position_enu(along / receiver.speed_mps)
 
