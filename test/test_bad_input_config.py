@@ -201,6 +201,13 @@ BAD_SCENARIO = [
     pytest.param([(("channel", "environment_doppler_hz"), 1e4)],
                  "scenario.channel.environment_doppler_hz", "is outside [0, 300] Hz",
                  id="environment-doppler-10kHz"),
+    pytest.param([(("channel",), {"model": "raytraced", "scene": "munich", "samples_per_source": 10})],
+                 "scenario.channel.samples_per_source", "is outside [10000, 1e+08]", id="raytrace-10-rays"),
+    pytest.param([(("channel",), {"model": "raytraced", "scene": "munich", "default_building_height_m": -3})],
+                 "scenario.channel.default_building_height_m", "is outside [1, 1000] m",
+                 id="raytrace-negative-building-height"),
+    pytest.param([(("channel",), {"model": "raytraced", "scene": "/nonexistent/city.geojson"})],
+                 "scenario.channel.scene", "is neither a bundled scene", id="raytrace-missing-scene-file"),
     pytest.param([(("receiver", "position"), None), (("receiver", "route"), {**ROUTE, "speed_mps": 1e3})],
                  "scenario.receiver.route.speed_mps", "is outside [0.1, 140] m/s",
                  id="speed-1km-per-s"),
@@ -261,7 +268,7 @@ def test_scenario_edge_values_pass(edits):
     assert isinstance(parse_scenario(_scenario(*edits)), Scenario)
 
 
-@pytest.mark.parametrize("name", ["campus", "campus_walk"])
+@pytest.mark.parametrize("name", ["campus", "campus_walk", "munich_walk"])
 def test_bundled_scenarios_are_inside_every_range(name):
     assert load_scenario(CONFIG / "scenarios" / f"{name}.yaml").name == name
 

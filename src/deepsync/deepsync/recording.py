@@ -88,7 +88,7 @@ def cell_summaries(twin: Twin) -> list[CellSummary]:
                 carrier_mhz=cell.carrier_hz / 1e6,
                 bandwidth_mhz=cell.bandwidth_mhz,
                 distance_m=twin.geometric_delay_s(i, 0.0) * SPEED_OF_LIGHT_M_S,
-                los=twin.channel.link_parameters(i).los,
+                los=twin.channel.los_at(i, 0.0),
                 re_power_dbm=10 * math.log10(power_w * 1e3),
             )
         )
