@@ -11,6 +11,8 @@ synchronised network or a calibrated database gives them, so what is measured is
     urban_walk   config/scenarios/route_urban.yaml          96 s  pedestrian
     city_drive   config/scenarios/route_city_drive.yaml    150 s  vehicle
     city_static  config/scenarios/route_city_static.yaml   120 s  static
+    munich_walk  config/scenarios/munich_walk.yaml         180 s  pedestrian  (ray-traced)
+    munich_statistical  the same sites and route, the statistical channel (38.901 UMa, LOS by distance)
 
 Loads: ``day`` sets every cell's load within 0.35-0.6, ``evening`` within 0.1-0.2 (each cell
 its own, fixed by its place in the file). The bags are made when missing, into
@@ -68,7 +70,15 @@ ROUTES = {  # name: (scenario, towers, seconds, motion)
     "urban_walk": ("route_urban", "route_urban", 96.4, "pedestrian"),
     "city_drive": ("route_city_drive", "route_city", 150.0, "vehicle"),
     "city_static": ("route_city_static", "route_city", 120.0, "static"),
+    "munich_walk": ("munich_walk", "munich_walk", 180.0, "pedestrian"),
+    "munich_statistical": ("munich_walk", "munich_walk", 180.0, "pedestrian"),
 }
+# the ray-traced walk's sites and route with the statistical channel instead: 38.901 UMa, its
+# LOS probability by distance, NLOS TDL-A and LOS TDL-D as on the other routes
+STATISTICAL_TWINS = {"munich_statistical": (
+    {"model": "UMa", "los": "auto"},
+    {"profile_los": "TDL-D", "profile_nlos": "TDL-A", "delay_spread_ns": "auto", "shadow_fading": True,
+     "environment_doppler_hz": 1.0})}
 LOADS = {"day": (0.35, 0.6), "evening": (0.1, 0.2)}
 GNSS_STD_M = 5.0
 ODOMETRY_STD = 0.05
@@ -85,7 +95,8 @@ INTERVALS_S = (10.0, 30.0, 60.0, 120.0, 300.0)
 
 
 def scenario_for(route: str, load: str, seed: int) -> dict:
-    """The route's scenario with ``load``'s loads, ``seed`` and spatial consistency."""
+    """The route's scenario with ``load``'s loads, ``seed`` and, on a statistical channel,
+    spatial consistency (a ray-traced channel follows the geometry as it is)."""
     scenario_name = ROUTES[route][0]
     scenario = load_yaml(REPO / "config" / "scenarios" / f"{scenario_name}.yaml")
     low, high = LOADS[load]
@@ -93,7 +104,10 @@ def scenario_for(route: str, load: str, seed: int) -> dict:
     for k, cell in enumerate(cells):  # spread over the range, each cell its own
         cell["load"] = round(low + (high - low) * ((k * 0.618034) % 1.0), 3)
     scenario["seed"] = seed
-    scenario["channel"]["spatial_consistency"] = True
+    if route in STATISTICAL_TWINS:
+        scenario["environment"], scenario["channel"] = (dict(part) for part in STATISTICAL_TWINS[route])
+    if scenario.setdefault("channel", {}).get("model", "statistical") == "statistical":
+        scenario["channel"]["spatial_consistency"] = True
     return scenario
 
 
