@@ -234,7 +234,7 @@ def test_core_package_builds_alone(tmp_path: Path) -> None:
     assert (prefix / "share" / "deepsync" / "package.xml").is_file()
     assert (prefix / "lib" / "deepsync" / "deepsync").is_file()  # ros2 run deepsync deepsync
     for data in ("deepsync/data/towers/campus.yaml", "deepsync/data/scenarios/campus_route.yaml",
-                 "deepsync/timing/timing_net.pt"):  # the package data the demo and the network read
+                 "deepsync/bag/msg/EnvelopeSamples.msg", "deepsync/timing/timing_net.pt"):  # the package data
         assert list(prefix.glob(f"lib/python*/site-packages/{data}")), f"{data} is not installed"
 
 
