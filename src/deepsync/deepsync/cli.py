@@ -20,9 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deepsync.bag import (POSE_TOPIC, TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg,
-                          provenance_document)
-from deepsync.bag.writer import PROVENANCE_KEY
+from deepsync.bag import POSE_TOPIC, BagError, BagInfo, bag_info
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import CellSearch, SearchedStack
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
@@ -183,33 +181,25 @@ def _print_recording(summary) -> None:
               f"{cell.distance_m:6.0f} m  {'LOS ' if cell.los else 'NLOS'}  {cell.re_power_dbm:6.1f} dBm/RE")
 
 
-def describe_bag(path: Path) -> None:
-    """Print what a bag holds: topics, types, counts, duration, provenance, truth cells."""
-    with BagReader(path) as bag:
-        print(f"bag {path}: {bag.message_count} messages over {bag.duration_ns / 1e9:.3f} s")
-        for topic, msgtype in sorted(bag.topics.items()):
-            print(f"  {topic:<32} {msgtype:<38} {bag.message_counts[topic]:6d} messages")
-        crc = bag.crc_status
-        if crc.complete:
-            print(f"  integrity: CRCs on all {crc.chunks} chunks and the summary (checked as they are read)")
-        else:
-            print(f"  integrity: CRCs on {crc.chunks_with_crc} of {crc.chunks} chunks"
-                  f"{'' if crc.summary_crc else ', none on the summary'}: corruption there cannot be detected")
-        for note in bag.inconsistencies:
-            print(f"  note: {note}")
-        provenance = bag.custom_data.get(PROVENANCE_KEY)
-        if provenance:
-            try:
-                info = provenance_document(provenance, path)
-                print(f"  made by {info.get('generator')} from {info.get('scenario')} (seed {info.get('seed')})")
-            except BagError as error:
-                print(f"  provenance: {_one_line(error)}")
-        if TRUTH_CELL_TIMING_TOPIC in bag.topics:
-            codes: dict[int, int] = {}
-            for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
-                for record in cell_timing_array_from_msg(item.message).cells:
-                    codes[record.pci] = codes.get(record.pci, 0) + 1
-            print("  ground truth: " + ", ".join(f"PCI {pci} ({n} sync codes)" for pci, n in sorted(codes.items())))
+def _print_bag_info(info: BagInfo) -> None:
+    print(f"bag {info.path}: {info.message_count} messages over {info.duration_s:.3f} s")
+    for topic, msgtype, count in info.topics:
+        print(f"  {topic:<32} {msgtype:<38} {count:6d} messages")
+    crc = info.crc
+    if crc.complete:
+        print(f"  integrity: CRCs on all {crc.chunks} chunks and the summary (checked as they are read)")
+    else:
+        print(f"  integrity: CRCs on {crc.chunks_with_crc} of {crc.chunks} chunks"
+              f"{'' if crc.summary_crc else ', none on the summary'}: corruption there cannot be detected")
+    for note in info.notes:
+        print(f"  note: {note}")
+    if info.provenance_error is not None:
+        print(f"  provenance: {_one_line(info.provenance_error)}")
+    elif info.provenance is not None:
+        made = info.provenance
+        print(f"  made by {made.get('generator')} from {made.get('scenario')} (seed {made.get('seed')})")
+    if info.truth_codes is not None:
+        print("  ground truth: " + ", ".join(f"PCI {pci} ({n} sync codes)" for pci, n in info.truth_codes.items()))
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -269,7 +259,7 @@ def _cmd_evaluate_routes(args: argparse.Namespace) -> int:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    describe_bag(Path(args.bag))
+    _print_bag_info(bag_info(args.bag))
     return 0
 
 
