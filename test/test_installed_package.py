@@ -86,6 +86,7 @@ def test_installed_demo_simulates_its_scenario_and_runs_the_chain(installed: Pat
                 "--out", "out")
     assert done.returncode == 0, done.stderr
     assert "recorded 1.000 s of ADC stream" in done.stdout
+    assert "  heard       no cell; sites per stack: 0: 1\n" in done.stdout  # one stack, not yet confirmed
     for written in ("recording/metadata.yaml", "replay/metadata.yaml", "route.json"):
         assert (tmp_path / "out" / written).is_file(), written
 

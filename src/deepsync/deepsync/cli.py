@@ -371,9 +371,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                   + "  ".join(f"{name} {_answer(answer)}" for name, answer in epoch.answers.items()))
     print(f"\n  recording   {replayed.signal_seconds:.1f} s of ADC stream, {result.walked_m:.1f} m walked (ground truth "
           "included)")
-    print(f"  heard       {len(result.pcis)} cells (PCI {', '.join(map(str, result.pcis))}) on "
-          f"{len(result.sites_heard)} sites ({', '.join(result.sites_heard)}); sites per stack: "
-          f"{_per_stack_text(result.sites_per_stack)}")
+    heard = (f"{len(result.pcis)} cells (PCI {', '.join(map(str, result.pcis))}) on {len(result.sites_heard)} sites "
+             f"({', '.join(result.sites_heard) or 'none placed by the tower database'})" if result.pcis else "no cell")
+    print(f"  heard       {heard}; sites per stack: {_per_stack_text(result.sites_per_stack)}")
     print(f"  {'':11s} {'fix rate':>8s} {'median':>7s} {'p90':>7s}   horizontal error against the truth, m")
     for name, method in result.methods.items():
         print(f"  {name:11s} {method['fix_rate']:8.0%} {_metres(method['median_m'])} {_metres(method['p90_m'])}")
