@@ -6,7 +6,11 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
-    package_data={"deepsync.timing": ["timing_net.pt"]},  # the shipped network (a few hundred kB)
+    # the shipped network (a few hundred kB); the demo's tower database and scenario (deepsync.eval.demo);
+    # the message definitions bags are written with (bag/msg: deepsync_msgs'), read through
+    # importlib.resources so that an installed package needs no checkout
+    package_data={"deepsync.timing": ["timing_net.pt"], "deepsync": ["data/towers/*.yaml", "data/scenarios/*.yaml"],
+                  "deepsync.bag": ["msg/*.msg"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
