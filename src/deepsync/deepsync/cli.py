@@ -178,7 +178,8 @@ def _print_recording(summary) -> None:
     print("  cells (at t = 0):")
     for cell in summary.cells:
         print(f"    PCI {cell.pci:3d}  site {cell.site:<4} {cell.carrier_mhz:8.1f} MHz {cell.bandwidth_mhz:4g} MHz  "
-              f"{cell.distance_m:6.0f} m  {'LOS ' if cell.los else 'NLOS'}  {cell.re_power_dbm:6.1f} dBm/RE")
+              f"{cell.distance_m:6.0f} m  {'LOS ' if cell.los else 'NLOS'}  "
+              + (f"{cell.re_power_dbm:6.1f} dBm/RE" if math.isfinite(cell.re_power_dbm) else "no path at t = 0"))
 
 
 def _print_bag_info(info: BagInfo) -> None:
