@@ -30,6 +30,7 @@ from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.rssi import RssiAverager, RssiConfig, fit_path_loss, solve_rssi
 from deepsync.fusion.snapshot import chi_square_limit, position_bound
+from deepsync.fusion.bias_map import BiasMap
 from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage, answer_counts, sites_per_stack
 from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
 from deepsync.sources import BagSource
@@ -181,11 +182,12 @@ class InitialPose:
 
 
 def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None,
-               initial_pose: InitialPose | None = None, aiding: AidingPlan | None = None) -> RouteRun:
-    """Fusion over a replay's arrivals with ``towers``, every stack paired with the truth; the
-    tracker started from ``initial_pose`` where one is given, and given the GNSS fixes and
-    odometry ``aiding`` draws from the truth."""
-    stage = FusionStage(towers, config)
+               initial_pose: InitialPose | None = None, aiding: AidingPlan | None = None,
+               bias_map: BiasMap | None = None) -> RouteRun:
+    """Fusion over a replay's arrivals with ``towers`` (and ``bias_map``), every stack paired
+    with the truth; the tracker started from ``initial_pose`` where one is given, and given the
+    GNSS fixes and odometry ``aiding`` draws from the truth."""
+    stage = FusionStage(towers, config, bias_map=bias_map)
     plan = aiding or AidingPlan()
     truth = recorded.truth
     stamps = [arrivals.stamp_ns for arrivals in recorded.arrivals]

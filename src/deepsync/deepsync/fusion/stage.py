@@ -35,6 +35,7 @@ import numpy as np
 
 from deepsync.fusion.aiding import PositionAid, VelocityAid
 from deepsync.fusion.anchors import Anchors, SiteArrival, frame_reference_ns
+from deepsync.fusion.bias_map import BiasMap
 from deepsync.fusion.calibration import SiteCalibration, calibrated_database
 from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
@@ -156,9 +157,14 @@ class FusionStage:
     """Site ranges, snapshot solver and tracker for one tower database."""
 
     def __init__(self, towers: TowerDatabase, config: FusionConfig | None = None,
-                 frame: LocalFrame | None = None) -> None:
+                 frame: LocalFrame | None = None, bias_map: BiasMap | None = None) -> None:
         self.config = config or FusionConfig()
         self.anchors = Anchors(towers, frame)
+        if bias_map is not None:
+            f = self.anchors.frame
+            bias_map.check_frame((f.latitude_deg, f.longitude_deg, f.height_m), f"tower database {towers.name!r}")
+        self.bias_map = bias_map
+        self._reading: tuple[np.ndarray, float] | None = None  # where the map is read: the latest tracked fix
         self.tracker = Tracker(self.config.tracker, len(self.anchors.anchors)) if self.config.track else None
         self.reference_ns: int | None = None
         self._last_stamp_ns: int | None = None
@@ -253,12 +259,15 @@ class FusionStage:
             self._latest_aid_ns.clear()
             if self.tracker is not None:
                 self.tracker.reset()
+            self._reading = None
         if self.reference_ns is None:
             self.reference_ns = frame_reference_ns(arrivals.stamp_ns)
         self._last_stamp_ns = arrivals.stamp_ns
         sites, problems = self.anchors.site_arrivals(arrivals, self.reference_ns, self.config.min_std_m,
                                                      self.config.multipath_std_m)
         events = [Health(HealthKind.UNANCHORED, problem) for problem in problems]
+        if self.bias_map is not None and self._reading is not None:
+            sites = list(self.bias_map.correct(sites, *self._reading))
         clock_rate = None if arrivals.clock_drift_ppm is None else arrivals.clock_drift_ppm * 1e-6
         tracked = None
         prior = None
@@ -268,6 +277,7 @@ class FusionStage:
             tracked = self.tracker.update(sites, arrivals.stamp_ns, time_s, clock_rate)
             events += [Health(HealthKind.AIDING_REFUSED, note) for note in self.tracker.take_notes()]
             prior = tracked.position_enu if isinstance(tracked, Fix) else None
+            self._reading = None if prior is None else (np.asarray(prior), tracked.horizontal_std_m)
         if problems and not sites:
             unknown = NoFix(arrivals.stamp_ns, NoFixReason.UNKNOWN_SITES, "; ".join(problems))
             return FusionResult(tracked, (), tuple(events), lambda: unknown, self.config.tracker.max_std_m)

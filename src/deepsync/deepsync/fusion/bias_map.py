@@ -1,0 +1,313 @@
+"""Site bias maps: how late each site's arrivals read, over the map, known before the run.
+
+In a city the envelope's peak lags a site's first path by its NLOS pull, 25-165 m on the
+simulated walks, changing over tens of metres of street. The tracker learns each site's pull
+online (its bias states), but without an anchor a pull is weakly observable: it trades against
+position. A map says it in advance: for each site, on a regular grid over the ``map`` frame,
+the mean range bias (m) and its 1-sigma.
+
+* **Where a map comes from**: a survey, a run at known positions (a receiver with GNSS, or
+  the simulator's truth) through :func:`survey_bias_map`; or a ray-traced twin of the city.
+* **How fusion uses it** (:meth:`BiasMap.correct`): each site's range is read at the tracked
+  position, the map's mean taken off it and the map's sigma made the site's bias prior in place
+  of the blanket ``multipath_std_m``; the tracker's bias states then carry only what the map
+  got wrong. Where the map has no value, or the position is too uncertain to read it, the
+  arrival is left as it was: a map never stops a site being used.
+* **Gauge**: TDOA sees a bias common to every site as the receiver clock, so a map holds each
+  site's bias against the others (a survey: against its most heard site) and only differences
+  count.
+* **A vague position** reads the map averaged over its uncertainty, the map's spread there
+  added to its sigma: a lost track learns little from it, a tracked one much.
+* **A wrong map**: its sigma is floored (``min_std_m``); a site whose map is far off still
+  pulls the fix by what the map claims. Build a map against the tower database it will be used with: the survey
+  holds the site clocks of that database as the rest of its bias.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
+from deepsync.fusion.calibration import CalibrationConfig, CalibrationObservation, ReceiverClock, calibrate_sites
+
+FORMAT = "deepsync-bias-map-1"
+MAX_BIAS_M = 1000.0  # beyond any NLOS pull (6.7 samples at 1.92 MHz)
+_HERMITE = ((-1.0, 1 / 6), (0.0, 2 / 3), (1.0, 1 / 6))  # Gauss-Hermite nodes (in sqrt(3) sigmas) and weights
+SURVEY_ROUNDS = 10  # turns of stack offsets and site maps: the maps move by centimetres after ten
+
+
+@dataclass(frozen=True)
+class BiasGrid:
+    """One site's bias on a regular grid: node ``[i, j]`` at east ``x0_m + j * step_m``, north
+    ``y0_m + i * step_m`` (m, map frame); NaN where the map knows nothing."""
+
+    x0_m: float
+    y0_m: float
+    step_m: float
+    mean_m: np.ndarray = field(compare=False)  # (ny, nx)
+    std_m: np.ndarray = field(compare=False)  # (ny, nx)
+
+    def __post_init__(self) -> None:
+        mean, std = np.asarray(self.mean_m, dtype=np.float64), np.asarray(self.std_m, dtype=np.float64)
+        if mean.ndim != 2 or mean.shape != std.shape or min(mean.shape) < 1:
+            raise ValueError(f"a bias grid's mean and std must be 2-D arrays of one shape, got {mean.shape} "
+                             f"and {std.shape}")
+        if not (math.isfinite(self.x0_m) and math.isfinite(self.y0_m) and math.isfinite(self.step_m)
+                and self.step_m > 0):
+            raise ValueError(f"a bias grid needs a finite origin and a positive step, got ({self.x0_m!r}, "
+                             f"{self.y0_m!r}) step {self.step_m!r}")
+        known = np.isfinite(mean)
+        if np.any(known != np.isfinite(std)) or np.any(std[known] < 0):
+            raise ValueError("a bias grid's std must be a non-negative number exactly where its mean is known")
+        object.__setattr__(self, "mean_m", mean)
+        object.__setattr__(self, "std_m", std)
+
+    def at(self, east_m: float, north_m: float) -> tuple[float, float] | None:
+        """The bias (m) and its 1-sigma (m) at a point, bilinear between the known nodes of its
+        cell; None outside the grid or where no node of the cell is known."""
+        u, v = (east_m - self.x0_m) / self.step_m, (north_m - self.y0_m) / self.step_m
+        ny, nx = self.mean_m.shape
+        if not (0 <= u <= nx - 1 and 0 <= v <= ny - 1):
+            return None
+        j, i = min(int(u), max(nx - 2, 0)), min(int(v), max(ny - 2, 0))
+        fu, fv = u - j, v - i
+        rows, cols = [i, i, i + 1, i + 1], [j, j + 1, j, j + 1]
+        weights = np.array([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv])
+        inside = (np.array(rows) < ny) & (np.array(cols) < nx)
+        rows, cols, weights = np.array(rows)[inside], np.array(cols)[inside], weights[inside]
+        mean, std = self.mean_m[rows, cols], self.std_m[rows, cols]
+        known = np.isfinite(mean) & (weights > 0)
+        if not np.any(known):
+            return None
+        w = weights[known] / weights[known].sum()
+        value = float(w @ mean[known])
+        sigma = float(w @ std[known])
+        return value, sigma
+
+
+@dataclass(frozen=True)
+class BiasMap:
+    """Every mapped site's :class:`BiasGrid`, the ``map`` frame's origin it was made in
+    (latitude, longitude in degrees, height in m) and what made it, in words.
+
+    ``min_std_m`` floors the sigma a map gives (a survey's few arrivals at a node can agree
+    by chance)."""
+
+    origin: tuple[float, float, float]
+    sites: Mapping[str, BiasGrid]
+    made_by: str = ""
+    min_std_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        if len(self.origin) != 3 or not all(math.isfinite(v) for v in self.origin):
+            raise ValueError(f"a bias map's origin must be (latitude, longitude, height), got {self.origin!r}")
+        if not (math.isfinite(self.min_std_m) and self.min_std_m > 0):
+            raise ValueError(f"min_std_m: {self.min_std_m!r} must be a positive number of metres")
+
+    def at(self, site: str, east_m: float, north_m: float, position_std_m: float = 0.0) -> tuple[float, float] | None:
+        """A site's bias (m) and 1-sigma (m) for a receiver at a point known to ``position_std_m``
+        (1-sigma per axis): the map averaged over that uncertainty, its spread there added to its
+        own sigma (3 x 3 Gauss-Hermite points); None where the map cannot say (no grid for the
+        site, or less than half the uncertainty's weight on known nodes)."""
+        grid = self.sites.get(site)
+        if grid is None or not math.isfinite(position_std_m):
+            return None
+        step = math.sqrt(3.0) * max(position_std_m, 0.0)
+        means, variances, weights = [], [], []
+        for (du, wu), (dv, wv) in itertools.product(_HERMITE, _HERMITE):
+            value = grid.at(east_m + du * step, north_m + dv * step)
+            if value is not None:
+                means.append(value[0])
+                variances.append(max(value[1], self.min_std_m) ** 2)
+                weights.append(wu * wv)
+        if sum(weights) < 0.5:
+            return None
+        w = np.array(weights) / sum(weights)
+        mean = float(w @ np.array(means))
+        spread = float(w @ (np.array(means) - mean) ** 2)
+        return mean, math.sqrt(float(w @ np.array(variances)) + spread)
+
+    def correct(self, arrivals: Sequence[SiteArrival], position_enu: Sequence[float],
+                position_std_m: float) -> tuple[SiteArrival, ...]:
+        """The arrivals with each mapped site's bias at ``position_enu`` taken off its range and
+        its sigma made the arrival's bias sigma; unmapped sites as they were."""
+        out = []
+        for arrival in arrivals:
+            value = self.at(arrival.site, float(position_enu[0]), float(position_enu[1]), position_std_m)
+            if value is not None:
+                mean, std = value
+                arrival = dataclasses.replace(arrival, range_mod_m=(arrival.range_mod_m - mean) % FRAME_RANGE_M,
+                                              bias_std_m=std)
+            out.append(arrival)
+        return tuple(out)
+
+    def check_frame(self, origin: tuple[float, float, float], what: str) -> None:
+        """ValueError unless the map was made in the frame with ``origin`` (within a metre)."""
+        (lat0, lon0, h0), (lat1, lon1, h1) = self.origin, origin
+        if abs(lat0 - lat1) > 1e-5 or abs(lon0 - lon1) > 1e-5 or abs(h0 - h1) > 1.0:
+            raise ValueError(f"bias map ({self.made_by or 'no source'}) was made in the frame at {self.origin}, "
+                             f"{what} is at {tuple(origin)}: use a map made with the same tower database's origin")
+
+
+def save_bias_map(bias_map: BiasMap, path: str | Path) -> Path:
+    """Write ``bias_map`` as one ``.npz`` file (no pickles)."""
+    path = Path(path)
+    arrays: dict[str, np.ndarray] = {
+        "format": np.array(FORMAT), "origin": np.array(bias_map.origin, dtype=np.float64),
+        "made_by": np.array(bias_map.made_by), "sites": np.array(sorted(bias_map.sites)),
+        "min_std_m": np.array(bias_map.min_std_m),
+    }
+    for k, name in enumerate(sorted(bias_map.sites)):
+        grid = bias_map.sites[name]
+        arrays[f"grid{k}"] = np.array([grid.x0_m, grid.y0_m, grid.step_m])
+        arrays[f"mean{k}"], arrays[f"std{k}"] = grid.mean_m, grid.std_m
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as f:  # a name ending other than .npz is kept as given
+        np.savez_compressed(f, **arrays)
+    return path
+
+
+def load_bias_map(path: str | Path) -> BiasMap:
+    """Read a map written by :func:`save_bias_map`; ValueError naming the file and what is wrong."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "format" not in data or str(data["format"]) != FORMAT:
+                raise ValueError(f"not a DeepSync bias map ({FORMAT})")
+            names = [str(n) for n in data["sites"]]
+            sites = {}
+            for k, name in enumerate(names):
+                x0, y0, step = (float(v) for v in data[f"grid{k}"])
+                sites[name] = BiasGrid(x0, y0, step, data[f"mean{k}"], data[f"std{k}"])
+            return BiasMap(tuple(float(v) for v in data["origin"]), sites, str(data["made_by"]),
+                           float(data["min_std_m"]))
+    except FileNotFoundError:
+        raise ValueError(f"bias map {str(path)!r} does not exist") from None
+    except (OSError, KeyError, ValueError, TypeError) as error:
+        raise ValueError(f"bias map {str(path)!r} cannot be read: {error}") from None
+
+
+@dataclass(frozen=True)
+class SurveyConfig:
+    """``step_m``: the grid's spacing; ``smoothing_m``: the Gaussian kernel's 1-sigma over which
+    arrivals are averaged (shorter than the pull's 40 m decorrelation, longer than a stack's
+    walk); a node needs ``min_weight`` arrivals' worth of kernel weight to be known."""
+
+    step_m: float = 10.0
+    smoothing_m: float = 15.0
+    min_weight: float = 3.0
+    arrivals_per_group: float = 5.0
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("step_m", "smoothing_m", "min_weight", "arrivals_per_group"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1e4:
+                raise ValueError(f"{name}: {value!r} must be a positive number (<= 1e4)")
+
+
+def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: tuple[float, float, float],
+                    config: SurveyConfig | None = None, made_by: str = "survey") -> BiasMap:
+    """A bias map from arrivals heard at known positions (a survey), grouped by the stack that
+    heard them.
+
+    Within one stack every site reads the same receiver clock, so what two sites read beyond
+    their true distances differs by their biases alone. The clock's trend is taken from a
+    calibration fit (``calibrate_sites``: a polynomial per segment, which also keeps a site's
+    arrivals some milliseconds apart in one stack on one clock); what is left common to a
+    stack is its own offset. Offsets and per-site maps are then fitted in turns (each map a
+    Gaussian-kernel average of its site's biases, Huber-trimmed: a false lock a sample off is not
+    a pull); their gauge: the maps average zero over the survey's arrivals. Stacks hearing one
+    site say nothing of any bias and are left out."""
+    config = config or SurveyConfig()
+    stacks = [stack for stack in stacks if len({o.arrival.site for o in stack}) >= 2]
+    flat = [o for stack in stacks for o in stack]
+    if not flat:
+        raise ValueError("a survey needs stacks that heard two or more sites at known positions, got none")
+    clock = calibrate_sites(flat, config.calibration).clock
+    stack, read = _clock_read(stacks, clock)
+    # what reads a kilometre off its stack's other sites is no pull (a false lock, a wrong clock):
+    # left out, and stacks left with one site with it
+    kept = np.abs(read - _stack_medians(stack, read)[stack]) <= MAX_BIAS_M
+    stacks = [[o for o, k in zip(s, kept[stack == i]) if k] for i, s in enumerate(stacks)]
+    stacks = [s for s in stacks if len({o.arrival.site for o in s}) >= 2]
+    flat = [o for s in stacks for o in s]
+    if not flat:
+        raise ValueError(f"no two sites of one stack read within {MAX_BIAS_M:g} m of each other beyond their true "
+                         "distances: the survey's positions or the tower database are wrong")
+    stack, read = _clock_read(stacks, clock)
+    truth = np.array([o.truth_enu for o in flat], dtype=np.float64)[:, :2]
+    sites = np.array([o.arrival.position_enu for o in flat], dtype=np.float64)
+    names = np.array([o.arrival.site for o in flat])
+    mine = {str(name): names == name for name in sorted(set(names))}
+    mapped = np.zeros(len(flat))
+    counts = np.bincount(stack)
+    for _ in range(SURVEY_ROUNDS):
+        offset = np.bincount(stack, read - mapped) / counts
+        bias = read - offset[stack]
+        for where in mine.values():
+            mapped[where] = _kernel_average(truth[where], bias[where], truth[where], config)[0]
+        mapped -= np.nanmean(mapped)
+    offset = np.bincount(stack, read - mapped) / counts
+    bias = read - offset[stack]
+    lo = truth.min(axis=0) - 2 * config.smoothing_m
+    hi = truth.max(axis=0) + 2 * config.smoothing_m
+    east = lo[0] + config.step_m * np.arange(int(math.ceil((hi[0] - lo[0]) / config.step_m)) + 1)
+    north = lo[1] + config.step_m * np.arange(int(math.ceil((hi[1] - lo[1]) / config.step_m)) + 1)
+    nodes = np.stack(np.meshgrid(east, north), axis=-1).reshape(-1, 2)
+    grids = {}
+    for name, where in mine.items():
+        mean, std = _kernel_average(truth[where], bias[where], nodes, config)
+        grids[name] = BiasGrid(float(east[0]), float(north[0]), config.step_m, mean.reshape(len(north), len(east)),
+                               std.reshape(len(north), len(east)))
+    return BiasMap(origin, grids, made_by)
+
+
+def _clock_read(stacks: Sequence[Sequence[CalibrationObservation]], clock: ReceiverClock) -> tuple[np.ndarray, np.ndarray]:
+    """Each arrival's stack index and what it reads beyond its true distance and the clock (m)."""
+    flat = [o for stack in stacks for o in stack]
+    stack = np.repeat(np.arange(len(stacks)), [len(s) for s in stacks])
+    truth = np.array([o.truth_enu for o in flat], dtype=np.float64)
+    sites = np.array([o.arrival.position_enu for o in flat], dtype=np.float64)
+    y_mod = np.array([o.arrival.range_mod_m for o in flat]) - np.linalg.norm(truth - sites, axis=1)
+    return stack, unwrap_range(y_mod - clock.bias_m(np.array([o.arrival.time_s for o in flat])), 0.0)
+
+
+def _stack_medians(stack: np.ndarray, values: np.ndarray) -> np.ndarray:
+    order = np.argsort(stack, kind="stable")
+    starts = np.flatnonzero(np.diff(stack[order], prepend=-1))
+    return np.array([np.median(part) for part in np.split(values[order], starts[1:])])
+
+
+def _kernel_average(points: np.ndarray, values: np.ndarray, queries: np.ndarray,
+                    config: SurveyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian-kernel mean and spread of ``values`` at each query point (NaN where less than
+    ``min_weight`` of weight lies within four kernel sigmas), twice: the second pass leaves out
+    what sits beyond 3 sigmas of the first."""
+    pairs = cKDTree(queries).sparse_distance_matrix(cKDTree(points), 4 * config.smoothing_m, output_type="ndarray")
+    query, point = pairs["i"], pairs["j"]
+    weight = np.exp(-0.5 * (pairs["v"] / config.smoothing_m) ** 2)
+    n = len(queries)
+    mean = spread = np.zeros(n)
+    for round_ in range(2):
+        if round_:
+            weight = np.where(np.abs(values[point] - mean[query]) <= 3 * np.maximum(spread[query], 1.0), weight, 0.0)
+        total = np.bincount(query, weight, n)
+        safe = np.maximum(total, 1e-300)
+        mean = np.bincount(query, weight * values[point], n) / safe
+        spread = np.sqrt(np.maximum(np.bincount(query, weight * values[point] ** 2, n) / safe - mean**2, 0.0))
+    # the sigma of the mean: the spread over the arrivals' effective number, counted in independent
+    # groups (overlapping stacks repeat one arrival's noise, and a pull holds for tens of metres)
+    effective = total**2 / np.maximum(np.bincount(query, weight**2, n), 1e-300) / config.arrivals_per_group
+    std = spread / np.sqrt(np.maximum(effective, 1.0))
+    unknown = total < config.min_weight
+    mean[unknown], std[unknown] = np.nan, np.nan
+    return mean, std
