@@ -71,26 +71,30 @@ class BiasGrid:
         object.__setattr__(self, "std_m", std)
 
     def at(self, east_m: float, north_m: float) -> tuple[float, float] | None:
-        """The bias (m) and its 1-sigma (m) at a point, bilinear between the known nodes of its
-        cell; None outside the grid or where no node of the cell is known."""
-        u, v = (east_m - self.x0_m) / self.step_m, (north_m - self.y0_m) / self.step_m
+        """The bias (m) and its 1-sigma (m) at a point (:meth:`values`); None where unknown."""
+        mean, std = self.values(np.array([east_m]), np.array([north_m]))
+        return None if math.isnan(mean[0]) else (float(mean[0]), float(std[0]))
+
+    def values(self, east_m: np.ndarray, north_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Bias and 1-sigma (m) at each point, bilinear between the known nodes of its cell;
+        NaN outside the grid or where no node of the cell is known."""
         ny, nx = self.mean_m.shape
-        if not (0 <= u <= nx - 1 and 0 <= v <= ny - 1):
-            return None
-        j, i = min(int(u), max(nx - 2, 0)), min(int(v), max(ny - 2, 0))
-        fu, fv = u - j, v - i
-        rows, cols = [i, i, i + 1, i + 1], [j, j + 1, j, j + 1]
-        weights = np.array([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv])
-        inside = (np.array(rows) < ny) & (np.array(cols) < nx)
-        rows, cols, weights = np.array(rows)[inside], np.array(cols)[inside], weights[inside]
-        mean, std = self.mean_m[rows, cols], self.std_m[rows, cols]
-        known = np.isfinite(mean) & (weights > 0)
-        if not np.any(known):
-            return None
-        w = weights[known] / weights[known].sum()
-        value = float(w @ mean[known])
-        sigma = float(w @ std[known])
-        return value, sigma
+        u, v = (np.asarray(east_m) - self.x0_m) / self.step_m, (np.asarray(north_m) - self.y0_m) / self.step_m
+        inside = (u >= 0) & (u <= nx - 1) & (v >= 0) & (v <= ny - 1)
+        j = np.clip(np.floor(u), 0, max(nx - 2, 0)).astype(np.intp)
+        i = np.clip(np.floor(v), 0, max(ny - 2, 0)).astype(np.intp)
+        fu, fv = np.clip(u - j, 0, 1), np.clip(v - i, 0, 1)
+        total = mean = variance = 0.0
+        for di, dj, weight in ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv), (1, 1, fu * fv)):
+            rows, cols = np.minimum(i + di, ny - 1), np.minimum(j + dj, nx - 1)
+            node_mean, node_std = self.mean_m[rows, cols], self.std_m[rows, cols]
+            weight = np.where(np.isfinite(node_mean) & inside, weight, 0.0)
+            total = total + weight
+            mean = mean + weight * np.nan_to_num(node_mean)
+            variance = variance + weight * np.nan_to_num(node_std)
+        known = total > 0
+        safe = np.where(known, total, 1.0)
+        return np.where(known, mean / safe, np.nan), np.where(known, variance / safe, np.nan)
 
 
 @dataclass(frozen=True)
@@ -255,7 +259,8 @@ def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: 
         bias = read - offset[stack]
         for where in mine.values():
             mapped[where] = _kernel_average(truth[where], bias[where], truth[where], config)[0]
-        mapped -= np.nanmean(mapped)
+        # where a site's own arrivals are too few to map, its bias counts as none (and it is unmapped there)
+        mapped = np.nan_to_num(mapped - np.nanmean(mapped) if np.any(np.isfinite(mapped)) else mapped)
     offset = np.bincount(stack, read - mapped) / counts
     bias = read - offset[stack]
     lo = truth.min(axis=0) - 2 * config.smoothing_m
