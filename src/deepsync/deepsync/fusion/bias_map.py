@@ -313,6 +313,9 @@ def _kernel_average(points: np.ndarray, values: np.ndarray, queries: np.ndarray,
     # groups (overlapping stacks repeat one arrival's noise, and a pull holds for tens of metres)
     effective = total**2 / np.maximum(np.bincount(query, weight**2, n), 1e-300) / config.arrivals_per_group
     std = spread / np.sqrt(np.maximum(effective, 1.0))
-    unknown = total < config.min_weight
+    # a survey knows the pull where it went, not beside it: a node further than a kernel sigma
+    # from every arrival is unknown (the pull changes over tens of metres across the street too)
+    nearest = cKDTree(points).query(queries, distance_upper_bound=config.smoothing_m)[0]
+    unknown = (total < config.min_weight) | ~np.isfinite(nearest)
     mean[unknown], std[unknown] = np.nan, np.nan
     return mean, std
