@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
-# The optional Debian packages the ROS-tooling tests use (scripts/setup.sh runs this): ROS 2
-# itself is not installable here, but these carry the same .msg parser, package.xml validator
-# and colcon that a ROS build runs, so the tests can check those files. Without them (no root,
-# no apt, the package lock held too long, no network) those tests skip, and this says so;
-# it never stops the setup.
+# The optional Debian packages (scripts/setup.sh runs this): ROS 2 itself is not installable
+# here, but python3-rosidl, rosidl-tools, colcon, python3-colcon-ros and python3-catkin-pkg carry
+# the same .msg parser, package.xml validator and colcon that a ROS build runs, so the tests can
+# check those files; libllvm19 is the LLVM that Sionna RT's Dr.Jit runs on (the ray-traced
+# channel; deepsync finds it by itself). Without them (no root, no apt, the package lock held
+# too long, no network) those tests skip, and this says so; it never stops the setup.
 #   DEEPSYNC_APT_WAIT   seconds to wait for another package manager's lock (default 300)
 set -uo pipefail
 
-PACKAGES="python3-rosidl rosidl-tools colcon python3-colcon-ros python3-catkin-pkg"
+PACKAGES="python3-rosidl rosidl-tools colcon python3-colcon-ros python3-catkin-pkg libllvm19"
 WAIT=${DEEPSYNC_APT_WAIT:-300}
 RETRY=${DEEPSYNC_APT_RETRY:-5}  # seconds between two tries while the lock is held
 
@@ -19,7 +20,7 @@ done
 [ -n "$missing" ] || exit 0
 
 skip() {
-  echo "setup: skipping the optional Debian packages ($1); the ROS-tooling tests will skip."
+  echo "setup: skipping the optional Debian packages ($1); the ROS-tooling and ray-tracing tests will skip."
   echo "setup: to add them later: apt-get install$missing (then rerun scripts/setup.sh)"
   exit 0
 }
@@ -37,8 +38,8 @@ if [ "$(id -u)" -ne 0 ]; then
   fi
 fi
 
-echo "setup: the ROS-tooling tests use Debian's$missing"
-echo "setup: (the .msg parser, package.xml validator and colcon of a ROS build); installing them with"
+echo "setup: the ROS-tooling and ray-tracing tests use Debian's$missing"
+echo "setup: (the .msg parser, package.xml validator and colcon of a ROS build; LLVM for Sionna RT); installing them with"
 echo "setup: apt-get update and apt-get install, as $([ -z "$SUDO" ] && echo root || echo "root through sudo")"
 if [ "$SUDO" = sudo ]; then
   sudo -v || skip "sudo refused"  # its password asked once, here, not in the middle of apt's output

@@ -3,7 +3,7 @@
 # and the simulator exactly): bags/generated/route_urban and route_dense, one pass of each walk;
 # route_dense_reference, a fixed rooftop receiver hearing route_dense's sites for 60 s (the
 # reference station the route table calibrates the site clocks with); and route_drive, a car at
-# 15 m/s among route_dense's sites (benchmarks/stack_length.py). Extra arguments go to
+# 15 m/s among route_dense's sites (benchmarks/fusion/stack_length.py). Extra arguments go to
 # `deepsync simulate` (e.g. --workers 4).
 set -euo pipefail
 cd "$(dirname "$0")/.."

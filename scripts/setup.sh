@@ -16,13 +16,13 @@ if [ ! -f "$STAMP" ] || [ constraints.txt -nt "$STAMP" ] || [ src/deepsync/setup
   echo "setup: 1/2 creating the virtual environment $VENV ($("$PYTHON" --version 2>&1))"
   "$PYTHON" -m venv "$VENV"
   echo "setup: 2/2 installing the pinned Python dependencies of constraints.txt into $VENV: numpy, scipy,"
-  echo "setup:     rosbags, matplotlib, torch (CPU), onnx, onnxruntime, ray, pytest and their own;"
+  echo "setup:     rosbags, matplotlib, torch (CPU), onnx, onnxruntime, ray, sionna-rt, pytest and their own;"
   echo "setup:     a few minutes and about 2 GB on a first run (one line per package below)"
   # pip's lines that say where it is, one per package; the end of its output when it fails
   log=$(mktemp)
   set +e
   "$VENV/bin/python" -m pip install --disable-pip-version-check -c constraints.txt \
-    -e "src/deepsync[network,onnx,ray]" -e src/deepsync_ros pytest hypothesis 2>&1 | tee "$log" \
+    -e "src/deepsync[network,onnx,ray,raytrace]" -e src/deepsync_ros pytest hypothesis 2>&1 | tee "$log" \
     | grep --line-buffered -E "^(Collecting|Installing collected|Successfully installed)" | sed -u 's/^/setup:     /'
   status=${PIPESTATUS[0]}
   set -e

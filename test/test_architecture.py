@@ -48,7 +48,7 @@ def test_imports_run_one_way(name, path):
     if own == "types":
         assert not used, f"types imports {sorted(used)}: it must import nothing of the project"
     if own in STAGES:
-        forbidden = {"bag", "sources", "pipeline", "cli", "recording", "twin", "iq", "eval"}
+        forbidden = {"bag", "sources", "pipeline", "cli", "recording", "twin", "testing", "eval"}
         assert not used & forbidden, f"stage module {name} imports {sorted(used & forbidden)}"
     if own not in ("timing", "training"):  # the network, and the making of it
         assert not any(m == "torch" or m.startswith("torch.") for m in imports(path)), f"{name} imports torch"
@@ -106,7 +106,8 @@ def test_the_timing_stage_names_no_estimator():
     tree = ast.parse((CORE / "timing" / "stage.py").read_text())
     from_registry = {alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
                      and node.module == "deepsync.timing.registry" for alias in node.names}
-    assert from_registry <= {"DEFAULT", "Estimator", "Input"}, from_registry
+    # ESTIMATORS: the whole registry, as TimingConfig.estimator's choices (deepsync.schema)
+    assert from_registry <= {"DEFAULT", "ESTIMATORS", "Estimator", "Input"}, from_registry
     singled_out = [ast.unparse(node) for node in ast.walk(tree)
                    if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
                    and node.value.id == "Estimator" and node.attr != "names"]
@@ -114,3 +115,57 @@ def test_the_timing_stage_names_no_estimator():
     compared = [ast.unparse(node) for node in ast.walk(tree) if isinstance(node, ast.Compare)
                 and "estimator" in ast.unparse(node) and "estimator.input" not in ast.unparse(node)]
     assert not compared, compared
+
+
+# -- the parameter schema: a setting is written once, on its config field (deepsync.schema) ------
+
+def test_no_node_parameter_of_a_core_setting_is_written_by_hand():
+    """A node parameter named as a stage config's setting (or made from one under another name)
+    takes its description, range and choices from the setting: ``from_setting``, never a
+    second ``ParamSpec(...)`` with its own text and range."""
+    from deepsync.motion import MOTION
+    from deepsync.pipeline import setting_paths
+    from deepsync_ros import params
+
+    core = {name: described for name, (_, described) in setting_paths().items()} | {MOTION.name: MOTION}
+    made = {spec.setting.name for specs in params.NODES.values() for spec in specs if spec.setting is not None}
+    for node, specs in params.NODES.items():
+        for spec in specs:
+            if spec.name in core or spec.setting is not None:
+                described = spec.setting
+                assert described is core.get(described.name if described else spec.name), (
+                    f"{node}.{spec.name} is written by hand: make it with params.from_setting")
+                assert spec.description.startswith(described.described), f"{node}.{spec.name}"
+                assert spec.choices == described.names
+                if described.bounds is not None:
+                    assert spec.range[1] == described.bounds[1], f"{node}.{spec.name}"
+    assert made, "no node parameter is made from a core setting"
+
+
+def test_no_command_line_flag_of_a_core_setting_is_written_by_hand():
+    """Every flag that sets a stage config's setting is made by ``deepsync.schema.add_flag``
+    (its action carries the setting): no flag repeats a range, a help text or the choices."""
+    from deepsync.cli import build_parser
+    from deepsync.motion import MOTION
+    from deepsync.pipeline import setting_paths
+
+    core = {name: described for name, (_, described) in setting_paths().items()} | {MOTION.name: MOTION}
+    flags = {"--frames": "n_frames", "--hop": "hop_frames", "--search-every": "search_every",
+             "--estimator": "estimator", "--motion": "motion", "--checkpoint": "checkpoint"}
+    parser = build_parser()
+    commands = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction").choices
+    seen = set()
+    for command, sub in commands.items():
+        for action in sub._actions:
+            named = [flags.get(option) or core.get(option.lstrip("-").replace("-", "_")) and
+                     option.lstrip("-").replace("-", "_") for option in action.option_strings]
+            named = [name for name in named if name]
+            if not named or (command == "export-onnx" and named == ["checkpoint"]):
+                continue  # export-onnx's checkpoint is the network exported, not the timing config's
+            described = getattr(action, "setting", None)
+            if described is None and command == "evaluate-timing" and named == ["n_frames"]:
+                assert action.type.__name__ == "_frame_counts"  # a list of stack lengths, each the setting's
+                continue
+            assert described is core[named[0]], f"deepsync {command} {action.option_strings}: written by hand"
+            seen.add(named[0])
+    assert {"n_frames", "hop_frames", "search_every", "estimator", "motion"} <= seen

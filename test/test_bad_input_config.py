@@ -201,6 +201,13 @@ BAD_SCENARIO = [
     pytest.param([(("channel", "environment_doppler_hz"), 1e4)],
                  "scenario.channel.environment_doppler_hz", "is outside [0, 300] Hz",
                  id="environment-doppler-10kHz"),
+    pytest.param([(("channel",), {"model": "raytraced", "scene": "munich", "samples_per_source": 10})],
+                 "scenario.channel.samples_per_source", "is outside [10000, 1e+08]", id="raytrace-10-rays"),
+    pytest.param([(("channel",), {"model": "raytraced", "scene": "munich", "default_building_height_m": -3})],
+                 "scenario.channel.default_building_height_m", "is outside [1, 1000] m",
+                 id="raytrace-negative-building-height"),
+    pytest.param([(("channel",), {"model": "raytraced", "scene": "/nonexistent/city.geojson"})],
+                 "scenario.channel.scene", "is neither a bundled scene", id="raytrace-missing-scene-file"),
     pytest.param([(("receiver", "position"), None), (("receiver", "route"), {**ROUTE, "speed_mps": 1e3})],
                  "scenario.receiver.route.speed_mps", "is outside [0.1, 140] m/s",
                  id="speed-1km-per-s"),
@@ -261,7 +268,7 @@ def test_scenario_edge_values_pass(edits):
     assert isinstance(parse_scenario(_scenario(*edits)), Scenario)
 
 
-@pytest.mark.parametrize("name", ["campus", "campus_walk"])
+@pytest.mark.parametrize("name", ["campus", "campus_walk", "munich_walk"])
 def test_bundled_scenarios_are_inside_every_range(name):
     assert load_scenario(CONFIG / "scenarios" / f"{name}.yaml").name == name
 
@@ -518,11 +525,11 @@ def test_a_network_config_counts_its_weights_without_building_them():
 @pytest.mark.parametrize("cls, values, message", [
     (SearchConfig, {"refine_lags": 10**9}, "refine_lags must be within [1, 64] samples"),
     (SearchConfig, {"max_examined": 0}, "max_examined must be within [1, 1024] peaks"),
-    (SyncConfig, {"confirm_tolerance": float("nan")}, "confirm_tolerance must be within [0, 1000] samples, got nan"),
+    (SyncConfig, {"confirm_tolerance": float("nan")}, "confirm_tolerance must be a finite number, got nan"),
     (SyncConfig, {"search_every": 10**30}, "search_every must be within [1, 100000] stacks"),
     (SyncConfig, {"search_every": 10**400}, "search_every must be within [1, 100000] stacks"),  # past a float
-    (StackConfig, {"clip_fraction": 2.0}, "clip_fraction must be a fraction in [0, 1]"),
-    (TimingConfig, {"weak_std_samples": 1e300}, "weak_std_samples must be a positive number up to 1e6"),
+    (StackConfig, {"clip_fraction": 2.0}, "clip_fraction must be within [0, 1], got 2.0"),
+    (TimingConfig, {"weak_std_samples": 1e300}, "weak_std_samples must be within (0, 1e+06] samples"),
 ], ids=["refine-lags-1e9", "max-examined-0", "confirm-tolerance-nan", "search-every-1e30", "search-every-1e400",
         "clip-fraction-2",
         "weak-std-1e300"])

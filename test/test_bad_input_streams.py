@@ -175,7 +175,8 @@ def test_event_a_wholly_mislabelled_stream_says_so_once():
     chunks = [dataclasses.replace(c, sample_rate=3.84e6) for c in campus_chunks()]
     stage = SyncStage(FrontendConfig())
     results = [r for c in chunks for r in stage.process(c)]
-    assert results == [] and [e.kind for e in stage.stacker.events] == [HealthKind.RATE_MISMATCH]
+    assert results == [] and [e.kind for e in stage.take_events()] == [HealthKind.RATE_MISMATCH]
+    assert stage.take_events() == ()  # taken, said once
 
 
 def test_event_codes_beyond_the_adc_range_are_corrupt_not_clipped():
@@ -233,7 +234,7 @@ def test_result_empty_and_one_sample_chunks():
     assert [r.sync.pcis for r in run(campus_pipeline(), whole)] == [r.sync.pcis for r in run(campus_pipeline(), chunks)]
     sparse = campus_pipeline()
     assert run(sparse, pieces) == []  # never a whole stack of contiguous samples
-    assert {e.kind for e in sparse.sync.stacker.events} == {HealthKind.GAP}
+    assert {e.kind for e in sparse.sync.take_events()} == {HealthKind.GAP}
 
 
 def test_event_a_huge_index_jump_is_a_gap():

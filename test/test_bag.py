@@ -411,7 +411,7 @@ def test_find_msg_dir_search_order(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     monkeypatch.delenv("DEEPSYNC_MSGS_DIR", raising=False)
     monkeypatch.delenv("AMENT_PREFIX_PATH", raising=False)
     if Path(deepsync.__file__).resolve().is_relative_to(REPO):  # running from this checkout
-        assert find_msg_dir().resolve() == MSG_DIR.resolve()  # source tree fallback
+        assert find_msg_dir().resolve() == MSG_DIR.resolve()  # the shipped copy: a link to the source tree
     prefix = tmp_path / "install" / "deepsync_msgs"
     installed = prefix / "share" / "deepsync_msgs" / "msg"
     installed.mkdir(parents=True)

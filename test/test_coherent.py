@@ -10,7 +10,7 @@ from deepsync.lte.frame import FrameGenerator
 from deepsync.lte.numerology import Numerology, sync_code_start_base
 from deepsync.lte.ofdm import modulate
 from deepsync.lte.sequences import crs
-from deepsync.iq import coherent as C
+from deepsync.testing import coherent as C
 from deepsync.sources import read_iq
 
 FS = 1.92e6

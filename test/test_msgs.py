@@ -139,6 +139,8 @@ def test_field_types(parsed: dict) -> None:
         "cells": "deepsync_msgs/SyncWindow[]",
         "frame": "float32[]",
         "frame_delay": "float64",
+        "stack_frames": "uint16",
+        "stack_hop_frames": "uint16",
     }
     assert field_types(parsed, "CellTiming") == {
         "header": "std_msgs/Header",
@@ -156,6 +158,8 @@ def test_field_types(parsed: dict) -> None:
         "sample_rate": "float64",
         "clock_drift_ppm": "float64",
         "cells": "deepsync_msgs/CellTiming[]",
+        "stack_frames": "uint16",
+        "stack_hop_frames": "uint16",
     }
 
 

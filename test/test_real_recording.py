@@ -2,7 +2,7 @@
 
 |x|^2 of the RTL-SDR's complex baseband is the envelope a square-law detector would give for this
 one carrier (real multipath, load and receiver clock). The coherent (complex-domain) PSS/SSS
-search of ``deepsync.iq.coherent`` on the same samples is the reference. The recording goes
+search of ``deepsync.testing.coherent`` on the same samples is the reference. The recording goes
 through the pipeline as a source (``deepsync.sources``), as ``deepsync detect --input`` runs it.
 """
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from deepsync.frontend.templates import SyncTemplates
-from deepsync.iq.coherent import search_cells
+from deepsync.testing.coherent import search_cells
 from deepsync.pipeline import Pipeline, PipelineConfig
 from deepsync.sources import RawFileSource, read_iq
 from deepsync.sync.search import CellSearch

@@ -128,3 +128,20 @@ def test_existing_output_is_refused_unless_overwrite(tmp_path, capsys):
     assert (out / "bag.mcap").read_bytes() == before  # reproducible by seed, bit for bit
     assert main(["info", "--bag", str(out)]) == 0
     assert ENVELOPE_TOPIC in capsys.readouterr().out
+
+
+def test_a_cell_no_path_reaches_at_the_start_is_summarised_as_unheard():
+    # a ray-traced route can start where a site's every path is blocked: one path of zero gain
+    import math
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from deepsync.frontend.channel import Paths
+    from deepsync.recording import cell_summaries
+
+    twin = build_twin(load_scenario(Path(__file__).resolve().parents[1] / "config" / "scenarios" / "campus.yaml"))
+    silent = SimpleNamespace(paths=lambda i, t: Paths([1e-6], [0.0], [0.0]), los_at=lambda i, t: False,
+                             geometric_delay_s=twin.channel.geometric_delay_s)
+    rows = cell_summaries(replace(twin, channel=silent))
+    assert rows and all(row.re_power_dbm == -math.inf for row in rows)
+    assert all(math.isfinite(row.re_power_dbm) for row in cell_summaries(twin))

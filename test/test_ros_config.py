@@ -136,7 +136,7 @@ def test_the_map_filter_waits_for_poses_as_late_as_a_stack_makes_them() -> None:
 
 
 def test_the_deepsync_overlay_feeds_the_ekf_independent_fixes() -> None:
-    """What the map filter takes from DeepSync must not be counted twice (benchmarks/ekf_example_nees.py):
+    """What the map filter takes from DeepSync must not be counted twice (benchmarks/experiments/ekf_example_nees.py):
     no tracker (its poses carry the ones before) and stacks that share no frame."""
     from deepsync.motion import DEFAULT_MOTION, motion_model
     from deepsync_ros import params
@@ -147,7 +147,7 @@ def test_the_deepsync_overlay_feeds_the_ekf_independent_fixes() -> None:
     values = {spec.name: spec.default for spec in params.CELL_SYNC} | sync
     stack = params.sync_config(values).stack
     assert stack.hop_frames >= stack.n_frames == motion_model(DEFAULT_MOTION).n_frames
-    assert fusion["stack_overlap"] == stack.n_frames / stack.hop_frames
+    assert "stack_overlap" not in fusion  # the arrivals say which stacks they came from (CellTimingArray)
     for node, entry in overlay.items():  # only names the nodes have, with their types
         specs = {spec.name: spec for spec in params.NODES[node.split("/")[-1]]}
         for name, value in entry["ros__parameters"].items():
@@ -223,9 +223,9 @@ def test_foxglove_layout_shows_our_topics() -> None:
 
 
 def _nees_script():
-    """benchmarks/ekf_example_nees.py as a module (it is a script, not a package)."""
+    """benchmarks/experiments/ekf_example_nees.py as a module (it is a script, not a package)."""
     import importlib.util
-    path = REPO / "benchmarks" / "ekf_example_nees.py"
+    path = REPO / "benchmarks" / "experiments" / "ekf_example_nees.py"
     spec = importlib.util.spec_from_file_location("ekf_example_nees", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules.setdefault(spec.name, module)  # its dataclasses look their module up there
@@ -260,7 +260,7 @@ def _standing_filter_nees(bias_block_s: float) -> float:
 
 
 def test_the_nees_check_passes_independent_fixes_and_catches_repeated_ones() -> None:
-    """The filter of benchmarks/ekf_example_nees.py reads 2 or less when its inputs are what they
+    """The filter of benchmarks/experiments/ekf_example_nees.py reads 2 or less when its inputs are what they
     claim (less: its process noise allows for motion a standing receiver does not make), and far
     more when the same error comes back fix after fix, as a tracker's does."""
     assert 0.8 < _standing_filter_nees(1) < 2.5

@@ -77,7 +77,7 @@ def test_the_coarse_error_bins_reach_as_far_as_the_data_does():
 
 
 def test_without_a_network_the_classical_estimators_run_and_the_networks_rows_stay_empty():
-    """Windows the network does not take (``benchmarks/coarse_bound.py``'s wider ones) are
+    """Windows the network does not take (``benchmarks/timing/coarse_bound.py``'s wider ones) are
     still timed by every classical estimator, near the true offset for a clean code."""
     rng = np.random.default_rng(4)
     template = np.convolve(rng.normal(size=60), np.ones(4) / 4, mode="same")

@@ -233,13 +233,20 @@ def test_core_package_builds_alone(tmp_path: Path) -> None:
     prefix = _build_alone(tmp_path, "deepsync")
     assert (prefix / "share" / "deepsync" / "package.xml").is_file()
     assert (prefix / "lib" / "deepsync" / "deepsync").is_file()  # ros2 run deepsync deepsync
+    for data in ("deepsync/data/towers/campus.yaml", "deepsync/data/scenarios/campus_route.yaml",
+                 "deepsync/bag/msg/EnvelopeSamples.msg", "deepsync/timing/timing_net.pt"):  # the package data
+        assert list(prefix.glob(f"lib/python*/site-packages/{data}")), f"{data} is not installed"
 
 
 def test_bundled_files_at_the_root_are_the_packages() -> None:
-    """The repository root's campus bag and tower database are links into deepsync_ros (one copy),
-    so the core's command line and the tests find them where they always were."""
-    for path in ("bags/campus", "config/towers/campus.yaml"):
+    """The repository root's campus bag is a link into deepsync_ros; the demo's tower database and
+    scenario are the core package's data (``deepsync.eval.demo``), linked from the root and, for the
+    launch file's default, from deepsync_ros: one copy each, where they always were."""
+    core_data = (REPO / "src" / "deepsync" / "deepsync" / "data").resolve()
+    for path, owner in (("bags/campus", REPO / "src" / "deepsync_ros"), ("config/towers/campus.yaml", core_data),
+                        ("config/scenarios/campus_route.yaml", core_data),
+                        ("src/deepsync_ros/config/towers/campus.yaml", core_data)):
         linked = REPO / path
-        assert linked.is_symlink(), f"{path} should link into src/deepsync_ros"
-        assert linked.resolve().is_relative_to((REPO / "src" / "deepsync_ros").resolve())
+        assert linked.is_symlink(), f"{path} should link into {owner.relative_to(REPO.resolve())}"
+        assert linked.resolve().is_relative_to(owner.resolve())
         assert linked.exists()

@@ -20,27 +20,21 @@ from pathlib import Path
 
 import numpy as np
 
-from deepsync.bag import (POSE_TOPIC, TRUTH_CELL_TIMING_TOPIC, BagError, BagReader, cell_timing_array_from_msg,
-                          provenance_document)
-from deepsync.bag.writer import PROVENANCE_KEY
+from deepsync.bag import POSE_TOPIC, BagError, BagInfo, bag_info
 from deepsync.configio import ConfigError
-from deepsync.eval.cell_search import stack_record, summarize
+from deepsync.eval.cell_search import CellSearch, SearchedStack
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
 from deepsync.jobs import JobRunner
-from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
+from deepsync.motion import DEFAULT_MOTION, MOTION
 from deepsync.numeric import one_blas_thread
-from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
-from deepsync.sources import BagSource, LiveSource, SampleFormat, Source, open_source
+from deepsync.pipeline import PipelineConfig, StackResult, setting_paths
+from deepsync.schema import Setting, add_flag
+from deepsync.sources import BagSource, SampleFormat, open_source
 from deepsync.sync.stacking import StackConfig
 from deepsync.timing import network_install_hint
-from deepsync.timing.registry import ESTIMATORS, Estimator
 from deepsync.towers import load_tower_database
-from deepsync.types import FRAME_SECONDS, HealthKind
+from deepsync.types import HealthKind, NoFix
 
-REPO = Path(__file__).resolve().parents[3]
-DEMO_SCENARIO = REPO / "config" / "scenarios" / "campus_route.yaml"
-DEMO_BAG = REPO / "bags" / "campus_route"
-DEMO_TOWERS = REPO / "config" / "towers" / "campus.yaml"
 MAX_WORKERS = 64
 INITIAL_STD_RANGE_M = (0.01, 1e4)  # evaluate-route --initial-pose-std
 
@@ -167,14 +161,8 @@ def _output_file(text: str) -> str:
 
 
 def _frame_counts(text: str) -> tuple[int, ...]:
-    """Comma-separated frame counts (``5,10,12``)."""
-    try:
-        counts = tuple(int(part) for part in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of whole numbers") from None
-    if not all(1 <= count <= 1000 for count in counts):
-        raise argparse.ArgumentTypeError(f"{text!r}: frame counts must be 1..1000")
-    return counts
+    """Comma-separated frame counts (``5,10,12``), each a stack's ``n_frames``."""
+    return tuple(_setting("n_frames").parse(part) for part in text.split(","))
 
 
 def _print_recording(summary) -> None:
@@ -190,36 +178,29 @@ def _print_recording(summary) -> None:
     print("  cells (at t = 0):")
     for cell in summary.cells:
         print(f"    PCI {cell.pci:3d}  site {cell.site:<4} {cell.carrier_mhz:8.1f} MHz {cell.bandwidth_mhz:4g} MHz  "
-              f"{cell.distance_m:6.0f} m  {'LOS ' if cell.los else 'NLOS'}  {cell.re_power_dbm:6.1f} dBm/RE")
+              f"{cell.distance_m:6.0f} m  {'LOS ' if cell.los else 'NLOS'}  "
+              + (f"{cell.re_power_dbm:6.1f} dBm/RE" if math.isfinite(cell.re_power_dbm) else "no path at t = 0"))
 
 
-def describe_bag(path: Path) -> None:
-    """Print what a bag holds: topics, types, counts, duration, provenance, truth cells."""
-    with BagReader(path) as bag:
-        print(f"bag {path}: {bag.message_count} messages over {bag.duration_ns / 1e9:.3f} s")
-        for topic, msgtype in sorted(bag.topics.items()):
-            print(f"  {topic:<32} {msgtype:<38} {bag.message_counts[topic]:6d} messages")
-        crc = bag.crc_status
-        if crc.complete:
-            print(f"  integrity: CRCs on all {crc.chunks} chunks and the summary (checked as they are read)")
-        else:
-            print(f"  integrity: CRCs on {crc.chunks_with_crc} of {crc.chunks} chunks"
-                  f"{'' if crc.summary_crc else ', none on the summary'}: corruption there cannot be detected")
-        for note in bag.inconsistencies:
-            print(f"  note: {note}")
-        provenance = bag.custom_data.get(PROVENANCE_KEY)
-        if provenance:
-            try:
-                info = provenance_document(provenance, path)
-                print(f"  made by {info.get('generator')} from {info.get('scenario')} (seed {info.get('seed')})")
-            except BagError as error:
-                print(f"  provenance: {_one_line(error)}")
-        if TRUTH_CELL_TIMING_TOPIC in bag.topics:
-            codes: dict[int, int] = {}
-            for item in bag.messages([TRUTH_CELL_TIMING_TOPIC]):
-                for record in cell_timing_array_from_msg(item.message).cells:
-                    codes[record.pci] = codes.get(record.pci, 0) + 1
-            print("  ground truth: " + ", ".join(f"PCI {pci} ({n} sync codes)" for pci, n in sorted(codes.items())))
+def _print_bag_info(info: BagInfo) -> None:
+    print(f"bag {info.path}: {info.message_count} messages over {info.duration_s:.3f} s")
+    for topic, msgtype, count in info.topics:
+        print(f"  {topic:<32} {msgtype:<38} {count:6d} messages")
+    crc = info.crc
+    if crc.complete:
+        print(f"  integrity: CRCs on all {crc.chunks} chunks and the summary (checked as they are read)")
+    else:
+        print(f"  integrity: CRCs on {crc.chunks_with_crc} of {crc.chunks} chunks"
+              f"{'' if crc.summary_crc else ', none on the summary'}: corruption there cannot be detected")
+    for note in info.notes:
+        print(f"  note: {note}")
+    if info.provenance_error is not None:
+        print(f"  provenance: {_one_line(info.provenance_error)}")
+    elif info.provenance is not None:
+        made = info.provenance
+        print(f"  made by {made.get('generator')} from {made.get('scenario')} (seed {made.get('seed')})")
+    if info.truth_codes is not None:
+        print("  ground truth: " + ", ".join(f"PCI {pci} ({n} sync codes)" for pci, n in info.truth_codes.items()))
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -279,55 +260,41 @@ def _cmd_evaluate_routes(args: argparse.Namespace) -> int:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    describe_bag(Path(args.bag))
+    _print_bag_info(bag_info(args.bag))
     return 0
 
 
-def run_cell_search(source: Source, towers_path: Path | None, frames: int, truth: dict[int, np.ndarray],
-                    verbose: bool = True) -> list[dict]:
-    """Run the pipeline (cell search and classical timing) over a source; print each stack's
-    confirmed cells (if verbose) with their arrival and the error against ground truth, if known.
-    Returns one record per stack (``deepsync.eval.cell_search.stack_record``)."""
-    towers = None if towers_path is None else load_tower_database(towers_path)
-    config = PipelineConfig().with_choices(frames)
-    pipeline = Pipeline(source.frontend, config, towers)
-    mode = f"known PCIs from {towers_path} ({len(towers.pcis)} PCIs)" if towers else "blind (all 504 PCIs)"
-    print(f"cell search over {source.description}\n  {frames}-frame stacks, {mode}; a cell is reported once "
-          f"found in {config.sync.confirm_stacks} stacks in a row; timing: {config.timing.estimator.name}")
+def _print_cell_search(search: CellSearch, towers_path: str | None, verbose: bool = True) -> None:
+    """Each stack's confirmed cells (if verbose) with their arrival and the error against the
+    ground truth, if known; a run of stacks like the last one printed, with nothing in them, as
+    one line."""
+    config = search.config
+    mode = f"known PCIs from {towers_path} ({len(search.towers.pcis)} PCIs)" if search.towers else "blind (all 504 PCIs)"
+    print(f"cell search over {search.source.description}\n  {config.sync.stack.n_frames}-frame stacks, {mode}; a cell "
+          f"is reported once found in {config.sync.confirm_stacks} stacks in a row; timing: "
+          f"{config.timing.estimator.name}")
     if verbose:
         print(f"  tentative: found, not yet in {config.sync.confirm_stacks} stacks in a row; runners-up: the PCIs "
               "that scored next for the same code (the envelope keeps little of a cell's identity); "
               f"{HealthKind.MISALIGNED.value}: the receiver clock's drift smeared the stack's frames; "
               f"{HealthKind.CLIPPED.value}: samples at the ADC's rails; {HealthKind.NO_SIGNAL.value}: nothing to "
               "search")
-    stacks, samples = [], 0
     alike: list[dict] = []  # stacks not printed: like the last printed one, with no cell and no event
     printed: list | None = None  # the flags of the last stack printed
-    live = source if isinstance(source, LiveSource) else None
-    for chunk in source.chunks():
-        samples += len(chunk.samples)
-        for event in live.take_events() if live else ():
-            print(f"  source: {event}")
-        for result in pipeline.process(chunk):
-            stacks.append(stack_record(result, truth, source.frontend.adc_rate_hz))
-            if not verbose:
-                continue
-            kinds = [flag.kind for flag in result.sync.flags]
-            if not (stacks[-1]["cells"] or stacks[-1]["events"] or result.sync.tentative) and kinds == printed:
-                alike.append(stacks[-1])  # a silent file's 56,000 identical lines, said once
-                continue
-            _print_alike(alike)
-            _print_stack(result, stacks[-1], truth)
-            printed = None if (stacks[-1]["cells"] or stacks[-1]["events"] or result.sync.tentative) else kinds
+    for item in search.run():
+        if not isinstance(item, SearchedStack):
+            print(f"  source: {item}")
+            continue
+        if not verbose:
+            continue
+        kinds = [flag.kind for flag in item.result.sync.flags]
+        if item.quiet and kinds == printed:
+            alike.append(item.record)  # a silent file's 56,000 identical lines, said once
+            continue
+        _print_alike(alike)
+        _print_stack(item.result, item.record, search.truth)
+        printed = kinds if item.quiet else None
     _print_alike(alike)
-    for event in live.take_events() if live else ():
-        print(f"  source: {event}")
-    if not stacks:
-        frame = round(source.frontend.adc_rate_hz * FRAME_SECONDS)
-        reason = (f"it holds {samples} samples ({samples / frame:.1f} frames), less than one {frames}-frame stack"
-                  if samples < frames * frame else "no stretch of it was clean for a whole stack (see the events)")
-        raise ValueError(f"no stack to search in {source.description}: {reason}")
-    return stacks
 
 
 def _print_alike(alike: list[dict]) -> None:
@@ -377,69 +344,48 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         source = BagSource(args.bag)
     else:
         source = open_source(args.input, args.format, args.rate, args.scale)
-    truth = source.truth_arrivals() if isinstance(source, BagSource) else {}
-    towers = None if args.towers is None else Path(args.towers)
-    _print_summary(summarize(run_cell_search(source, towers, args.frames, truth), truth))
+    towers = None if args.towers is None else load_tower_database(args.towers)
+    search = CellSearch(source, towers, args.frames)
+    _print_cell_search(search, args.towers)
+    _print_summary(search.summary())
     return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from deepsync.eval.route import method_summary, read_truth_track, score_stacks, summarize_route, write_route_report
-    from deepsync.fusion.anchors import Anchors
-    from deepsync.replay import replay_bag
+    from deepsync.eval import demo
 
     out = Path(args.out)
-    bag = DEMO_BAG
     if args.simulate:
-        from deepsync.recording import record_scenario
-
         bag = out / "recording"
-        print(f"== simulating {args.simulate:g} s of {_shown(DEMO_SCENARIO)} into {bag}")
-        _print_recording(record_scenario(DEMO_SCENARIO, args.simulate, bag, workers=args.workers, overwrite=True,
-                                         progress=not args.quiet))
-    towers = load_tower_database(DEMO_TOWERS)
-    truth = read_truth_track(bag)
-    true_arrivals = BagSource(bag).truth_arrivals()
-    print(f"== {_shown(bag)} through sync, timing and fusion (tower database {_shown(DEMO_TOWERS)})")
-    fused = []
-
-    def keep(timed, pipeline: Pipeline) -> None:
-        fused.append((timed.arrivals, timed.fusion, pipeline.fusion.reference_ns))
-
-    replayed = replay_bag(bag, out / "replay", towers, overwrite=True, progress=not args.quiet, say=_say,
-                          on_stack=keep)
-    if not fused:
-        raise ValueError(f"no stack of {bag} was completed: nothing to show")
-    run = score_stacks(str(bag), fused, truth, true_arrivals, interrupted=replayed.damage is not None)
-    summary = summarize_route(run)
-    paths = write_route_report(run, summary, Anchors(towers), out)
-    shown = method_summary([fusion.published for _, fusion, _ in fused], [epoch.truth_enu for epoch in run.epochs])
+        with demo.packaged(demo.SCENARIO) as scenario:
+            print(f"== simulating {args.simulate:g} s of {_shown(scenario)} into {bag}")
+        _print_recording(demo.simulate(args.simulate, bag, args.workers, progress=not args.quiet))
+    else:
+        bag = demo.find_bag(args.bag)
+    with demo.packaged(demo.TOWERS) as towers:
+        print(f"== {_shown(bag)} through sync, timing and fusion (tower database {_shown(towers)})")
+    result = demo.run_demo(bag, out, progress=not args.quiet, say=_say)
+    replayed = result.replayed
     if args.verbose:
-        for epoch in run.epochs:
-            print(f"  {(epoch.stamp_ns - run.epochs[0].stamp_ns) * 1e-9:5.2f} s  {epoch.cells} cells  sites "
-                  f"{','.join(site.site for site in epoch.sites) or '-':6s}  "
-                  + "  ".join(f"{name} {_answer(answer, epoch.truth_enu)}" for name, answer in
-                              (("tracked", epoch.tracked), ("snapshot", epoch.snapshot))))
-    pcis = sorted({cell.pci for arrivals, _, _ in fused for cell in arrivals.cells})
-    heard = summary["sites_heard_per_stack"]
-    walked = float(np.sum(np.linalg.norm(np.diff(truth.positions[:, :2], axis=0), axis=1)))
-    print(f"\n  recording   {replayed.signal_seconds:.1f} s of ADC stream, {walked:.1f} m walked (ground truth included)")
-    print(f"  heard       {len(pcis)} cells (PCI {', '.join(map(str, pcis))}) on {len(summary['sites_heard'])} sites "
-          f"({', '.join(summary['sites_heard'])}); sites per stack: {_per_stack_text(heard)}")
+        for epoch in result.epochs:
+            print(f"  {epoch.seconds:5.2f} s  {epoch.cells} cells  sites {','.join(epoch.sites) or '-':6s}  "
+                  + "  ".join(f"{name} {_answer(answer)}" for name, answer in epoch.answers.items()))
+    print(f"\n  recording   {replayed.signal_seconds:.1f} s of ADC stream, {result.walked_m:.1f} m walked (ground truth "
+          "included)")
+    heard = (f"{len(result.pcis)} cells (PCI {', '.join(map(str, result.pcis))}) on {len(result.sites_heard)} sites "
+             f"({', '.join(result.sites_heard) or 'none placed by the tower database'})" if result.pcis else "no cell")
+    print(f"  heard       {heard}; sites per stack: {_per_stack_text(result.sites_per_stack)}")
     print(f"  {'':11s} {'fix rate':>8s} {'median':>7s} {'p90':>7s}   horizontal error against the truth, m")
-    rows = [("published", shown), ("tracked", summary["methods"]["tracked"]),
-            ("snapshot", summary["methods"]["snapshot"])]
-    for name, method in rows:
+    for name, method in result.methods.items():
         print(f"  {name:11s} {method['fix_rate']:8.0%} {_metres(method['median_m'])} {_metres(method['p90_m'])}")
-    bound = summary["position_bound"]
-    print(f"  {'bound':11s} {'':8s} {_metres(bound['median_m'])} {_metres(bound['p90_m'])}   "
+    print(f"  {'bound':11s} {'':8s} {_metres(result.bound['median_m'])} {_metres(result.bound['p90_m'])}   "
           "(position Cramer-Rao bound, stacks with >= 3 sites)")
     print(f"  speed       {replayed.signal_seconds:.1f} s of signal in {replayed.wall_seconds:.1f} s: "
           f"{replayed.realtime_factor:.1f}x real time (one process: read, sync, timing, fusion, write)")
     _print_health(replayed.health)
     print(f"  written     {replayed.out} (MCAP: {', '.join(f'{t} {n}' for t, n in replayed.written.items())}; "
           "opens in Foxglove, plays with ros2 bag play)")
-    print("              " + ", ".join(str(p) for p in paths))
+    print("              " + ", ".join(str(p) for p in result.report))
     if replayed.damage:
         print(f"  the recording is damaged: {replayed.damage}", file=sys.stderr)
         return 1
@@ -447,17 +393,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _shown(path: Path) -> str:
-    """A path inside the repository relative to it, others as given."""
-    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+    """A path under the working directory relative to it, others as given."""
+    return str(path.relative_to(Path.cwd())) if path.is_absolute() and path.is_relative_to(Path.cwd()) else str(path)
 
 
-def _answer(answer, truth_enu: np.ndarray) -> str:
-    from deepsync.eval.route import horizontal_error
-    from deepsync.types import Fix
-
-    if isinstance(answer, Fix):
-        return f"{horizontal_error(answer, truth_enu):6.1f} m"
-    return "no fix" if answer is None else f"no fix ({answer.reason.value})"
+def _answer(answer: float | NoFix | None) -> str:
+    """A stack's answer as the demo scores it: the horizontal error (m) of a fix, or why none."""
+    if answer is None:
+        return "no fix"
+    return f"no fix ({answer.reason.value})" if isinstance(answer, NoFix) else f"{answer:6.1f} m"
 
 
 def _say(text: str) -> None:
@@ -497,7 +441,13 @@ def _print_health(health: dict[str, int]) -> None:
 
 def _pipeline_config(args: argparse.Namespace) -> PipelineConfig:
     """The pipeline a replaying command asked for (``_replay_arguments``)."""
-    return PipelineConfig().with_choices(args.frames, args.estimator, args.hop, args.search_every, args.motion)
+    return PipelineConfig().with_choices(n_frames=args.frames, hop_frames=args.hop, motion=args.motion,
+                                         search_every=args.search_every, estimator=args.estimator)
+
+
+def _setting(name: str) -> Setting:
+    """A stage config's setting, for its flag (``deepsync.schema.add_flag``)."""
+    return setting_paths()[name][1]
 
 
 def _stacks_text(config: PipelineConfig, motion: str) -> str:
@@ -733,20 +683,12 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
     many = {"action": "extend", "nargs": "+"} if many_bags else {}
     command.add_argument(*bag_options, dest="bag", required=True, help=bag_help, **many)
     command.add_argument("--towers", required=towers_required, help=towers_help)
-    command.add_argument("--motion", choices=tuple(MOTION_MODELS), default=DEFAULT_MOTION,
-                         help="how the receiver moves, which sets the stacks and the tracker's motion model "
-                         "(default %(default)s): " + "; ".join(f"{m.name}: {m.summary} ({m.n_frames}-frame stacks "
-                                                               f"every {m.hop_frames})" for m in MOTION_MODELS.values()))
-    command.add_argument("--frames", type=int, help="frames per stack (default: the motion model's)")
-    command.add_argument("--hop", type=int, help="frames from one stack to the next (default: the motion model's; "
-                         "with --frames alone, back to back; fewer: sliding stacks, e.g. --frames 50 --hop 10 for "
-                         "50-frame stacks at 10 Hz)")
-    command.add_argument("--search-every", type=int, help="stacks per full search for new cells (default "
-                         f"{defaults.sync.search_every}; between, the cells found are tracked; while none finds a new "
-                         f"cell the gap doubles up to {defaults.sync.max_search_interval_s:g} s of stream)")
-    command.add_argument("--estimator", default=defaults.timing.estimator.name, choices=Estimator.names(),
-                         metavar="NAME", help="sub-sample timing estimator (default %(default)s): " + "; ".join(
-                             f"{e.name}: {e.summary}" for e in ESTIMATORS.values()))
+    add_flag(command, MOTION, "--motion", default=DEFAULT_MOTION, metavar="MODEL")
+    add_flag(command, _setting("n_frames"), "--frames", unset="the motion model's")
+    add_flag(command, _setting("hop_frames"), "--hop", unset="the motion model's; with --frames alone, back to back; "
+             "e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz")
+    add_flag(command, _setting("search_every"), "--search-every", default=defaults.sync.search_every)
+    add_flag(command, _setting("estimator"), "--estimator", default=defaults.timing.estimator)
     command.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -791,15 +733,15 @@ def build_parser() -> argparse.ArgumentParser:
                         help="envelope units per ADC code for --input (default: a recording's peak, a live "
                              "stream's full scale, maps to 32766)")
     detect.add_argument("--towers", help="tower database YAML (known-PCI mode); blind without")
-    frames = StackConfig().n_frames  # a cell search shows each stack: short ones, back to back
-    detect.add_argument("--frames", type=int, default=frames, help=f"frames per stack (default {frames})")
+    # a cell search shows each stack: short ones, back to back
+    add_flag(detect, _setting("n_frames"), "--frames", default=StackConfig().n_frames)
     detect.set_defaults(run=_cmd_detect)
 
     route = commands.add_parser("evaluate-route", help="fixes along a recorded route against its ground truth "
                                 "(snapshot, tracked, RSSI, the position bound): table, JSON and figures")
     _replay_arguments(route, "bag with /deepsync/envelope and /deepsync/truth/pose",
                       "tower database YAML with origin, positions and timing")
-    route.add_argument("--out", default=str(REPO / "out" / "route"), type=_output_file,
+    route.add_argument("--out", default=str(Path("out") / "route"), type=_output_file,
                        help="where route.json and the PNGs go")
     route.add_argument("--initial-pose-std", type=_initial_std, metavar="M",
                        help="start the tracker from an initial position: the true start, off by a draw of "
@@ -867,13 +809,13 @@ def build_parser() -> argparse.ArgumentParser:
                           "`deepsync make-dataset` makes it, about 20 minutes on 2 cores; `deepsync train` too)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test"),
                           help="which examples to score (default %(default)s: those nobody trained or chose on)")
-    evaluate.add_argument("--checkpoint", help="network checkpoint (default: the shipped one)")
+    add_flag(evaluate, _setting("checkpoint"), "--checkpoint", unset="the shipped one")
     evaluate.add_argument("--frames", type=_frame_counts, default="5,10,12",
                           help="stacked frames to evaluate, comma-separated "
                           "(with --bag: the first)")
     evaluate.add_argument("--bag", help="instead of the test set: a simulated bag with ground truth")
     evaluate.add_argument("--towers", help="with --bag: tower database YAML (known-PCI cell search)")
-    evaluate.add_argument("--out", default=str(REPO / "out" / "timing"), type=_output_file,
+    evaluate.add_argument("--out", default=str(Path("out") / "timing"), type=_output_file,
                           help="where timing.json and timing.png go (with --bag: timing_bag.json)")
     evaluate.add_argument("--quiet", action="store_true", help="no progress bar")
     evaluate.set_defaults(run=_cmd_evaluate_timing)
@@ -890,10 +832,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = commands.add_parser("demo", help="the main job on the bundled walk (no ROS needed): replay it through "
                                "every stage into an MCAP bag, a route map, an error CDF and a table")
-    demo.add_argument("--out", default=str(REPO / "out" / "demo"), help="where the demo writes")
+    demo.add_argument("--out", default=str(Path("out") / "demo"), help="where the demo writes (default %(default)s)")
     demo.add_argument("--verbose", action="store_true", help="print every stack: cells, sites, fix errors")
-    demo.add_argument("--simulate", type=_seconds, metavar="SECONDS",
-                      help="simulate a fresh recording of the demo's scenario this long and use it instead")
+    recording = demo.add_mutually_exclusive_group()
+    recording.add_argument("--bag", help="a recording of the demo's walk to replay instead of the bundled "
+                           "bags/campus_route (which comes with the source checkout, not with an installed package)")
+    recording.add_argument("--simulate", type=_seconds, metavar="SECONDS",
+                           help="simulate a fresh recording of the demo's scenario this long and use it instead")
     demo.add_argument("--workers", type=_workers, default=workers,
                       help=f"processes simulating a --simulate recording (default {workers})")
     demo.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -19,6 +19,8 @@ from typing import Any, TypeVar
 
 import yaml
 
+from deepsync.schema import Setting
+
 T = TypeVar("T")
 _YAML11_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
 
@@ -133,18 +135,14 @@ config's number (a tuple field: of each of its values)."""
 def check_ranges(config: object, ranges: Ranges) -> None:
     """ValueError naming the first field of ``config`` outside its range in ``ranges`` (a
     number, or every value of a tuple of numbers), or a number that is not finite. Run from a
-    frozen config's ``__post_init__``, so that no value that cannot work gets past its door."""
+    frozen config's ``__post_init__``, so that no value that cannot work gets past its door
+    (a field declared with ``deepsync.schema.setting`` is checked by ``check_settings``)."""
     for name, (low, high, unit) in ranges.items():
         value = getattr(config, name)
-        values = value if isinstance(value, tuple) else (value,)
-        for item in values:
-            if item is None:
-                continue
-            if isinstance(item, bool) or not isinstance(item, (int, float)):
-                raise ValueError(f"{name} must be a number, got {reprlib.repr(value)}")
-            if not low <= item <= high:  # NaN compares false; a huge int compares exactly (no float conversion)
-                allowed = f"[{low:g}, {high:g}] {unit}".rstrip()
-                raise ValueError(f"{name} must be within {allowed}, got {reprlib.repr(value)}")
+        bounded = Setting(name, float, "", unit, (low, high))
+        for item in value if isinstance(value, tuple) else (value,):
+            if item is not None:
+                bounded.check(item)
 
 
 def require_mapping(value: object, where: str) -> Mapping[str, Any]:

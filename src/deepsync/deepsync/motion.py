@@ -7,13 +7,16 @@ part of a sample (156 m at 1.92 MS/s) and of the bias decorrelation distance, an
 stacks hear weaker sites (each doubling gains about 3 dB). Sliding stacks (a new stack every
 ``hop_frames``) keep the answers coming at 10 Hz or more whatever the length.
 
-Neutral ground (no project imports): the sync stage, fusion, the pipeline, the command line
-and the ROS parameters all read the one registry here.
+Neutral ground (it imports only ``deepsync.schema``): the sync stage, fusion, the pipeline, the
+command line and the ROS parameters all read the one registry here, and the one ``MOTION``
+setting (its help and choices) the command line's flag and the nodes' parameter are made from.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from deepsync.schema import Setting
 
 
 @dataclass(frozen=True)
@@ -21,11 +24,16 @@ class MotionModel:
     """One way of moving: the tracker's process model and the stacks it allows."""
 
     name: str
-    summary: str  # what it assumes, in a sentence (the CLI's and ROS parameter's help)
+    assumes: str  # what it assumes, in a sentence
     acceleration_std_mps2: float  # velocity random walk: m/s gained or lost per second, 1-sigma
     initial_speed_std_mps: float  # speed prior (1-sigma per axis) when a track starts
     n_frames: int  # frames (10 ms) per stack
     hop_frames: int  # frames from one stack's start to the next
+
+    @property
+    def summary(self) -> str:
+        """What it assumes and the stacks it allows: the command line's and the nodes' help."""
+        return f"{self.assumes} ({self.n_frames}-frame stacks every {self.hop_frames})"
 
     @property
     def stack_seconds(self) -> float:
@@ -50,6 +58,8 @@ MOTION_MODELS: dict[str, MotionModel] = {
     )
 }
 DEFAULT_MOTION = "pedestrian"
+MOTION = Setting("motion", str, "How the receiver moves, which sets the stacks and the tracker's motion model.",
+                 choices=MOTION_MODELS)
 
 
 def motion_model(name: str) -> MotionModel:

@@ -21,14 +21,16 @@ sync or timing stage (fusion needs none).
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+import functools
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
 
 from deepsync.frontend.config import FrontendConfig
 from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
-from deepsync.motion import DEFAULT_MOTION, MotionModel, motion_model
+from deepsync.motion import DEFAULT_MOTION, MOTION, MotionModel, motion_model
+from deepsync.schema import Setting, settings
 from deepsync.sync.stage import SyncConfig, SyncResult, SyncStage
-from deepsync.timing.stage import Estimator, TimingConfig, TimingResult, TimingStage
+from deepsync.timing.stage import TimingConfig, TimingResult, TimingStage
 from deepsync.towers import TowerDatabase
 from deepsync.types import EnvelopeChunk, Health, StackArrivals, StackWindows
 
@@ -71,26 +73,81 @@ class PipelineConfig:
         sync, fusion = moving(motion_model(motion), SyncConfig(), FusionConfig())
         return cls(sync=sync, fusion=fusion)
 
-    def with_choices(self, n_frames: int | None = None, estimator: str | None = None,
-                     hop_frames: int | None = None, search_every: int | None = None,
-                     motion: str | None = None) -> PipelineConfig:
-        """This config with the knobs a command line offers: the motion model by name (its
+    def with_choices(self, n_frames: int | None = None, hop_frames: int | None = None, motion: str | None = None,
+                     **chosen: object) -> PipelineConfig:
+        """This config with what a user chose (None: not chosen): the motion model by name (its
         stacks and tracker), frames per stack (without ``hop_frames``: back to back), frames from
-        one stack to the next (sliding stacks), stacks per full search for new cells, the timing
-        estimator by name (ValueError listing the names)."""
-        sync, timing, fusion = self.sync, self.timing, self.fusion
+        one stack to the next (sliding stacks), and any stage config's setting by its field name
+        (``deepsync.schema``: ``search_every=3``, ``estimator="ml"``, ``max_std_m=100.0``; a
+        choice by its name). ValueError naming the setting for a value it refuses, or a name no
+        stage config has."""
+        sync, fusion = self.sync, self.fusion
         if motion is not None:
+            MOTION.check(motion)
             sync, fusion = moving(motion_model(motion), sync, fusion)
         if n_frames is not None or hop_frames is not None:
             frames = sync.stack.n_frames if n_frames is None else n_frames
             hop = hop_frames if hop_frames is not None or n_frames is None else frames
-            stack = replace(sync.stack, n_frames=frames, hop_frames=hop)
-            sync = replace(sync, stack=stack)
-        if search_every is not None:
-            sync = replace(sync, search_every=search_every)
-        if estimator is not None:
-            timing = replace(timing, estimator=Estimator.named(estimator))
-        return replace(self, sync=sync, timing=timing, fusion=fusion)
+            sync = replace(sync, stack=replace(sync.stack, n_frames=frames, hop_frames=hop))
+        config = replace(self, sync=sync, fusion=fusion)
+        for name, value in chosen.items():
+            if value is not None:
+                config = config._with_setting(name, value)
+        return config
+
+    def _with_setting(self, name: str, value: object) -> PipelineConfig:
+        try:
+            path, described = setting_paths()[name]
+        except KeyError:
+            raise ValueError(f"{name}: no stage config has such a setting") from None
+        described.check(value)
+        if isinstance(value, str) and described.choices is not None:
+            value = described.choices[value]
+        return _replaced(self, path, {name: value})
+
+    def reconfiguration(self, pipeline: Pipeline) -> Callable[[], None]:
+        """What running ``pipeline`` with this config takes, built now (ValueError if it cannot:
+        ``pipeline`` unchanged), and the step that switches to it, which cannot fail. Only the
+        timing stage's settings may change while stacks flow (a new estimator, a checkpoint):
+        the sync and fusion stages hold state their settings shaped."""
+        changed = [part for part in ("sync", "fusion") if getattr(self, part) != getattr(pipeline.config, part)]
+        if changed:
+            raise ValueError(f"the {' and '.join(changed)} settings cannot change while the pipeline runs: build a "
+                             "new pipeline")
+        timing = pipeline.timing
+        if timing is not None and self.timing != pipeline.config.timing:
+            timing = timing.with_config(self.timing)
+
+        def switch() -> None:
+            pipeline.config, pipeline.timing = self, timing
+        return switch
+
+
+_STAGE_CONFIGS = (("sync",), ("sync", "stack"), ("sync", "search"), ("timing",), ("fusion",), ("fusion", "tracker"),
+                  ("fusion", "snapshot"))
+
+
+@functools.cache
+def setting_paths() -> dict[str, tuple[tuple[str, ...], Setting]]:
+    """Every stage config's setting by field name (no two share one), with where its config
+    sits in a :class:`PipelineConfig`."""
+    found: dict[str, tuple[tuple[str, ...], Setting]] = {}
+    defaults = PipelineConfig()
+    for path in _STAGE_CONFIGS:
+        part = functools.reduce(getattr, path, defaults)
+        for name, described in settings(type(part)).items():
+            if name in found:
+                raise RuntimeError(f"{name} is a setting of {'.'.join(found[name][0])} and {'.'.join(path)}")
+            found[name] = (path, described)
+    return found
+
+
+def _replaced(config: object, path: tuple[str, ...], changes: dict[str, object]) -> object:
+    """``config`` with ``changes`` made to the config at ``path`` inside it, every config on the
+    way rebuilt (so each checks itself, and ``PipelineConfig`` derives what it derives)."""
+    if not path:
+        return replace(config, **changes)
+    return replace(config, **{path[0]: _replaced(getattr(config, path[0]), path[1:], changes)})
 
 
 @dataclass(frozen=True)
@@ -164,6 +221,11 @@ class Pipeline:
         self.timing = None if frontend is None else TimingStage(frontend, self.config.timing, self.sync.templates)
         self.fusion = FusionStage(towers, self.config.fusion) if places_sites(towers) else None
 
+    def reconfigure(self, config: PipelineConfig) -> None:
+        """Run on with ``config`` (:meth:`PipelineConfig.reconfiguration`: only what needs no
+        rebuilt state may change); ValueError leaves the pipeline as it was."""
+        config.reconfiguration(self)()
+
     def process(self, chunk: EnvelopeChunk) -> list[StackResult]:
         """Feed one chunk; a result for every stack it completes."""
         if self.sync is None:
@@ -181,14 +243,22 @@ class Pipeline:
 
     def fuse_arrivals(self, arrivals: StackArrivals) -> FusionResult | None:
         """One stack's arrivals (the timing stage's, or a ``CellTimingArray``'s) through fusion;
-        None without a tower database that places its sites."""
-        return None if self.fusion is None else self.fusion.process(arrivals)
+        None without a tower database that places its sites. Arrivals that say which stacks
+        they came from (``StackArrivals.stack``) set ``config.sync.stack`` to those, and the
+        tracker's overlap with it: a node that only fuses follows what the sync node used."""
+        if self.fusion is None:
+            return None
+        stack = self.config.sync.stack
+        if arrivals.stack is not None and arrivals.stack != (stack.n_frames, stack.hop):
+            self.config = self.config.with_choices(*arrivals.stack)
+            self.fusion.follow_stacks(self.config.fusion.tracker.stack_overlap)
+        return self.fusion.process(arrivals)
 
     def pending_events(self) -> tuple[Health, ...]:
-        """Stream events the sync stage has seen since its last completed stack: they travel
-        with the next stack, so at the end of a stream (a gap or a reset in its last frames)
-        this is the only place they are."""
-        return () if self.sync is None else tuple(self.sync.stacker.events)
+        """Stream events the sync stage has seen since its last completed stack, taken (a second
+        call returns none): they travel with the next stack, so at the end of a stream (a gap or
+        a reset in its last frames) this is the only place they are."""
+        return () if self.sync is None else self.sync.take_events()
 
     def run(self, chunks: Iterable[EnvelopeChunk]) -> Iterator[StackResult]:
         """Results stack by stack as the chunks (a source's ``chunks()``, a bag) stream in."""

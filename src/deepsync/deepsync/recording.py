@@ -53,7 +53,7 @@ class CellSummary:
     bandwidth_mhz: float
     distance_m: float
     los: bool
-    re_power_dbm: float  # received power per resource element at the antenna, t = 0
+    re_power_dbm: float  # received power per resource element at the antenna, t = 0 (-inf: no path reaches it)
 
 
 @dataclass
@@ -88,8 +88,8 @@ def cell_summaries(twin: Twin) -> list[CellSummary]:
                 carrier_mhz=cell.carrier_hz / 1e6,
                 bandwidth_mhz=cell.bandwidth_mhz,
                 distance_m=twin.geometric_delay_s(i, 0.0) * SPEED_OF_LIGHT_M_S,
-                los=twin.channel.link_parameters(i).los,
-                re_power_dbm=10 * math.log10(power_w * 1e3),
+                los=twin.channel.los_at(i, 0.0),
+                re_power_dbm=10 * math.log10(power_w * 1e3) if power_w > 0 else -math.inf,
             )
         )
     return out

@@ -270,6 +270,11 @@ def _check_time_base(stack: StackArrivals | StackWindows) -> None:
         raise ValueError(f"{name}.sample_rate {stack.sample_rate!r} must be > 0")
     if stack.clock_drift_ppm is not None and not math.isfinite(stack.clock_drift_ppm):
         raise ValueError(f"{name}.clock_drift_ppm {stack.clock_drift_ppm!r} must be finite or None")
+    if stack.stack is not None:
+        frames, hop = stack.stack
+        if not (isinstance(frames, int) and isinstance(hop, int) and 1 <= hop <= frames):
+            raise ValueError(f"{name}.stack {stack.stack!r} must be (n_frames, hop_frames) with 1 <= hop_frames "
+                             "<= n_frames, or None")
 
 
 @dataclass(frozen=True)
@@ -279,6 +284,8 @@ class StackArrivals:
     Stream sample ``first_sample_index`` was taken at receiver time ``stamp_ns``, so a cell's
     arrival is at receiver time ``stamp_ns + (toa - first_sample_index) / sample_rate``.
     ``clock_drift_ppm`` is the receiver clock error the sync stage measured (None: unknown).
+    ``stack`` is (n_frames, hop_frames) of the stacks the arrivals were timed in (None: not
+    said, as in a ground truth): sliding stacks share frames, and fusion counts that.
     """
 
     stamp_ns: int
@@ -286,6 +293,7 @@ class StackArrivals:
     sample_rate: float
     cells: tuple[CellTiming, ...]
     clock_drift_ppm: float | None = None
+    stack: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         _check_time_base(self)
@@ -308,6 +316,7 @@ class StackWindows:
     sits ``frame_delay`` samples later in it than in the stack's first frame, whose time base
     the windows and every arrival use: the rows' mean receiver-clock remainder
     (``Stack.mean_delay``), 0.086 samples per ppm of clock offset for a 10-frame stack.
+    ``stack`` is (n_frames, hop_frames) of the stacks the sync stage cut (None: not said).
     """
 
     stamp_ns: int
@@ -317,6 +326,7 @@ class StackWindows:
     clock_drift_ppm: float | None = None
     frame: np.ndarray | None = None  # (frame_samples,) float32, volts
     frame_delay: float = 0.0  # samples
+    stack: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         _check_time_base(self)
@@ -332,7 +342,7 @@ class StackWindows:
     def arrivals(self, cells: Sequence[CellTiming]) -> StackArrivals:
         """The timing stage's arrivals of these cells, on this stack's time base."""
         return StackArrivals(self.stamp_ns, self.first_sample_index, self.sample_rate, tuple(cells),
-                             self.clock_drift_ppm)
+                             self.clock_drift_ppm, self.stack)
 
 
 class NoFixReason(enum.Enum):

@@ -7,13 +7,20 @@ parameter, ``cell_sync.towers: no such file 'x.yaml'``: each parameter is first 
 against the defaults, so the core's message (which names its field) is pinned to the parameter
 that caused it, and only what no single value explains is reported for the node.
 
-Descriptor ranges are what ``ros2 param describe`` shows and rclpy enforces; the builders check
-them too, so a value refused here is refused the same way with or without ROS. A range is
-inclusive, so an open bound (``false_alarm_rate`` in (0, 0.5)) is left to the core's check.
+A parameter that sets a core config field is made from that field's setting
+(:func:`from_setting`, ``deepsync.schema``): its description, unit, range and choices are
+written once, on the config dataclass, and its value reaches the config by the field's name
+(``PipelineConfig.with_choices``). Only what the core has no field for (topics, frames, QoS,
+playback, aiding inputs) is written here.
+
+Descriptor ranges are what ``ros2 param describe`` shows and rclpy enforces; the specs check
+them too, so a value refused here is refused the same way with or without ROS. A descriptor's
+range is inclusive, so an open bound (``false_alarm_rate`` in (0, 0.5)) is the setting's check.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from collections.abc import Callable, Mapping
@@ -24,18 +31,15 @@ from typing import TypeVar
 from deepsync.bag.convert import ANTENNA_FRAME_ID, ENVELOPE_FRAME_ID, MAP_FRAME_ID
 from deepsync.configio import build_dataclass, load_yaml
 from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
-from deepsync.fusion.snapshot import SnapshotConfig
 from deepsync.fusion.stage import FusionConfig
-from deepsync.fusion.tracker import TrackerConfig
-from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS, motion_model
-from deepsync.pipeline import PipelineConfig, moving, places_sites
+from deepsync.motion import DEFAULT_MOTION, MOTION
+from deepsync.pipeline import PipelineConfig, places_sites, setting_paths
+from deepsync.schema import Setting
 from deepsync.sources import SampleFormat, Source, bag_frontend, open_source
 from deepsync.sources.address import is_live_address
 from deepsync.sources.bagfile import is_bag_path
-from deepsync.sync.search import SearchConfig
-from deepsync.sync.stacking import StackConfig
 from deepsync.sync.stage import SyncConfig
-from deepsync.timing.stage import Estimator, TimingConfig
+from deepsync.timing.stage import TimingConfig
 from deepsync.towers import TowerDatabase, load_tower_database
 
 from .health import PlaybackConfig
@@ -55,7 +59,9 @@ class ParameterError(ValueError):
 class ParamSpec:
     """One parameter: its name, default (whose type is the parameter's), what it means, the
     inclusive range of a number, the values a string may take, and whether it may change
-    while the node runs (``read_only``: the stage it configures is built once)."""
+    while the node runs (``read_only``: the stage it configures is built once). ``setting``:
+    the core setting it is made from (:func:`from_setting`); ``unset``: what its 0 or "" means
+    (the field left at None), where that is allowed."""
 
     name: str
     default: ParamValue
@@ -63,6 +69,8 @@ class ParamSpec:
     range: tuple[float, float] | None = None
     choices: tuple[str, ...] = ()
     read_only: bool = True
+    setting: Setting | None = None
+    unset: str = ""
 
     @property
     def type(self) -> type:
@@ -73,9 +81,15 @@ class ParamSpec:
         """The rule a person reads in ``ros2 param describe``."""
         if self.choices:
             return "one of: " + ", ".join(repr(choice) for choice in self.choices)
+        if self.setting is not None and self.setting.bounds is not None:
+            return self.setting.interval + (f", or {self.type()!r}" if self.unset else "")
         if self.range is not None:
             return f"{self.range[0]:g} to {self.range[1]:g}"
         return ""
+
+    def is_unset(self, value: ParamValue) -> bool:
+        """Whether ``value`` is this parameter's "not set" (0 or ""), where it has one."""
+        return bool(self.unset) and value == self.type()
 
     def check(self, value: object, node: str) -> ParamValue:
         """``value`` as this parameter's type, or ParameterError: wrong type, out of range, not a choice."""
@@ -87,6 +101,13 @@ class ParamSpec:
             raise ParameterError(f"{where}: expected {_KINDS[kind]}, got {value!r}")
         if kind is float and not math.isfinite(value):
             raise ParameterError(f"{where}: must be a finite number, got {value!r}")
+        if self.setting is not None:
+            if not self.is_unset(value):
+                try:
+                    self.setting.check(value, self.name)
+                except ValueError as error:
+                    raise ParameterError(f"{where}: {error}") from None
+            return value
         if self.range is not None and not self.range[0] <= value <= self.range[1]:
             raise ParameterError(f"{where}: {value!r} is outside {self.constraints}")
         if self.choices and value not in self.choices:
@@ -94,20 +115,38 @@ class ParamSpec:
         return value
 
 
+_DEFAULTS = PipelineConfig()
+
+
+def from_setting(described: Setting, *, name: str | None = None, unset: str = "", read_only: bool = True) -> ParamSpec:
+    """The parameter that sets a core setting: its description, range and choices are the
+    setting's, its default the default pipeline's (a choice by its name); ``unset``: what 0 or
+    "" means (the core's None: the field left to what else decides it), which is then the
+    default; ``name`` where the node calls it otherwise than the field."""
+    if unset:
+        default = described.kind()
+    elif described is MOTION:
+        default = DEFAULT_MOTION
+    else:
+        path, _ = setting_paths()[described.name]
+        default = described.name_of(getattr(functools.reduce(getattr, path, _DEFAULTS), described.name))
+    text = described.described
+    if unset:
+        text += f" {'Empty' if described.kind is str else '0'}: {unset}."
+    bounds = None
+    if described.bounds is not None:
+        bounds = (min(described.bounds[0], 0) if unset else described.bounds[0], described.bounds[1])
+    return ParamSpec(name or described.name, default, text, bounds, described.names, read_only, described, unset)
+
+
+def _core(field: str, **how: object) -> ParamSpec:
+    """The parameter of a stage config's field (``deepsync.pipeline.setting_paths``)."""
+    return from_setting(setting_paths()[field][1], **how)
+
+
 # --- the specs -----------------------------------------------------------------------------
 
-_STACK = StackConfig()
-_SEARCH = SearchConfig()
-_SYNC = SyncConfig()
-_TIMING = TimingConfig()
-_FUSION = FusionConfig()
-_TRACKER = TrackerConfig()
-_SNAPSHOT = SnapshotConfig()
-
-MOTION = ParamSpec("motion", DEFAULT_MOTION, "How the receiver moves: it sets the stacks (unless n_frames and "
-                   "hop_frames are given) and the tracker's motion model. " + "; ".join(
-                       f"{m.name}: {m.summary} ({m.n_frames}-frame stacks every {m.hop_frames})"
-                       for m in MOTION_MODELS.values()) + ".", choices=tuple(MOTION_MODELS))
+MOTION_PARAM = from_setting(MOTION)
 
 SOURCE = (
     ParamSpec("source", "", "Recording to publish: a rosbag2 bag (directory or .mcap), a SigMF recording, a raw "
@@ -134,65 +173,36 @@ TOWERS = ParamSpec("towers", "", "Tower database YAML; empty: blind search over 
 FRONTEND = ParamSpec("frontend", "", "Receiver chain the stream went through, for the templates: a bag "
                      "(its recorded front end), a YAML of FrontendConfig fields, or empty: the default chain.")
 SYNC = (
-    ParamSpec("n_frames", 0, "LTE frames (10 ms) stacked per search; 0: the motion model's. Longer stacks hear "
-              "weaker sites (3 dB per doubling); the timing stage needs 2 to measure the noise.", range=(0, 1000)),
-    ParamSpec("hop_frames", 0, "Frames from one stack's start to the next; 0: the motion model's, or with n_frames "
-              "given, n_frames (back to back). Fewer gives sliding stacks: n_frames 100, hop_frames 20 hears as 100 "
-              "frames do and answers at 5 Hz.", range=(0, 1000)),
-    ParamSpec("clock_ppm", _STACK.clock_ppm, "Initial receiver clock error, compensated [ppm].",
-              range=FRONTEND_RANGES["clock_offset_ppm"][:2]),
-    ParamSpec("track_clock", _STACK.track_clock, "Follow the receiver clock drift measured on each stack."),
-    ParamSpec("confirm_stacks", _SYNC.confirm_stacks, "Stacks in a row a cell must be found in, where its code "
-              "should be, before it is reported.", range=(1, 100)),
-    ParamSpec("search_every", _SYNC.search_every, "Stacks per full search for new cells; between, the cells "
-              "found are only tracked where their codes should be (a few templates instead of dozens). 1 (with "
-              "max_search_interval_s 0): every stack.", range=(1, 1000)),
-    ParamSpec("max_search_interval_s", _SYNC.max_search_interval_s, "While full searches find no new cell, the gap "
-              "between them doubles up to this much stream [s]; one that finds a cell brings it back to "
-              "search_every. 0: every search_every stacks.", range=(0.0, 3600.0)),
-    ParamSpec("hold_stacks", _SYNC.hold_stacks, "Stacks a confirmed cell is still looked for after a stack it "
-              "was missed in (a fade).", range=(0, 100)),
-    ParamSpec("report_z", _SYNC.report_z, "A confirmed cell found below this many sigmas is kept tracked but not "
-              "reported: below about 5 the timing breaks down (arrivals a sample or more off).", range=(0.0, 100.0)),
-    ParamSpec("false_alarm_rate", _SEARCH.false_alarm_rate, "Chance of a false timing peak anywhere in one stack.",
-              range=(0.0, 0.5)),
-    ParamSpec("max_cells", _SEARCH.max_cells, "Most cells searched for per stack.", range=(1, 64)),
-    ParamSpec("full_code_timing", _SEARCH.full_code_timing, "With a tower database, time known cells by their "
-              "whole codes (about +9 dB, slower)."),
-    ParamSpec("crs_cancel_z", _SEARCH.crs_cancel_z, "A cell found this many sigmas out also has its CRS cancelled "
-              "before weaker cells are sought: over long stacks a strong cell's CRS passes for other cells' codes. "
-              "0: never.", range=(0.0, 1000.0)),
-    ParamSpec("hold_by_frame", _SEARCH.hold_by_frame, "Hold a confirmed cell of known bandwidth whose codes a "
-              "stack misses if its whole known frame (codes and CRS) is there."),
-    ParamSpec("learn_bandwidths", _SYNC.learn_bandwidths, "Learn the bandwidth of confirmed cells the tower "
-              "database gives none from their stacks."),
+    _core("n_frames", unset="the motion model's"),
+    _core("hop_frames", unset="the motion model's, or with n_frames given, n_frames (back to back)"),
+    _core("clock_ppm"),
+    _core("track_clock"),
+    _core("confirm_stacks"),
+    _core("search_every"),
+    _core("max_search_interval_s"),
+    _core("hold_stacks"),
+    _core("report_z"),
+    _core("false_alarm_rate"),
+    _core("max_cells"),
+    _core("full_code_timing"),
+    _core("crs_cancel_z"),
+    _core("hold_by_frame"),
+    _core("learn_bandwidths"),
 )
 TIMING = (
-    ParamSpec("estimator", _TIMING.estimator.name, "Sub-sample timing estimator.",
-              choices=Estimator.names(), read_only=False),
-    ParamSpec("weak_std_samples", _TIMING.weak_std_samples, "Flag an arrival whose 1-sigma exceeds this "
-              "[samples] (1 sample = 156 m at 1.92 MS/s).", range=(0.0, 1e3), read_only=False),
-    ParamSpec("checkpoint", "", "Timing-network checkpoint for estimator network; empty: the one shipped with "
-              "deepsync.", read_only=False),
+    _core("estimator", read_only=False),
+    _core("weak_std_samples", read_only=False),
+    _core("checkpoint", unset="the one shipped with deepsync", read_only=False),
 )
 FUSION = (
-    ParamSpec("tracking", _FUSION.track, "Run the tracker besides the snapshot solver; the published fix is the "
-              "tracker's when it has one."),
-    ParamSpec("max_track_std_m", _TRACKER.max_std_m, "Horizontal 1-sigma (DRMS) beyond which the track is "
-              "reported lost and no pose is published for it [m].", range=(1.0, 1e6)),
-    ParamSpec("bias_decorrelation_m", _TRACKER.bias_decorrelation_m, "Path over which a site's NLOS range bias "
-              "changes (fades to 1/e) [m]: 38.901 UMa's delay-spread correlation distance is 40 m NLOS, UMi's "
-              "10 m.", range=(1.0, 1e6)),
-    ParamSpec("gnss_std_m", _FUSION.gnss_std_m, "Horizontal 1-sigma of a GNSS fix that states no covariance "
-              "[m].", range=(0.01, 1e4)),
-    ParamSpec("gnss_min_std_m", _FUSION.gnss_min_std_m, "No GNSS fix is taken as better than this per axis [m] "
-              "(urban multipath a receiver's own covariance does not see).", range=(0.01, 1e4)),
-    ParamSpec("multipath_std_m", _FUSION.multipath_std_m, "Range bias multipath and NLOS add to a site, beyond "
-              "the timing sigma [m].", range=(0.0, 1e4)),
-    ParamSpec("min_std_m", _FUSION.min_std_m, "Floor of each arrival's 1-sigma: the scatter multipath adds "
-              "from stack to stack on the move [m].", range=(0.0, 1e4)),
-    ParamSpec("receiver_height_m", _SNAPSHOT.receiver_height_m, "Antenna height above the map origin's ground "
-              "in a 2-D fix [m].", range=(-500.0, 1e4)),
+    _core("track", name="tracking"),
+    _core("max_std_m", name="max_track_std_m"),
+    _core("bias_decorrelation_m"),
+    _core("gnss_std_m"),
+    _core("gnss_min_std_m"),
+    _core("multipath_std_m"),
+    _core("min_std_m"),
+    _core("receiver_height_m"),
 )
 AIDING = (
     ParamSpec("use_gnss", False, "Take GNSS fixes (sensor_msgs/NavSatFix on gnss/fix) as anchors: each makes the "
@@ -211,10 +221,6 @@ AIDING = (
     ParamSpec("learned_save_period_s", 300.0, "Seconds between writes of learned_towers.", range=(1.0, 86400.0)),
 )
 """What the fusion nodes take besides the arrivals, and where they write what they learn."""
-STACK_OVERLAP = ParamSpec("stack_overlap", 0.0, "Stacks each ADC frame is in: cell_sync's n_frames / hop_frames "
-                          "(sliding stacks share frames, so their timing noise repeats); the tracker counts each "
-                          "arrival's timing variance that many times. 0: the motion model's stacks' "
-                          "(deepsync_pipeline derives it).", range=(0.0, 1000.0))
 INITIAL_POSE_MIN_STD = ParamSpec("initial_pose_min_std_m", 10.0, "Least 1-sigma an initial pose on /initialpose "
                                  "is taken with [m]: RViz's \"2D Pose Estimate\" claims 0.5 m, more than a click on "
                                  "a city map knows. 0: as the pose's covariance says.", range=(0.0, 1e5))
@@ -234,13 +240,13 @@ FUSION_TOWERS = ParamSpec("towers", "", "Tower database YAML placing the sites (
                           "offsets). Required.")
 
 ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME, WAIT_FOR_SUBSCRIBERS)
-CELL_SYNC = (TOWERS, FRONTEND, MOTION, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the "
+CELL_SYNC = (TOWERS, FRONTEND, MOTION_PARAM, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the "
                                                         "published windows (the stream's frame)."),
              WAIT_FOR_SUBSCRIBERS)
 CELL_TIMING = (FRONTEND, *TIMING, WAIT_FOR_SUBSCRIBERS)
-TDOA_FUSION = (FUSION_TOWERS, MOTION, *FUSION, STACK_OVERLAP, *AIDING, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES,
+TDOA_FUSION = (FUSION_TOWERS, MOTION_PARAM, *FUSION, *AIDING, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES,
                PUBLISH_NO_FIX, WAIT_FOR_SUBSCRIBERS)
-DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, MOTION, *SYNC, *TIMING, *FUSION, *AIDING, INITIAL_POSE_MIN_STD,
+DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, MOTION_PARAM, *SYNC, *TIMING, *FUSION, *AIDING, INITIAL_POSE_MIN_STD,
                      *OUTPUT_FRAMES, PUBLISH_NO_FIX, WAIT_FOR_SUBSCRIBERS)
 
 NODES: dict[str, tuple[ParamSpec, ...]] = {
@@ -282,67 +288,43 @@ def _config(build: Callable[..., T], specs: tuple[ParamSpec, ...], values: Mappi
         raise ParameterError(f"{node}: {error}") from None
 
 
-def _stacking(motion: str, n_frames: int, hop_frames: int) -> tuple[int, int]:
-    """Frames per stack and per hop: 0 and 0, the motion model's; n_frames alone, back to back."""
-    if n_frames == 1:
-        raise ValueError("n_frames 1: the timing stage measures the noise from how frames differ, so a stack needs "
-                         "at least 2 (0: the motion model's)")
-    model = motion_model(motion)
-    frames = n_frames or model.n_frames
-    return frames, hop_frames or (frames if n_frames else model.hop_frames)
+def _pipeline(specs: tuple[ParamSpec, ...]) -> Callable[..., PipelineConfig]:
+    """What builds the pipeline config from the values of ``specs`` (the others at the core's
+    defaults): each setting's value by its field's name; 0 or "" of one that may be unset, None."""
+    made = tuple(spec for spec in specs if spec.setting is not None)
+
+    def build(**values: ParamValue) -> PipelineConfig:
+        chosen = {spec.setting.name: None if spec.is_unset(values[spec.name]) else values[spec.name] for spec in made}
+        return PipelineConfig().with_choices(**chosen)
+    return build
 
 
-def _sync(motion: str, n_frames: int, hop_frames: int, clock_ppm: float, track_clock: bool, confirm_stacks: int,
-          search_every: int, max_search_interval_s: float, hold_stacks: int, report_z: float,
-          false_alarm_rate: float, max_cells: int, full_code_timing: bool, crs_cancel_z: float, hold_by_frame: bool,
-          learn_bandwidths: bool) -> SyncConfig:
-    frames, hop = _stacking(motion, n_frames, hop_frames)
-    return SyncConfig(
-        stack=StackConfig(n_frames=frames, hop_frames=hop, clock_ppm=clock_ppm, track_clock=track_clock),
-        search=SearchConfig(false_alarm_rate=false_alarm_rate, max_cells=max_cells, full_code_timing=full_code_timing,
-                            crs_cancel_z=crs_cancel_z, hold_by_frame=hold_by_frame),
-        confirm_stacks=confirm_stacks, search_every=search_every, max_search_interval_s=max_search_interval_s,
-        hold_stacks=hold_stacks, report_z=report_z, learn_bandwidths=learn_bandwidths)
-
-
-def _timing(estimator: str, weak_std_samples: float, checkpoint: str) -> TimingConfig:
-    return TimingConfig(estimator=Estimator.named(estimator), weak_std_samples=weak_std_samples,
-                        checkpoint=checkpoint or None)
-
-
-def _fusion(motion: str, tracking: bool, max_track_std_m: float, bias_decorrelation_m: float, gnss_std_m: float,
-            gnss_min_std_m: float, multipath_std_m: float, min_std_m: float, receiver_height_m: float,
-            stack_overlap: float = 0.0) -> FusionConfig:
-    model = motion_model(motion)
-    tracker = TrackerConfig(stack_overlap=stack_overlap or model.n_frames / model.hop_frames,
-                            max_std_m=max_track_std_m, bias_decorrelation_m=bias_decorrelation_m)
-    fusion = FusionConfig(snapshot=SnapshotConfig(receiver_height_m=receiver_height_m), track=tracking,
-                          min_std_m=min_std_m, multipath_std_m=multipath_std_m, gnss_std_m=gnss_std_m,
-                          gnss_min_std_m=gnss_min_std_m, tracker=tracker)
-    return moving(model, SyncConfig(), fusion)[1]
+def _node_config(specs: tuple[ParamSpec, ...], values: Mapping[str, ParamValue], node: str) -> PipelineConfig:
+    return _config(_pipeline(specs), specs, values, node)
 
 
 def sync_config(values: Mapping[str, ParamValue], node: str = "cell_sync") -> SyncConfig:
-    return _config(_sync, (MOTION, *SYNC), values, node)
+    """The sync stage's config; checked as a whole chain's (a stack the timing stage can use)."""
+    return _node_config((MOTION_PARAM, *SYNC), values, node).sync
 
 
 def timing_config(values: Mapping[str, ParamValue], node: str = "cell_timing") -> TimingConfig:
-    return _config(_timing, TIMING, values, node)
+    return _node_config(TIMING, values, node).timing
+
+
+def fusing_config(values: Mapping[str, ParamValue], node: str = "tdoa_fusion") -> PipelineConfig:
+    """The chain's config from the fusion parameters ``node`` declares, with the motion model's
+    stacks: the tracker counts their overlap until the arrivals say which stacks they came from
+    (``CellTimingArray``: ``Pipeline.fuse_arrivals``)."""
+    return _node_config((MOTION_PARAM, *FUSION), values, node)
 
 
 def fusion_config(values: Mapping[str, ParamValue], node: str = "tdoa_fusion") -> FusionConfig:
-    """From the fusion parameters ``node`` declares: the one-process pipeline declares no
-    stack overlap, which its stacks give (``PipelineConfig``)."""
-    specs = tuple(spec for spec in NODES[node] if spec in (MOTION, *FUSION, STACK_OVERLAP))
-    return _config(_fusion, specs, values, node)
+    return fusing_config(values, node).fusion
 
 
 def pipeline_config(values: Mapping[str, ParamValue], node: str = "deepsync_pipeline") -> PipelineConfig:
-    sync, timing, fusion = sync_config(values, node), timing_config(values, node), fusion_config(values, node)
-    try:
-        return PipelineConfig(sync=sync, timing=timing, fusion=fusion)
-    except ValueError as error:
-        raise ParameterError(f"{node}: {error}") from None
+    return _node_config((MOTION_PARAM, *SYNC, *TIMING, *FUSION), values, node)
 
 
 def playback_config(values: Mapping[str, ParamValue], node: str = "envelope_adc") -> PlaybackConfig:

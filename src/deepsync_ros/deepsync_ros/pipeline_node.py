@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 
 from deepsync_msgs.msg import CellTimingArray
 
@@ -70,13 +71,14 @@ class PipelineNode(DeepSyncNode):
 
     def prepare(self, values: Mapping[str, ParamValue]) -> Callable[[], None]:
         playback = params.playback_config(values, self.NAME)
+        config = replace(self.pipeline.config, timing=params.timing_config(values, self.NAME))
         try:
-            timing = self.pipeline.timing.with_config(params.timing_config(values, self.NAME))
+            switch = config.reconfiguration(self.pipeline)
         except ValueError as error:  # a network that cannot be loaded: the running stage stays
             raise ParameterError(f"{self.NAME}.estimator: {error}") from None
 
         def apply() -> None:
-            self.pipeline.timing = timing
+            switch()
             self.playback.reconfigure(playback)
         return apply
 

@@ -11,7 +11,9 @@ why (too few sites, unknown PCIs, geometry, a lost track, ...), and list every c
 ``/initialpose`` (RViz's "2D Pose Estimate") restarts the tracker from there: one heard site is
 then enough. With ``use_gnss`` it takes ``gnss/fix`` (NavSatFix) as anchors, with
 ``use_odometry`` ``odometry`` (Odometry) as velocities (``deepsync_ros.aiding``); with
-``learned_towers`` it writes what it learned of the sites to that file.
+``learned_towers`` it writes what it learned of the sites to that file. The tracker counts the
+overlap of the stacks each ``CellTimingArray`` says it came from (``stack_frames`` /
+``stack_hop_frames``: cell_sync's), the motion model's where a message does not say.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from collections.abc import Mapping
 from deepsync_msgs.msg import CellTimingArray
 
 from deepsync.bag.topics import CELL_TIMING_TOPIC, relative_name
-from deepsync.fusion.stage import FusionStage
+from deepsync.pipeline import Pipeline
 
 from . import params
 from .conversions import cell_timing_array_from_msg
@@ -45,7 +47,9 @@ class TdoaFusionNode(DeepSyncNode):
 
     def setup(self, values: Mapping[str, ParamValue]) -> None:
         towers = params.towers(values, self.NAME, required=True)
-        self.stage = FusionStage(towers, params.fusion_config(values, self.NAME))
+        # fusion alone: it follows the stacks the arrivals say cell_sync used (Pipeline.fuse_arrivals)
+        self.pipeline = Pipeline(None, params.fusing_config(values, self.NAME), towers)
+        self.stage = self.pipeline.fusion
         self.health = StageHealth()
         self.cells = CellTable()
         self.fixes = FixPublisher(self, values)
@@ -68,7 +72,7 @@ class TdoaFusionNode(DeepSyncNode):
             self.reject(self.health, error)
             return
         started = time.monotonic()
-        result = self.stage.process(arrivals)
+        result = self.pipeline.fuse_arrivals(arrivals)
         stage_s = time.monotonic() - started
         fix = result.published
         try:

@@ -27,7 +27,7 @@ ODOMETRY_INPUT = "odometry/wheel"
 IMU_INPUT = "imu/data"
 FILTERS = {"ekf_filter_node_odom": "odometry/local", "ekf_filter_node_map": "odometry/global"}
 # DeepSync's fixes as the map filter takes them: at most one every 5 s (their multipath bias
-# repeats from fix to fix over tens of metres; benchmarks/ekf_example_nees.py measures the rule)
+# repeats from fix to fix over tens of metres; benchmarks/experiments/ekf_example_nees.py measures the rule)
 POSE_TOPIC = "/deepsync/pose"
 EKF_POSE_TOPIC = "/deepsync/pose_ekf"
 EKF_POSES_PER_S = 0.2

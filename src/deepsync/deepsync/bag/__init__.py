@@ -24,6 +24,7 @@ from .convert import (
     sync_window_array_to_msg,
 )
 from .errors import BagError, BagExistsError, MsgDefsNotFoundError
+from .info import BagInfo, bag_info
 from .msgdefs import MSG_NAMES, find_msg_dir, load_typestore, msgtype, typestore
 from .mcapfile import CrcStatus
 from .reader import BagInconsistency, BagMessage, BagReader, SalvageReader, read_envelope, read_messages
@@ -62,12 +63,14 @@ __all__ = [
     "BagError",
     "BagExistsError",
     "BagInconsistency",
+    "BagInfo",
     "BagMessage",
     "BagReader",
     "BagWriter",
     "CrcStatus",
     "MsgDefsNotFoundError",
     "SalvageReader",
+    "bag_info",
     "cell_timing_array_from_msg",
     "cell_timing_array_to_msg",
     "envelope_from_msg",

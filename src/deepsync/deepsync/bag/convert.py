@@ -161,7 +161,7 @@ def cell_timing_array_to_msg(arrivals: StackArrivals, *, frame_id: str = ENVELOP
     ]
     return types.resolve(CELL_TIMING_ARRAY)(
         header=header, first_sample_index=int(arrivals.first_sample_index), sample_rate=float(arrivals.sample_rate),
-        clock_drift_ppm=_optional_drift(arrivals.clock_drift_ppm), cells=cells)
+        clock_drift_ppm=_optional_drift(arrivals.clock_drift_ppm), cells=cells, **_stack_fields(arrivals.stack))
 
 
 def cell_timing_array_from_msg(msg: Any) -> StackArrivals:
@@ -180,7 +180,7 @@ def cell_timing_array_from_msg(msg: Any) -> StackArrivals:
         for c in msg.cells
     )
     return StackArrivals(stamp_to_ns(msg.header.stamp), int(msg.first_sample_index), float(msg.sample_rate), cells,
-                         _drift_from_msg(msg.clock_drift_ppm))
+                         _drift_from_msg(msg.clock_drift_ppm), _stack_from_msg(msg))
 
 
 def sync_window_array_to_msg(stack: StackWindows, *, frame_id: str = ENVELOPE_FRAME_ID, store: Types = None) -> Any:
@@ -208,7 +208,7 @@ def sync_window_array_to_msg(stack: StackWindows, *, frame_id: str = ENVELOPE_FR
     return types.resolve(SYNC_WINDOW_ARRAY)(
         header=make_header(stack.stamp_ns, frame_id, types), first_sample_index=int(stack.first_sample_index),
         sample_rate=float(stack.sample_rate), clock_drift_ppm=_optional_drift(stack.clock_drift_ppm), cells=cells,
-        frame=types.sequence(frame), frame_delay=float(stack.frame_delay))
+        frame=types.sequence(frame), frame_delay=float(stack.frame_delay), **_stack_fields(stack.stack))
 
 
 def sync_window_array_from_msg(msg: Any) -> StackWindows:
@@ -237,7 +237,24 @@ def sync_window_array_from_msg(msg: Any) -> StackWindows:
     frame = np.array(msg.frame, dtype=np.float32)
     return StackWindows(stamp_to_ns(msg.header.stamp), int(msg.first_sample_index), float(msg.sample_rate),
                         tuple(windows), _drift_from_msg(msg.clock_drift_ppm), frame if frame.size else None,
-                        float(msg.frame_delay))
+                        float(msg.frame_delay), _stack_from_msg(msg))
+
+
+def _stack_fields(stack: tuple[int, int] | None) -> dict[str, int]:
+    """A stack's (n_frames, hop_frames) as a message's ``stack_frames``, ``stack_hop_frames`` (0: not said)."""
+    frames, hop = stack or (0, 0)
+    return {"stack_frames": int(frames), "stack_hop_frames": int(hop)}
+
+
+def _stack_from_msg(msg: Any) -> tuple[int, int] | None:
+    """(n_frames, hop_frames) of a message's stacks; None where it does not say (0: a ground truth)."""
+    frames, hop = int(msg.stack_frames), int(msg.stack_hop_frames)
+    if frames == hop == 0:
+        return None
+    if not 1 <= hop <= frames:
+        raise ValueError(f"stack_frames {frames} and stack_hop_frames {hop}: a stack of n frames starts 1 to n "
+                         "frames after the last (0 and 0: not said)")
+    return frames, hop
 
 
 def _pose(types: MessageTypes, x: float, y: float, z: float) -> Any:

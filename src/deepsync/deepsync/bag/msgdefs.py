@@ -3,12 +3,15 @@
 The ``.msg`` files of ``src/deepsync_msgs/msg`` are the single source of truth: the core reads
 the very text that ``rosidl_generate_interfaces`` compiles, so a bag written here decodes in
 ``ros2 bag play`` / ``ros2 topic echo`` with the built package, and nothing is duplicated in Python.
+They ship inside this package too (``bag/msg``, a link to them in the checkout), so an installed
+package reads and writes bags without a checkout or a ROS workspace.
 """
 
 from __future__ import annotations
 
 import functools
 import os
+from importlib.resources import files
 from pathlib import Path
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -36,10 +39,10 @@ def _has_all(directory: Path) -> bool:
     return all((directory / f"{name}.msg").is_file() for name in MSG_NAMES)
 
 
-def _source_tree_candidates() -> list[Path]:
-    """``src/deepsync_msgs/msg`` next to this checkout (editable install / running from source)."""
-    here = Path(__file__).resolve()
-    return [parent / "src" / PACKAGE / "msg" for parent in here.parents]
+def _shipped() -> list[Path]:
+    """The definitions shipped inside this package, where it is a folder of files."""
+    shipped = files(__package__) / "msg"
+    return [shipped] if isinstance(shipped, Path) else []
 
 
 def find_msg_dir() -> Path:
@@ -47,7 +50,7 @@ def find_msg_dir() -> Path:
 
     Search order: ``$DEEPSYNC_MSGS_DIR`` (must be right if set: a wrong explicit setting is an
     error, not a silent fallback), ``<prefix>/share/deepsync_msgs/msg`` for each prefix of
-    ``$AMENT_PREFIX_PATH`` (a sourced ROS workspace), then the source tree of this checkout.
+    ``$AMENT_PREFIX_PATH`` (a sourced ROS workspace), then the copy shipped inside this package.
     """
     explicit = os.environ.get(ENV_VAR)
     if explicit:
@@ -64,7 +67,7 @@ def find_msg_dir() -> Path:
         for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)
         if prefix
     ]
-    candidates += _source_tree_candidates()
+    candidates += _shipped()
     for directory in candidates:
         if _has_all(directory):
             return directory
@@ -75,13 +78,15 @@ def find_msg_dir() -> Path:
     )
 
 
-def load_typestore(msg_dir: Path) -> Typestore:
-    """ROS 2 Jazzy typestore plus our types parsed from the ``.msg`` text in ``msg_dir``."""
+def load_typestore(msg_dir: Path, older: dict[str, str] | None = None) -> Typestore:
+    """ROS 2 Jazzy typestore plus our types parsed from the ``.msg`` text in ``msg_dir``;
+    ``older``: message type -> the definition to take for it instead (a bag's, recorded before
+    the type grew)."""
     store = get_typestore(Stores.ROS2_JAZZY)
     types: dict = {}
     for name in MSG_NAMES:
         text = (msg_dir / f"{name}.msg").read_text(encoding="utf-8")
-        types.update(get_types_from_msg(text, msgtype(name)))
+        types.update(get_types_from_msg((older or {}).get(msgtype(name), text), msgtype(name)))
     store.register(types)
     return store
 

@@ -46,7 +46,7 @@ from . import mcapfile
 from .convert import ENVELOPE_SAMPLES, envelope_from_msg
 from .errors import BagError
 from .mcapfile import CrcStatus
-from .msgdefs import PACKAGE, typestore
+from .msgdefs import PACKAGE, find_msg_dir, load_typestore, typestore
 from .topics import ENVELOPE_TOPIC
 from .writer import PROVENANCE_KEY
 
@@ -192,6 +192,7 @@ class BagReader:
     def __init__(self, bag_dir: str | Path, *, store: Typestore | None = None) -> None:
         self.path = Path(bag_dir)
         self._store = store
+        self._older: dict[str, OlderDefinition] = {}  # our types the bag holds in an older definition
         self._reader: Reader | None = None
         self._storages: list[Any] = []
         self._connections: list[Connection] = []
@@ -478,16 +479,16 @@ class BagReader:
                 raise self._fail(f"{conn.topic}: unknown type {conn.msgtype}")
             if conn.digest and conn.digest == store.hash_rihs01(conn.msgtype):
                 continue
-            if self._embedded_fields(conn) != store.fielddefs[conn.msgtype]:
+            text = getattr(conn.msgdef, "data", "") or ""
+            if _embedded_fields(text, conn.msgtype) == store.fielddefs[conn.msgtype]:
+                continue
+            older = OlderDefinition.of(store, conn.msgtype, text)
+            if older is None:
                 raise self._fail(
                     f"{conn.topic}: {conn.msgtype} in the bag differs from the current "
                     "definition; regenerate the bag or check out matching msgs"
                 )
-
-    @staticmethod
-    def _embedded_fields(conn: Any) -> Any:
-        """Field layout of ``conn``'s type as recorded in the bag, or None if unreadable."""
-        return _embedded_fields(getattr(conn.msgdef, "data", "") or "", conn.msgtype)
+            self._older[conn.msgtype] = older
 
     def close(self) -> None:
         """Close the bag (idempotent)."""
@@ -646,7 +647,7 @@ class BagReader:
                         raw = _decompress_message(raw)
                 except _READ_ERRORS as error:
                     raise self._read_failure(storage, error) from error
-                problem = _undecodable(store, raw, conn.msgtype, conn.topic, log_time_ns)
+                problem = _undecodable(store, raw, conn.msgtype, conn.topic, log_time_ns, self._older)
                 if isinstance(problem, str):
                     if skipped is None:
                         raise self._fail(problem)
@@ -655,17 +656,50 @@ class BagReader:
                 yield BagMessage(conn.topic, conn.msgtype, log_time_ns, problem)
 
 
-def _undecodable(store: Typestore, raw: bytes, msgtype: str, topic: str, log_time_ns: int) -> Any:
-    """The message ``raw`` holds, or why it cannot be had (a string): more bytes than
-    ``MAX_MESSAGE_BYTES``, or bytes that do not decode as ``msgtype``."""
+def _undecodable(store: Typestore, raw: bytes, msgtype: str, topic: str, log_time_ns: int,
+                 older: dict[str, OlderDefinition]) -> Any:
+    """The message ``raw`` holds (in the current definition: see :class:`OlderDefinition`), or
+    why it cannot be had (a string): more bytes than ``MAX_MESSAGE_BYTES``, or bytes that do
+    not decode as ``msgtype``."""
     where = f"the {msgtype} message on {topic} at {log_time_ns} ns"
     if len(raw) > mcapfile.MAX_MESSAGE_BYTES:
         return (f"{where} takes {len(raw):,} bytes, beyond the {mcapfile.MAX_MESSAGE_BYTES / 2**20:g} MiB a message "
                 "may take; not decoded")
     try:
+        if msgtype in older:
+            return older[msgtype].upgraded(raw)
         return store.deserialize_cdr(raw, msgtype)
     except _READ_ERRORS as error:
         return f"cannot decode {where}: {error}"
+
+
+@dataclass(frozen=True)
+class OlderDefinition:
+    """One of our types as a bag recorded it before numbers were appended to it (every bag's
+    ground truth holds a ``CellTimingArray``): its messages decode with the bag's definition
+    and come out in the current one, the appended numbers 0, which every appended field
+    documents as "not said". Any other difference is refused (:meth:`of` gives None)."""
+
+    decoder: Typestore  # the current types, ``msgtype`` as the bag has it
+    current: type
+    msgtype: str
+
+    @classmethod
+    def of(cls, store: Typestore, msgtype: str, text: str) -> OlderDefinition | None:
+        embedded = _embedded_fields(text, msgtype)
+        if embedded is None:
+            return None
+        (old_consts, old_fields), (consts, fields) = embedded, store.fielddefs[msgtype]
+        appended = fields[len(old_fields):]
+        if old_consts != consts or fields[:len(old_fields)] != old_fields or not appended or any(
+                kind[0].name != "BASE" or kind[1][0] in ("string", "bool") for _, kind in appended):
+            return None
+        decoder = load_typestore(find_msg_dir(), {msgtype: text.split("=" * 80)[0]})
+        return cls(decoder, store.types[msgtype], msgtype)
+
+    def upgraded(self, raw: bytes) -> Any:
+        message = self.decoder.deserialize_cdr(raw, self.msgtype)
+        return self.current(**{name: getattr(message, name, 0) for name in self.current.__dataclass_fields__})
 
 
 def _decompress_message(raw: bytes) -> bytes:
@@ -700,6 +734,7 @@ class SalvageReader:
     def __init__(self, bag_dir: str | Path, *, store: Typestore | None = None) -> None:
         self.path = Path(bag_dir)
         self._store = store
+        self._older: dict[str, OlderDefinition] = {}  # our types the bag holds in an older definition
         self.file = self._locate()
         self.custom_data: dict[str, str] = {}
         meta = self.path / "metadata.yaml"
@@ -782,9 +817,14 @@ class SalvageReader:
                 continue
             if msgtype not in store.types:
                 raise BagError(f"{self.file}: {topic}: unknown type {msgtype}")
-            if _embedded_fields(self._definitions.get(msgtype, ""), msgtype) != store.fielddefs[msgtype]:
+            text = self._definitions.get(msgtype, "")
+            if _embedded_fields(text, msgtype) == store.fielddefs[msgtype]:
+                continue
+            older = OlderDefinition.of(store, msgtype, text)
+            if older is None:
                 raise BagError(f"{self.file}: {topic}: {msgtype} in the bag differs from the current definition; "
                                "regenerate the bag or check out matching msgs")
+            self._older[msgtype] = older
 
     def messages(self, topics: Iterable[str] | None = None, *,
                  skipped: Callable[[str], None] | None = None) -> Iterator[BagMessage]:
@@ -801,7 +841,7 @@ class SalvageReader:
                 topic, msgtype = channels[record.channel_id]
                 if wanted is not None and topic not in wanted:
                     continue
-                message = _undecodable(store, record.data, msgtype, topic, record.log_time)
+                message = _undecodable(store, record.data, msgtype, topic, record.log_time, self._older)
                 if isinstance(message, str):
                     if skipped is None:
                         self.damage = f"{self.file}: {message}"

@@ -1,4 +1,5 @@
-"""Cell search and timing against ground truth: one record per stack, one summary per cell.
+"""Cell search and timing against ground truth: one record per stack, one summary per cell
+(``CellSearch``: what ``deepsync detect`` runs and prints).
 
 The truth of a simulated recording gives each cell's sync-code arrivals in stream samples, one
 per frame; an estimate is compared with the nearest true arrival in time (the arrivals move
@@ -9,12 +10,16 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from deepsync.pipeline import StackResult
+from deepsync.pipeline import Pipeline, PipelineConfig, StackResult
+from deepsync.sources import BagSource, LiveSource, Source
 from deepsync.sync.search import Candidate
+from deepsync.towers import TowerDatabase
+from deepsync.types import FRAME_SECONDS, Health
 
 
 def timing_error(toa: float, truth: np.ndarray) -> float:
@@ -84,3 +89,53 @@ def summarize(stacks: list[dict], truth: Mapping[int, np.ndarray]) -> dict:
             "rms_truth_error": math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else None,
         }
     return {"stacks": len(stacks), "cells": cells, "missed": sorted(set(truth) - set(by_pci))}
+
+
+@dataclass(frozen=True)
+class SearchedStack:
+    """A stack the search went through: the pipeline's result and its ``stack_record``."""
+
+    result: StackResult
+    record: dict
+
+    @property
+    def quiet(self) -> bool:
+        """Nothing found in it, not even tentatively, and no event before it."""
+        return not (self.record["cells"] or self.record["events"] or self.result.sync.tentative)
+
+
+class CellSearch:
+    """The pipeline (cell search and timing; no fusion) over a source, each stack scored against
+    the truth a bag holds: ``run`` yields the stacks as they come, and a live source's events
+    between them; ``summary`` is per cell, over the stacks run so far."""
+
+    def __init__(self, source: Source, towers: TowerDatabase | None, n_frames: int) -> None:
+        self.source = source
+        self.towers = towers
+        self.config = PipelineConfig().with_choices(n_frames)
+        self.truth: dict[int, np.ndarray] = source.truth_arrivals() if isinstance(source, BagSource) else {}
+        self.stacks: list[dict] = []
+
+    def run(self) -> Iterator[SearchedStack | Health]:
+        """Every stack, and a live source's events as they arrive. Raises ValueError, once the
+        source is done, when it gave no stack at all, saying why."""
+        pipeline = Pipeline(self.source.frontend, self.config, self.towers)
+        live = self.source if isinstance(self.source, LiveSource) else None
+        samples = 0
+        for chunk in self.source.chunks():
+            samples += len(chunk.samples)
+            yield from live.take_events() if live else ()
+            for result in pipeline.process(chunk):
+                self.stacks.append(stack_record(result, self.truth, self.source.frontend.adc_rate_hz))
+                yield SearchedStack(result, self.stacks[-1])
+        yield from live.take_events() if live else ()
+        if not self.stacks:
+            frames = self.config.sync.stack.n_frames
+            frame = round(self.source.frontend.adc_rate_hz * FRAME_SECONDS)
+            reason = (f"it holds {samples} samples ({samples / frame:.1f} frames), less than one {frames}-frame stack"
+                      if samples < frames * frame else "no stretch of it was clean for a whole stack (see the events)")
+            raise ValueError(f"no stack to search in {self.source.description}: {reason}")
+
+    def summary(self) -> dict:
+        """``summarize`` of the stacks run."""
+        return summarize(self.stacks, self.truth)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,11 +26,12 @@ from deepsync.bag import TRUTH_POSE_TOPIC, BagReader, position_from_pose_msg
 from deepsync.bag.convert import stamp_to_ns
 from deepsync.eval.aiding import AidingPlan
 from deepsync.eval.cell_search import timing_error
+from deepsync.eval.route_scores import CHI2_2DOF_95, METHODS, horizontal_error, nees
 from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.rssi import RssiAverager, RssiConfig, fit_path_loss, solve_rssi
-from deepsync.fusion.snapshot import chi_square_limit, position_bound
 from deepsync.fusion.bias_map import BiasMap
+from deepsync.fusion.snapshot import position_bound
 from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage, answer_counts, sites_per_stack
 from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
 from deepsync.sources import BagSource
@@ -45,9 +46,6 @@ from deepsync.types import (
     PositionPrior,
     StackArrivals,
 )
-
-CHI2_2DOF_95 = chi_square_limit(0.05, 2)  # 95 % of a 2-D Gaussian's NEES lies below this (5.99)
-
 
 @dataclass(frozen=True)
 class TruthTrack:
@@ -290,16 +288,6 @@ def add_rssi_fixes(run: RouteRun, config: RssiConfig) -> dict:
 # -- numbers ------------------------------------------------------------------------------------
 
 
-def horizontal_error(fix: Fix, truth_enu: np.ndarray) -> float:
-    return float(np.linalg.norm(np.asarray(fix.position_enu[:2]) - truth_enu[:2]))
-
-
-def nees(fix: Fix, truth_enu: np.ndarray) -> float:
-    """Normalised estimation error squared of the horizontal position (chi-square, 2 dof, if honest)."""
-    error = np.asarray(fix.position_enu[:2]) - truth_enu[:2]
-    return float(error @ np.linalg.solve(fix.covariance[:2, :2], error))
-
-
 def method_summary(answers: Sequence[Fix | NoFix | None], truths: Sequence[np.ndarray]) -> dict:
     """Fix rate, error percentiles, NEES and no-fix reasons of one method along a route."""
     paired = list(zip(answers, truths))  # an answer without its truth is not scored
@@ -325,13 +313,6 @@ def method_summary(answers: Sequence[Fix | NoFix | None], truths: Sequence[np.nd
             math.isfinite(a.gdop) for a, _ in fixes) else None,
         "no_fix_reasons": counts["no_fix_reasons"],
     }
-
-
-METHODS: dict[str, Callable[[RouteEpoch], Fix | NoFix | None]] = {
-    "snapshot": lambda epoch: epoch.snapshot,
-    "tracked": lambda epoch: epoch.tracked,
-    "rssi": lambda epoch: epoch.rssi,
-}
 
 
 def summarize_route(run: RouteRun) -> dict:

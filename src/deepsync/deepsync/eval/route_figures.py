@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -11,9 +12,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from deepsync.eval.route import CHI2_2DOF_95, METHODS, RouteRun, horizontal_error, nees  # noqa: E402
+from deepsync.eval.route_scores import CHI2_2DOF_95, METHODS, horizontal_error, nees  # noqa: E402
 from deepsync.fusion.anchors import Anchors  # noqa: E402
 from deepsync.types import Fix  # noqa: E402
+
+if TYPE_CHECKING:  # deepsync.eval.route draws its figures with this module
+    from deepsync.eval.route import RouteRun
 
 COLOURS = {"snapshot": "tab:blue", "tracked": "tab:green", "rssi": "tab:orange", "bound": "black"}
 

@@ -18,11 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from deepsync.frontend.channel import Emitter
-from deepsync.lte.numerology import BASE_FFT, SUBCARRIER_SPACING_HZ, Numerology
+from deepsync.lte.numerology import BASE_FFT, SUBCARRIER_SPACING_HZ, FftGrid, Numerology
 
 
 @dataclass(frozen=True)
-class Cluster:
+class Cluster(FftGrid):
     """Emitters squared together, on one FFT grid of ``fft_size`` bins of 15 kHz.
 
     Emitter i sits ``carrier_bins[i]`` bins from the cluster centre; ``residual_hz[i]`` is
@@ -35,15 +35,6 @@ class Cluster:
     fft_size: int
     carrier_bins: tuple[int, ...]
     residual_hz: tuple[float, ...]
-
-    @property
-    def oversampling(self) -> int:
-        """Samples per base (1.92 MHz) sample."""
-        return self.fft_size // BASE_FFT
-
-    @property
-    def sample_rate_hz(self) -> float:
-        return self.fft_size * SUBCARRIER_SPACING_HZ
 
 
 def occupied_edges(emitter: Emitter) -> tuple[float, float]:

@@ -231,7 +231,7 @@ class GroupRenderer:
                 else:
                     self._spectrum[:, bins] += content[:, subcarriers]
         symbols = scipy.fft.ifft(self._spectrum, axis=1, norm="forward", workers=1)
-        return Frame(start, self._with_prefixes(symbols)[: stop - start])
+        return Frame(start, self._with_prefixes(symbols, stop - start))
 
     @property
     def turns_per_sample(self) -> float:
@@ -243,11 +243,21 @@ class GroupRenderer:
         self._turns_per_sample = float(turns)
         self._rotation = phasor(2 * np.pi * self._turns_per_sample * np.arange(self.frame_length + 1)).astype(np.complex64)
 
-    def _with_prefixes(self, symbols: np.ndarray) -> np.ndarray:
-        """The frame's samples: each symbol after its cyclic prefix (its own tail), and one
-        sample more that continues the last symbol (for a frame that ends a sample late);
+    def _with_prefixes(self, symbols: np.ndarray, length: int) -> np.ndarray:
+        """The frame's first ``length`` samples: each symbol after its cyclic prefix (its own
+        tail), then the last symbol continued (a frame that ends late: by a sample as the
+        arrival slides, by more where the earliest path vanishes from one frame to the next, as
+        a ray-traced channel's may; the next frame then starts from its own later arrival);
         turned by the group's rotation on the way where it has one."""
         n, first, other = self.num.fft_size, self._cp_first, self._cp_other
+        if length > self.frame_length + 1:
+            head = self._with_prefixes(symbols, self.frame_length + 1)
+            beyond = np.arange(1, length - self.frame_length)
+            tail = symbols[-1, beyond % n].astype(np.complex64)
+            if self.turns_per_sample:
+                turn = phasor(2 * np.pi * self._turns_per_sample * (self.frame_length + beyond)).astype(np.complex64)
+                multiply(tail, turn, out=tail)
+            return np.concatenate([head, tail])
         out = np.empty(self.frame_length + 1, dtype=np.complex64)
         by_slot = symbols.reshape(SLOTS_PER_FRAME, SYMBOLS_PER_SLOT, n)
         slots = out[:-1].reshape(SLOTS_PER_FRAME, -1)
@@ -258,7 +268,7 @@ class GroupRenderer:
             for into, source in pieces:
                 into[...] = source
             out[-1] = symbols[-1, 0]
-            return out
+            return out[:length]
         turn = self._rotation
         turn_slots = turn[:-1].reshape(SLOTS_PER_FRAME, -1)
         turn_rest = turn_slots[:, first + n :].reshape(SLOTS_PER_FRAME, SYMBOLS_PER_SLOT - 1, other + n)
@@ -266,4 +276,4 @@ class GroupRenderer:
         for (into, source), by in zip(pieces, turns):
             multiply(source, by, out=into)
         multiply(symbols[-1, :1], turn[-1:], out=out[-1:])
-        return out
+        return out[:length]

@@ -38,6 +38,7 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from deepsync.fusion.anchors import SiteArrival, site_names, unwrap_range
+from deepsync.schema import check_settings, setting
 from deepsync.types import MAX_CELL_RANGE_M, SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
 
 HUBER_KNEE = 3.0  # sigmas: residuals beyond pull linearly, not quadratically
@@ -49,7 +50,8 @@ class SnapshotConfig:
     (up solved too, with a prior of ``height_prior_std_m`` around ``receiver_height_m``)."""
 
     dims: int = 2
-    receiver_height_m: float = 1.5
+    receiver_height_m: float = setting(1.5, help="Antenna height above the map origin's ground in a 2-D fix.",
+                                       unit="m", bounds=(-500.0, 1e4))
     height_prior_std_m: float = 10.0
     outlier_probability: float = 0.01  # residual test: chance of calling Gaussian errors inconsistent
     max_gdop: float = 30.0
@@ -57,8 +59,8 @@ class SnapshotConfig:
     def __post_init__(self) -> None:
         if self.dims not in (2, 3):
             raise ValueError(f"dims must be 2 or 3, got {self.dims!r}")
+        check_settings(self)
         checks = {
-            "receiver_height_m": -500.0 <= self.receiver_height_m <= 10_000.0,
             "height_prior_std_m": 0 < self.height_prior_std_m <= 1e4,
             "outlier_probability": 0 < self.outlier_probability < 0.5,
             "max_gdop": 1 <= self.max_gdop <= 1e4,

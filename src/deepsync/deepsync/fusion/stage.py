@@ -40,6 +40,7 @@ from deepsync.fusion.calibration import SiteCalibration, calibrated_database
 from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
 from deepsync.geo import LocalFrame
+from deepsync.schema import check_settings, setting
 from deepsync.towers import TowerDatabase
 from deepsync.types import (
     SPEED_OF_LIGHT_M_S,
@@ -73,28 +74,24 @@ class FusionConfig:
 
     snapshot: SnapshotConfig = field(default_factory=SnapshotConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
-    track: bool = True
-    min_std_m: float = 8.0
-    multipath_std_m: float = 60.0
-    gnss_std_m: float = 10.0  # a GNSS fix's horizontal 1-sigma where it states none (a phone in a street)
-    gnss_min_std_m: float = 3.0  # no fix is taken as better than this (urban multipath a receiver does not see)
-    aiding_clock_window_s: float = 60.0  # a fix or velocity further from the stacks' time is on another clock
+    track: bool = setting(True, help="Run the tracker besides the snapshot solver; the published fix is the "
+                          "tracker's when it has one.")
+    min_std_m: float = setting(8.0, help="Floor of each arrival's 1-sigma: the scatter multipath adds from stack to "
+                               "stack on the move.", unit="m", bounds=(0.0, 1e4), open_low=True)
+    multipath_std_m: float = setting(60.0, help="Range bias multipath and NLOS add to a site, beyond the timing "
+                                     "sigma.", unit="m", bounds=(0.0, 1e4))
+    gnss_std_m: float = setting(10.0, help="Horizontal 1-sigma of a GNSS fix that states no covariance (a phone in "
+                                "a street).", unit="m", bounds=(0.0, 1e4), open_low=True)
+    gnss_min_std_m: float = setting(3.0, help="No GNSS fix is taken as better than this per axis (urban multipath a "
+                                    "receiver's own covariance does not see).", unit="m", bounds=(0.0, 1e4),
+                                    open_low=True)
+    aiding_clock_window_s: float = setting(60.0, help="A fix or velocity further than this from the stacks' time is "
+                                           "on another clock.", unit="s", bounds=(0.0, 1e4), open_low=True)
 
     def __post_init__(self) -> None:
-        for name, unit in (("min_std_m", "metres"), ("gnss_std_m", "metres"), ("gnss_min_std_m", "metres"),
-                           ("aiding_clock_window_s", "seconds")):
-            value = getattr(self, name)
-            if not (_metres(value) and value > 0):
-                raise ValueError(f"{name}: {value!r} must be a positive number of {unit} (<= 1e4)")
-        if not _metres(self.multipath_std_m):
-            raise ValueError(f"multipath_std_m: {self.multipath_std_m!r} must be a non-negative number of metres "
-                             "(<= 1e4)")
+        check_settings(self)
         # one source for the dimensions and the receiver height: the tracker follows the stage's
         object.__setattr__(self, "tracker", dataclasses.replace(self.tracker, snapshot=self.snapshot))
-
-
-def _metres(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and 0 <= value <= 1e4
 
 
 @dataclass(frozen=True)
@@ -250,6 +247,14 @@ class FusionStage:
                        for name, bias in self.tracker.site_biases().items()]
         epoch_ns = frame_reference_ns(self.reference_ns + round(self.tracker.time_s * 1e9))
         return calibrated_database(self.anchors.towers, corrections, epoch_ns)
+
+    def follow_stacks(self, stack_overlap: float) -> None:
+        """Count each arrival's timing variance ``stack_overlap`` times from the next stack on:
+        the stacks the arrivals come from changed (their n_frames / hop_frames)."""
+        self.config = dataclasses.replace(self.config, tracker=dataclasses.replace(self.config.tracker,
+                                                                                  stack_overlap=stack_overlap))
+        if self.tracker is not None:
+            self.tracker.config = self.config.tracker
 
     def process(self, arrivals: StackArrivals) -> FusionResult:
         """Fix (or no fix, with the reason) for one stack's arrivals."""

@@ -159,6 +159,7 @@ from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
 from deepsync.fusion.snapshot import SnapshotConfig, chi_square_limit
 from deepsync.fusion.track_start import Start, batch_start
 from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
+from deepsync.schema import check_settings, setting
 from deepsync.types import UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason, PositionPrior
 
 MAX_CLOCK_RATE = 1e-3  # a clock 1000 ppm off is not a receiver clock but a wrong number
@@ -198,14 +199,17 @@ class TrackerConfig:
     max_clock_ppm: float = 50.0  # drift prior (1-sigma) at a start when the clock rate is unknown
     max_rejections: int = 10  # gated arrivals in a row (from >= 2 sites) that say the state is wrong
     height_correlation_s: float = 60.0  # 3-D: how long the receiver's height stays off the nominal
-    bias_decorrelation_m: float = 40.0  # path over which a site's range bias fades to 1/e (38.901 UMa NLOS)
+    bias_decorrelation_m: float = setting(40.0, help="Path over which a site's NLOS range bias changes (fades to "
+                                          "1/e): 38.901 UMa's delay-spread correlation distance is 40 m NLOS, UMi's "
+                                          "10 m.", unit="m", bounds=(0.0, 1e6), open_low=True)
     bias_correlation_s: float = 600.0  # time over which it fades for a receiver that stands
     persistent_bias_fraction: float = 0.25  # share of a site's bias variance that does not fade (its own level)
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
     stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (PipelineConfig sets it)
     prior_hold_s: float = 30.0  # how long an initial position is used, from when it is given, while D + 1 sites are not heard
-    max_std_m: float = 150.0  # horizontal 1-sigma (DRMS) beyond which the track is reported lost
+    max_std_m: float = setting(150.0, help="Horizontal 1-sigma (DRMS) beyond which the track is reported lost and "
+                               "no pose is published for it.", unit="m", bounds=(0.0, 1e6), open_low=True)
     max_position_rejections: int = 2  # refused positions in a row, agreeing, that say the track is wrong
     heading_drift_rad_per_sqrt_s: float = 0.003  # odometry frame's yaw random walk (a gyro's drift)
     odometry_scale_std: float = 0.05  # odometry scale error, prior 1-sigma (fraction)
@@ -216,6 +220,7 @@ class TrackerConfig:
             raise ValueError(f"snapshot: {self.snapshot!r} is not a SnapshotConfig")
         if not isinstance(self.site_clocks, bool):
             raise ValueError(f"site_clocks: {self.site_clocks!r} is not a bool")
+        check_settings(self)
         for name, low, high in (("max_rejections", 2, 10_000), ("max_position_rejections", 1, 1000)):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and low <= value <= high):
@@ -231,13 +236,11 @@ class TrackerConfig:
             "clock_rate_std_ppm": 0 < self.clock_rate_std_ppm <= 1000,
             "max_clock_ppm": 0 < self.max_clock_ppm <= 1000,
             "height_correlation_s": 0 < self.height_correlation_s <= 1e5,
-            "bias_decorrelation_m": 0 < self.bias_decorrelation_m <= 1e6,
             "bias_correlation_s": 0 < self.bias_correlation_s <= 1e7,
             "persistent_bias_fraction": 0 <= self.persistent_bias_fraction < 1,
             "site_clock_wander_mps_per_sqrt_s": 0 <= self.site_clock_wander_mps_per_sqrt_s <= 1e3,
             "stack_overlap": 1 <= self.stack_overlap <= 1000,
             "prior_hold_s": 0 < self.prior_hold_s <= 3600,
-            "max_std_m": 0 < self.max_std_m <= 1e6,
             "heading_drift_rad_per_sqrt_s": 0 <= self.heading_drift_rad_per_sqrt_s <= 1,
             "odometry_scale_std": 0 < self.odometry_scale_std <= 1,
             "odometry_scale_wander_per_sqrt_s": 0 <= self.odometry_scale_wander_per_sqrt_s <= 1,

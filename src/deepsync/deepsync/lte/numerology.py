@@ -52,8 +52,23 @@ def check_bandwidth(bandwidth_mhz: float) -> float:
     )
 
 
+class FftGrid:
+    """A grid of ``fft_size`` bins of 15 kHz: a carrier's (``Numerology``) or a cluster's of carriers."""
+
+    fft_size: int
+
+    @property
+    def oversampling(self) -> int:
+        """Samples per base (1.92 MHz) sample."""
+        return self.fft_size // BASE_FFT
+
+    @property
+    def sample_rate_hz(self) -> float:
+        return self.fft_size * SUBCARRIER_SPACING_HZ
+
+
 @dataclass(frozen=True)
-class Numerology:
+class Numerology(FftGrid):
     """Resource-grid and sampling parameters of one LTE carrier at one sample rate."""
 
     bandwidth_mhz: float
@@ -80,15 +95,6 @@ class Numerology:
     @property
     def n_subcarriers(self) -> int:
         return self.n_rb * SUBCARRIERS_PER_RB
-
-    @property
-    def oversampling(self) -> int:
-        """Samples per base (1.92 MHz) sample."""
-        return self.fft_size // BASE_FFT
-
-    @property
-    def sample_rate_hz(self) -> float:
-        return self.fft_size * SUBCARRIER_SPACING_HZ
 
     @property
     def occupied_bandwidth_hz(self) -> float:

@@ -85,7 +85,7 @@ def read_iq(path: str | os.PathLike, sample_format: SampleFormat | str | None = 
     ``path`` is a raw file (format given, or guessed from the extension) or a SigMF recording
     (format from its metadata; a given one must agree). The zero is 127.5 for ``cu8`` (the
     RTL-SDR's unsigned codes), 0 otherwise, so the samples are centred; no other scaling. What
-    the coherent (complex-domain) search in :mod:`deepsync.iq.coherent` reads.
+    the coherent (complex-domain) search in :mod:`deepsync.testing.coherent` reads.
     """
     name = os.fspath(path)
     if is_sigmf_path(name):

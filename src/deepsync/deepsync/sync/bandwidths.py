@@ -9,8 +9,7 @@ a wider one carries subcarriers that are not sent. Once ``VOTES`` stacks have vo
 bandwidth has ``AGREEMENT`` of them, it is the cell's, for the rest of the stream: the search
 holds the cell by its whole frame, and the timing stage times it so (``ml_frame``).
 
-On the dense walk's bag (every site 10 MHz) each reported cell voted 10 MHz in 88-100 % of its
-stacks. Through an I/Q radio's passband every carrier of 3 MHz or more looks the same
+Through an I/Q radio's passband every carrier of 3 MHz or more looks the same
 (``squared_iq_frontend``), and the narrowest one that fits what the radio saw wins, which is
 what its templates should be.
 """

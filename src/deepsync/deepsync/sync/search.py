@@ -31,7 +31,7 @@ only counts as a new cell if it is a PCI not yet found, shows a PSS at its PSS p
 (with a database) is not better explained by a PCI outside it: the database limits what is
 reported, not what is believed. (The stage then asks for a cell to persist over stacks.)
 
-What the envelope can tell (``benchmarks/cell_search.py``, ``docs/cell_search.md``): the PSS
+What the envelope can tell (``benchmarks/detection/cell_search.py``, ``docs/cell_search.md``): the PSS
 envelopes of N_ID2 = 1 and 2 (roots 29 and 34, complex conjugates) are identical, and the SSS
 envelopes of different N_ID1 correlate up to ~0.97, so identity is carried as ranked
 candidates with scores and a tower database decides which may be reported.
@@ -48,11 +48,11 @@ import numpy as np
 import scipy.fft
 import scipy.special
 
-from deepsync.configio import check_ranges
 from deepsync.frontend.templates import SyncTemplates, sync_code_offset_seconds
 from deepsync.lte.cell import N_CELL_IDS
 from deepsync.lte.numerology import SUPPORTED_BANDWIDTHS_MHZ
 from deepsync.numeric import mad_spread, parabolic_peak
+from deepsync.schema import check_settings, setting
 from deepsync.sync.correlation import (correlate, correlate_every, frame_code_windows, frame_spectra, parseval_weights,
                                        template_spectra, unit_frame_parts)
 from deepsync.sync.sites import SiteFit, SiteMatch, SiteNoise, SiteSearch
@@ -62,50 +62,43 @@ PHASES = np.array([0.0, 0.5])  # sub-sample delays at which every timing templat
 _SPREAD_STEP = 4  # every how many lags a timing correlation's noise spread is measured on
 
 
-# Bounds of the numbers the checks below leave open (inclusive): each sizes a loop or an array
-# of the search (lags tried, cells kept), far beyond what a stack holds or a city's cells ask.
-SEARCH_RANGES: dict[str, tuple[float, float, str]] = {
-    "max_cells": (1, 64, "cells"),
-    "refine_lags": (1, 64, "samples"),
-    "keep_candidates": (1, 504, "PCIs"),
-    "cancel_spread": (0, 16, "samples"),
-    "pss_confirm": (0.0, 10.0, ""),
-    "open_set_tolerance": (0.0, 1.0, ""),
-    "max_examined": (1, 1024, "peaks"),
-    "pair_min_gain": (0.0, 100.0, ""),
-    "crs_cancel_z": (0.0, 1000.0, "sigmas"),
-    "track_lags": (1, 64, "samples"),
-}
-
-
+# Each bound of a count sizes a loop or an array of the search (lags tried, cells kept), far
+# beyond what a stack holds or a city's cells ask.
 @dataclass(frozen=True)
 class SearchConfig:
-    false_alarm_rate: float = 1e-3  # chance of a false timing peak anywhere in one stack
-    max_cells: int = 8
-    refine_lags: int = 3  # +- lags scored in the identity step around the PSS peak
-    keep_candidates: int = 8  # ranked PCI candidates carried per detection
-    cancel_spread: int = 1  # whole-sample shifts of a template used to cancel a found code
-    pss_confirm: float = 0.15  # PSS z-score needed at a detection's PSS position, per unit of its own z
-    open_set_tolerance: float = 0.02  # how much better a PCI outside the database may score
-    max_examined: int = 24  # peaks examined per stack (found cells and rejected ones)
-    full_code_timing: bool = True  # with known PCIs, time by their whole codes (+9 dB, slower)
-    site_hypotheses: bool = True  # with full-code timing, also search the co-sited pairs given (+cost)
-    pair_false_alarm: float = 1e-3  # chance that one sector alone passes for a co-sited pair at a site peak
-    pair_min_gain: float = 0.25  # and what the pair must add to one sector's statistic, relatively
-    crs_cancel_z: float = 10.0  # a cell found this many sigmas out also has its CRS cancelled (0: never)
-    track_lags: int = 1  # +- samples a confirmed cell's code may have moved from where it should be
-    hold_by_frame: bool = True  # a confirmed cell of known bandwidth its codes miss is held if its whole frame is there
+    false_alarm_rate: float = setting(1e-3, help="Chance of a false timing peak anywhere in one stack.",
+                                      bounds=(0.0, 0.5), open_low=True, open_high=True)
+    max_cells: int = setting(8, help="Most cells searched for per stack.", unit="cells", bounds=(1, 64))
+    refine_lags: int = setting(3, help="Lags scored on either side of the PSS peak in the identity step.",
+                               unit="samples", bounds=(1, 64))
+    keep_candidates: int = setting(8, help="Ranked PCI candidates carried per detection.", unit="PCIs",
+                                   bounds=(1, 504))
+    cancel_spread: int = setting(1, help="Whole-sample shifts of a template used to cancel a found code.",
+                                 unit="samples", bounds=(0, 16))
+    pss_confirm: float = setting(0.15, help="PSS z-score needed at a detection's PSS position, per unit of its own "
+                                 "z.", bounds=(0.0, 10.0))
+    open_set_tolerance: float = setting(0.02, help="How much better a PCI outside the database may score.",
+                                        bounds=(0.0, 1.0))
+    max_examined: int = setting(24, help="Peaks examined per stack (found cells and rejected ones).", unit="peaks",
+                                bounds=(1, 1024))
+    full_code_timing: bool = setting(True, help="With a tower database, time known cells by their whole codes "
+                                     "(about +9 dB, slower).")
+    site_hypotheses: bool = setting(True, help="With full-code timing, also search the co-sited pairs given.")
+    pair_false_alarm: float = setting(1e-3, help="Chance that one sector alone passes for a co-sited pair at a "
+                                      "site peak.", bounds=(0.0, 0.5), open_low=True, open_high=True)
+    pair_min_gain: float = setting(0.25, help="What a co-sited pair must add to one sector's statistic, "
+                                   "relatively.", bounds=(0.0, 100.0))
+    crs_cancel_z: float = setting(10.0, help="A cell found this many sigmas out also has its CRS cancelled before "
+                                  "weaker cells are sought: over long stacks a strong cell's CRS passes for other "
+                                  "cells' codes. 0: never.", unit="sigmas", bounds=(0.0, 1000.0))
+    track_lags: int = setting(1, help="Samples a confirmed cell's code may have moved from where it should be, "
+                              "either way.", unit="samples", bounds=(1, 64))
+    hold_by_frame: bool = setting(True, help="Hold a confirmed cell of known bandwidth whose codes a stack misses "
+                                  "if its whole known frame (codes and CRS) is there.")
 
     def __post_init__(self) -> None:
-        if not 0 < self.false_alarm_rate < 0.5:
-            raise ValueError(f"false_alarm_rate must be in (0, 0.5), got {self.false_alarm_rate!r}")
-        if not 0 < self.pair_false_alarm < 0.5:
-            raise ValueError(f"pair_false_alarm must be in (0, 0.5), got {self.pair_false_alarm!r}")
-        if self.max_cells < 1 or self.refine_lags < 1 or self.track_lags < 1:
-            raise ValueError("max_cells, refine_lags and track_lags must be >= 1")
-        if not (math.isfinite(self.crs_cancel_z) and self.crs_cancel_z >= 0):
-            raise ValueError(f"crs_cancel_z must be a number of sigmas >= 0 (0: never), got {self.crs_cancel_z!r}")
-        check_ranges(self, SEARCH_RANGES)  # what the checks above leave open
+        check_settings(self)
+
 
 @dataclass(frozen=True)
 class Candidate:
@@ -382,9 +375,9 @@ class CellSearch:
         should be, at the tracking threshold over the same ``track_lags`` and phases.
 
         The CRS adds 40 symbols per frame to the codes' 4: at 10 MHz about 8 dB of SNR for a
-        tracked cell at the same false-alarm rate (``benchmarks/full_frame_template.py``), the
+        tracked cell at the same false-alarm rate (``benchmarks/detection/full_frame_template.py``), the
         difference between hearing 3 sites per stack or 5 on the dense walk
-        (``benchmarks/full_frame_tracking.py``). Only for tracked cells: the comb of the CRS
+        (``benchmarks/detection/full_frame_tracking.py``). Only for tracked cells: the comb of the CRS
         repeats the template's fit every 21.3 samples, so a search over all positions would
         lock a period off; a track knows the period. Each cell is tested on what the search
         left of the stack (codes found, and strong cells' CRS, cancelled), its noise the

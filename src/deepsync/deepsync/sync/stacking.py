@@ -61,6 +61,7 @@ import scipy.fft
 from deepsync.frontend.templates import check_template_rate
 from deepsync.lte.numerology import BASE_RATE_HZ
 from deepsync.numeric import mad_spread, parabolic_peak
+from deepsync.schema import check_settings, setting
 from deepsync.types import FRAME_SECONDS, HALF_FRAME_SECONDS, EnvelopeChunk, Health, HealthKind
 
 MAX_CLOCK_PPM = 200.0  # a receiver crystal further off than this is not believed
@@ -101,24 +102,24 @@ CLOCK_REACH = 16  # samples kept before the next frame's start: how far a new cl
 
 @dataclass(frozen=True)
 class StackConfig:
-    n_frames: int = 10
-    clock_ppm: float = 0.0  # initial receiver clock error, compensated
-    track_clock: bool = True  # follow the measured drift
-    max_drift_samples: float = 0.5
-    clip_fraction: float = 1e-3  # flag a stack with more clipped samples than this
-    hop_frames: int | None = None  # frames from one stack's start to the next; None: n_frames (back to back)
+    n_frames: int = setting(10, help="LTE frames (10 ms) stacked per search: longer stacks hear weaker sites (3 dB "
+                            "per doubling); the timing stage needs 2 to measure the noise.", unit="frames",
+                            bounds=(1, 1000))
+    clock_ppm: float = setting(0.0, help="Initial receiver clock error, compensated.", unit="ppm",
+                               bounds=(-1000.0, 1000.0))
+    track_clock: bool = setting(True, help="Follow the receiver clock drift measured on each stack.")
+    max_drift_samples: float = setting(0.5, help="Largest drift across a stack still stacked as it is.",
+                                       unit="samples", bounds=(0.0, 1000.0), open_low=True)
+    clip_fraction: float = setting(1e-3, help="Flag a stack with more clipped samples than this fraction.",
+                                   bounds=(0.0, 1.0))
+    hop_frames: int | None = setting(None, help="Frames from one stack's start to the next; fewer than n_frames "
+                                     "gives sliding stacks: n_frames 100, hop_frames 20 hears as 100 "
+                                     "frames do and answers at 5 Hz.", unit="frames", bounds=(1, 1000))
 
     def __post_init__(self) -> None:
-        if not 1 <= self.n_frames <= 1000:
-            raise ValueError(f"n_frames must be 1..1000, got {self.n_frames!r}")
-        if self.hop_frames is not None and not 1 <= self.hop_frames <= self.n_frames:
+        check_settings(self)
+        if self.hop_frames is not None and self.hop_frames > self.n_frames:
             raise ValueError(f"hop_frames must be 1..n_frames ({self.n_frames}), got {self.hop_frames!r}")
-        if not math.isfinite(self.clock_ppm) or abs(self.clock_ppm) > 1000:
-            raise ValueError(f"clock_ppm must be a finite number within +-1000, got {self.clock_ppm!r}")
-        if not 0 < self.max_drift_samples <= 1000:
-            raise ValueError(f"max_drift_samples must be in (0, 1000], got {self.max_drift_samples!r}")
-        if not 0 <= self.clip_fraction <= 1:
-            raise ValueError(f"clip_fraction must be a fraction in [0, 1], got {self.clip_fraction!r}")
 
     @property
     def hop(self) -> int:

@@ -42,10 +42,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from deepsync.configio import check_ranges
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.templates import SyncTemplates
 from deepsync.lte.earfcn import downlink_frequency_hz
+from deepsync.schema import check_settings, setting
 from deepsync.sync.bandwidths import BandwidthLearner
 from deepsync.sync.search import CellDetection, CellSearch, ExpectedCell, SearchConfig
 from deepsync.sync.stacking import FrameStacker, Stack, StackConfig
@@ -54,44 +54,33 @@ from deepsync.towers import TowerDatabase
 from deepsync.types import FRAME_SECONDS, EnvelopeChunk, Health, HealthKind, StackWindows, SyncWindow
 
 
-# Bounds of the numbers the checks below leave open (inclusive).
-SYNC_RANGES: dict[str, tuple[float, float, str]] = {
-    "confirm_stacks": (1, 1000, "stacks"),
-    "confirm_tolerance": (0.0, 1000.0, "samples"),
-    "search_every": (1, 100_000, "stacks"),
-    "max_search_interval_s": (0.0, 3600.0, "s"),
-    "hold_stacks": (0, 1000, "stacks"),
-    "report_z": (0.0, 1000.0, "sigmas"),
-}
-
-
 @dataclass(frozen=True)
 class SyncConfig:
     stack: StackConfig = field(default_factory=StackConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
-    window_margin: int = 10
-    confirm_stacks: int = 3  # stacks in a row a PCI must be found in, where its code should be, to be reported
-    confirm_tolerance: float = 2.0  # samples a cell may move between stacks beyond the clock drift
-    search_every: int = 5  # stacks per full search for new cells; between, the cells found are tracked
-    max_search_interval_s: float = 2.0  # stream time the gap between full searches grows to while none finds a new cell
-    hold_stacks: int = 2  # stacks a confirmed cell is still looked for after a stack it was missed in
-    report_z: float = 5.0  # a confirmed cell found below this many sigmas is kept tracked but not reported
-    learn_bandwidths: bool = True  # with a tower database, learn the bandwidth of cells it gives none (sync.bandwidths)
+    window_margin: int = setting(10, help="Samples kept on either side of a cell's code in its windows.",
+                                 unit="samples", bounds=(0, 100))
+    confirm_stacks: int = setting(3, help="Stacks in a row a cell must be found in, where its code should be, "
+                                  "before it is reported.", unit="stacks", bounds=(1, 1000))
+    confirm_tolerance: float = setting(2.0, help="How far a cell may move between stacks beyond the clock drift.",
+                                       unit="samples", bounds=(0.0, 1000.0))
+    search_every: int = setting(5, help="Stacks per full search for new cells; between, the cells found are only "
+                                "tracked where their codes should be (a few templates instead of dozens).",
+                                unit="stacks", bounds=(1, 100_000))
+    max_search_interval_s: float = setting(2.0, help="While full searches find no new cell, the gap between them "
+                                           "doubles up to this much stream; one that finds a cell brings it back "
+                                           "to search_every. 0: every search_every stacks.", unit="s",
+                                           bounds=(0.0, 3600.0))
+    hold_stacks: int = setting(2, help="Stacks a confirmed cell is still looked for after a stack it was missed in "
+                               "(a fade).", unit="stacks", bounds=(0, 1000))
+    report_z: float = setting(5.0, help="A confirmed cell found below this many sigmas is kept tracked but not "
+                              "reported: below about 5 the timing breaks down (arrivals a sample or more off).",
+                              unit="sigmas", bounds=(0.0, 1000.0))
+    learn_bandwidths: bool = setting(True, help="Learn the bandwidth of confirmed cells the tower database gives "
+                                     "none from their stacks.")
 
     def __post_init__(self) -> None:
-        if not 0 <= self.window_margin <= 100:
-            raise ValueError(f"window_margin must be 0..100 samples, got {self.window_margin!r}")
-        if self.confirm_stacks < 1:
-            raise ValueError(f"confirm_stacks must be >= 1, got {self.confirm_stacks!r}")
-        if self.search_every < 1:
-            raise ValueError(f"search_every must be >= 1 stack, got {self.search_every!r}")
-        if not (math.isfinite(self.max_search_interval_s) and self.max_search_interval_s >= 0):
-            raise ValueError(f"max_search_interval_s must be >= 0 seconds, got {self.max_search_interval_s!r}")
-        if self.hold_stacks < 0:
-            raise ValueError(f"hold_stacks must be >= 0, got {self.hold_stacks!r}")
-        if not (math.isfinite(self.report_z) and self.report_z >= 0):
-            raise ValueError(f"report_z must be a number of sigmas >= 0, got {self.report_z!r}")
-        check_ranges(self, SYNC_RANGES)  # what the checks above leave open
+        check_settings(self)
 
 @dataclass(frozen=True)
 class DetectedCell:
@@ -130,6 +119,7 @@ class SyncResult:
     first_sample_index: int
     sample_rate: float
     n_frames: int
+    hop_frames: int  # frames from this stack's start to the next's
     aligned: bool
     flags: tuple[Health, ...]  # what makes this stack less trustworthy
     events: tuple[Health, ...]  # input problems since the previous result
@@ -153,7 +143,7 @@ class SyncResult:
     def stack_windows(self) -> StackWindows:
         """The confirmed cells with the stack's time base: what ``cell_sync`` publishes."""
         return StackWindows(self.stamp_ns, self.first_sample_index, self.sample_rate, self.windows,
-                            self.clock_drift_ppm, self.frame, self.frame_delay)
+                            self.clock_drift_ppm, self.frame, self.frame_delay, (self.n_frames, self.hop_frames))
 
 
 class SyncStage:
@@ -193,8 +183,10 @@ class SyncStage:
         """Feed float samples from another source (a recorded |x|^2, a test signal)."""
         return [self._search(stack) for stack in self.stacker.push_samples(samples, first_sample_index, sample_rate, stamp_ns)]
 
-    def _new_events(self) -> tuple[Health, ...]:
-        """The stacker's events since the previous result (taken: a long run keeps none)."""
+    def take_events(self) -> tuple[Health, ...]:
+        """The stream's events (gaps, resets, bad samples) since they were last taken: every
+        result takes them, so at the end of a stream this holds what came after the last stack.
+        Taken, not copied: a long run keeps none."""
         events = tuple(self.stacker.events)
         self.stacker.events.clear()
         return events
@@ -226,9 +218,10 @@ class SyncStage:
             first_sample_index=stack.first_sample_index,
             sample_rate=self.stacker.sample_rate,
             n_frames=stack.n_frames,
+            hop_frames=self.config.stack.hop,
             aligned=stack.aligned,
             flags=stack.flags,
-            events=self._new_events(),
+            events=self.take_events(),
             cells=tuple(c for c in cells if c.pci in reported),
             tentative=tuple(c for c in cells if c.pci not in reported),
             clock_drift_ppm=self.stacker.measured_drift_ppm,

@@ -45,7 +45,7 @@ The reported std (the root-mean-square error to expect) is built from
   and the main-lobe variance is weighted by the mass within a sample. By Bayes, the posterior
   mean-square distance is the estimator's mean-square error averaged over the prior. In the
   2-3 dB where outliers set in it errs on the safe side (A is measured, and exp(-2 A du) is
-  convex in it): RMSE / RMS std down to ~0.35 there in ``benchmarks/fine_timing.py``, 0.6-1.15
+  convex in it): RMSE / RMS std down to ~0.35 there in ``benchmarks/timing/fine_timing.py``, 0.6-1.15
   everywhere else. A window without a code gets a posterior spread over the whole range and
   a std of ~margin / sqrt(3) or more, not a confident number;
 * parabolic only: its deterministic interpolation bias at the estimated fraction
@@ -688,7 +688,7 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     Both repeat every frame, so the circular correlation is exact and the template has no edges.
     The sync codes are 4 of a frame's 140 symbols, the CRS 40 more: at 10 MHz the template
     carries ~10 dB more matched-filter energy than the codes alone
-    (``benchmarks/full_frame_template.py``). Its autocorrelation has sidelobes at the CRS comb's
+    (``benchmarks/detection/full_frame_template.py``). Its autocorrelation has sidelobes at the CRS comb's
     period (21.3 samples), beyond the +-``reach`` searched around a code lock.
 
     White weights (the correlation's maximum, found as ``estimate_ml`` finds it: the best

@@ -48,23 +48,25 @@ from deepsync.frontend.templates import (
     pair_frame_folds,
     pair_frame_parts,
 )
+from deepsync.schema import check_settings, setting
 from deepsync.timing import network_install_hint
 from deepsync.timing.crlb import delay_crlb, fit_amplitude, snr_db
 from deepsync.timing.estimators import SNR_FLOOR_DB, FrameTiming, estimate_ml_frame, frame_spectrum, noise_psd
-from deepsync.timing.registry import DEFAULT, Estimator, Input
+from deepsync.timing.registry import DEFAULT, ESTIMATORS, Estimator, Input
 from deepsync.types import FRAME_SECONDS, CellTiming, Health, HealthKind, StackWindows, SyncWindow
+
 
 @dataclass(frozen=True)
 class TimingConfig:
-    estimator: Estimator = DEFAULT  # one of ``timing.registry.ESTIMATORS`` (``Estimator.named``)
-    weak_std_samples: float = 1.0  # flag an arrival whose 1-sigma exceeds this (1 sample = 156 m at 1.92 MHz)
-    checkpoint: str | None = None  # the network's checkpoint; None: the one shipped with deepsync
+    estimator: Estimator = setting(DEFAULT, help="Sub-sample timing estimator.", choices=ESTIMATORS)
+    weak_std_samples: float = setting(1.0, help="Flag an arrival whose 1-sigma exceeds this (1 sample = 156 m at "
+                                      "1.92 MS/s).", unit="samples", bounds=(0.0, 1e6), open_low=True)
+    checkpoint: str | None = setting(None, help="Timing-network checkpoint for a network estimator.")
 
     def __post_init__(self) -> None:
-        if not isinstance(self.estimator, Estimator):
+        if not isinstance(self.estimator, Estimator):  # a name is looked up by Estimator.named, never taken as is
             raise ValueError(f"estimator must be one of {', '.join(Estimator.names())}, got {self.estimator!r}")
-        if not (math.isfinite(self.weak_std_samples) and 0 < self.weak_std_samples <= 1e6):
-            raise ValueError(f"weak_std_samples must be a positive number up to 1e6, got {self.weak_std_samples!r}")
+        check_settings(self)
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ frame is 77 kB an example against the windows' 14 kB.
 
 ``channel: clean`` replaces every TDL channel by the direct path alone (no multipath, no
 fading): not for training, but the reference case in which an estimator can meet its Cramer-Rao
-bound, for evaluation (``benchmarks/clean_channel.py``).
+bound, for evaluation (``benchmarks/timing/split_variants.py clean``).
 
 Label: ``offset`` = true code start (frame timing + sync code position + the geometric, i.e.
 first-path, delay, on the receiver clock, in stream samples) minus the window's coarse index,

@@ -8,8 +8,14 @@ The schema, with defaults for the optional keys::
     seed: 7                        # every "auto" value and random draw derives from it
     origin: {latitude_deg, longitude_deg, height_m}   # map-frame origin, ellipsoidal height
     environment: {model: UMa, los: auto}              # UMa | UMi; auto | los | nlos
-    channel: {profile_los: TDL-D, profile_nlos: TDL-A, delay_spread_ns: auto,
+    channel: {model: statistical, profile_los: TDL-D, profile_nlos: TDL-A, delay_spread_ns: auto,
               shadow_fading: true, environment_doppler_hz: 1.0, spatial_consistency: false}
+    # or ray-traced (the optional extra deepsync[raytrace]; docs/raytracing.md):
+    # channel: {model: raytraced, scene: munich | florence | etoile | footprints.geojson | scene.xml,
+    #           scene_origin: {latitude_deg, longitude_deg},   # a scene.xml's x = y = 0 only
+    #           default_building_height_m: null,   # for footprints without height or levels
+    #           max_depth: 3, diffraction: true, diffuse: false, refraction: true,
+    #           samples_per_source: 1000000, route_step_m: 1.0, cache_dir: null}
     sites:
       - name: A
         latitude_deg: ..
@@ -46,7 +52,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from deepsync.configio import ConfigError, build_dataclass, load_yaml, require_list
+from deepsync.configio import ConfigError, build_dataclass, load_yaml, require_list, require_mapping
 from deepsync.frontend.config import FrontendConfig
 from deepsync.geo import geodetic_to_ecef
 from deepsync.lte.cell import CellConfig, check_pci
@@ -54,6 +60,8 @@ from deepsync.lte.earfcn import band_of, check_channel, downlink_frequency_hz
 from deepsync.lte.numerology import check_bandwidth
 from deepsync.twin.antenna import SectorPattern
 from deepsync.twin.propagation import MODELS
+from deepsync.twin.raytrace.scenes import check_scene_spec
+from deepsync.twin.raytrace.tracing import TraceSettings
 from deepsync.towers import MapOrigin
 from deepsync.twin.tdl import TDL_PROFILES
 from deepsync.types import MAX_CELL_RANGE_M
@@ -110,6 +118,15 @@ SPEED_RANGE_MPS = (0.1, 140.0)
 # Time for one pass of a route: at least one 10 ms frame (shorter moves the receiver between
 # two fixes: give a position) and at most a day (longer is not one drive: split it).
 ROUTE_DURATION_RANGE_S = (0.01, 86_400.0)
+# Ray tracing: interactions per path (0: line of sight only; each more multiplies the time,
+# and beyond ~6 a path is far below the first ones), rays per antenna (below 1e4 even street
+# reflections are missed; above 1e8 a trace outgrows memory), the spacing of traced route points
+# (a decimetre to half a block: the first-order move between them holds over metres) and a
+# building's height (a shed to the tallest towers).
+MAX_DEPTH_RANGE = (0, 8)
+SAMPLES_PER_SOURCE_RANGE = (10_000, 100_000_000)
+ROUTE_STEP_RANGE_M = (0.1, 20.0)
+BUILDING_HEIGHT_RANGE_M = (1.0, 1000.0)
 # At LTE's largest cell range the flat map-frame ground is already ~0.8 km below the real one. No
 # scenario point may be farther from the origin, and a receiver farther than that from every
 # site hears none of them.
@@ -148,6 +165,35 @@ class ChannelSettings:
     shadow_fading: bool = True
     environment_doppler_hz: float = 1.0
     spatial_consistency: bool = False
+
+
+@dataclass(frozen=True)
+class RayTracingSettings:
+    """A ray-traced channel (``model: raytraced``): the ``scene`` (a bundled city's name, a
+    GeoJSON of footprints or a Mitsuba XML, paths relative to the working directory), Sionna's
+    solver settings, the spacing of the traced points along the route (m) and where traces are
+    cached (``None``: ``$XDG_CACHE_HOME/deepsync/raytrace``, else ``~/.cache/...``)."""
+
+    scene: str
+    scene_origin: LatLon | None = None
+    default_building_height_m: float | None = None
+    max_depth: int = TraceSettings.max_depth
+    diffraction: bool = TraceSettings.diffraction
+    diffuse: bool = TraceSettings.diffuse
+    refraction: bool = TraceSettings.refraction
+    samples_per_source: int = TraceSettings.samples_per_source
+    route_step_m: float = 1.0
+    cache_dir: str | None = None
+
+    @property
+    def trace_settings(self) -> TraceSettings:
+        return TraceSettings(self.max_depth, self.diffraction, self.diffuse, self.refraction,
+                             self.samples_per_source)
+
+
+# the channel models a scenario may name, by their settings (the twin builds the channel of the
+# settings' type): the one list
+CHANNEL_MODELS: dict[str, type] = {"statistical": ChannelSettings, "raytraced": RayTracingSettings}
 
 
 @dataclass(frozen=True)
@@ -225,7 +271,7 @@ class Scenario:
     seed: int
     origin: MapOrigin
     environment: Environment
-    channel: ChannelSettings
+    channel: ChannelSettings | RayTracingSettings
     sites: tuple[SiteSpec, ...]
     receiver: ReceiverSpec
     frontend: FrontendConfig
@@ -366,8 +412,13 @@ def _parse_list(data: object, where: str, parse: Callable[[object, str], T]) -> 
     return tuple(parse(item, f"{where}[{index}]") for index, item in enumerate(items))
 
 
-def _parse_channel(data: object, where: str) -> ChannelSettings:
-    channel = build_dataclass(ChannelSettings, _auto(_mapping(data), "delay_spread_ns"), where)
+def _parse_channel(data: object, where: str) -> ChannelSettings | RayTracingSettings:
+    keys = dict(require_mapping(_mapping(data), where))
+    model = keys.pop("model", "statistical")
+    _require_choice(model, list(CHANNEL_MODELS), f"{where}.model")
+    if CHANNEL_MODELS[model] is RayTracingSettings:
+        return _parse_raytracing(keys, where)
+    channel = build_dataclass(ChannelSettings, _auto(keys, "delay_spread_ns"), where)
     for name in ("profile_los", "profile_nlos"):
         _require_choice(getattr(channel, name), list(TDL_PROFILES), f"{where}.{name}")
     if channel.delay_spread_ns is not None:
@@ -376,6 +427,27 @@ def _parse_channel(data: object, where: str) -> ChannelSettings:
     _require_range(channel.environment_doppler_hz, ENVIRONMENT_DOPPLER_RANGE_HZ,
                    f"{where}.environment_doppler_hz", "Hz")
     return channel
+
+
+def _parse_raytracing(keys: dict, where: str) -> RayTracingSettings:
+    origin = keys.get("scene_origin")
+    if origin is not None:
+        keys["scene_origin"] = None  # parsed below with its own field path
+    settings = build_dataclass(RayTracingSettings, keys, where)
+    if origin is not None:
+        point = build_dataclass(LatLon, origin, f"{where}.scene_origin")
+        _check_lat_lon(point, f"{where}.scene_origin")
+        settings = dataclasses.replace(settings, scene_origin=point)
+    _wrap(lambda spec: check_scene_spec(spec, settings.scene_origin is not None), settings.scene, f"{where}.scene")
+    _require_range(settings.max_depth, MAX_DEPTH_RANGE, f"{where}.max_depth")
+    _require_range(settings.samples_per_source, SAMPLES_PER_SOURCE_RANGE, f"{where}.samples_per_source")
+    _require_range(settings.route_step_m, ROUTE_STEP_RANGE_M, f"{where}.route_step_m", "m")
+    if settings.default_building_height_m is not None:
+        _require_range(settings.default_building_height_m, BUILDING_HEIGHT_RANGE_M,
+                       f"{where}.default_building_height_m", "m")
+    _require(settings.cache_dir is None or settings.cache_dir.strip() != "", f"{where}.cache_dir",
+             "must not be empty (omit it for the default)")
+    return settings
 
 
 def _parse_sites(data: object, where: str) -> tuple[SiteSpec, ...]:

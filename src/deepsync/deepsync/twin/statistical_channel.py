@@ -65,7 +65,7 @@ from deepsync.twin.propagation import (
 )
 from deepsync.twin.route import Trajectory
 from deepsync.twin.scenario import ChannelSettings, Environment
-from deepsync.twin.seeding import site_rng
+from deepsync.twin.seeding import site_rng, transmit_chain_phase
 from deepsync.twin.tdl import TDL_PROFILES, TdlProfile
 from deepsync.types import SPEED_OF_LIGHT_M_S
 
@@ -217,9 +217,7 @@ class StatisticalChannel:
             amplitude = np.concatenate(([np.sqrt(specular)], amplitude))
             phase = np.concatenate(([0.0], phase))
             doppler = np.concatenate(([0.0], doppler))
-        # Each sector has its own transmit chain (PA, feeder, antenna): a fixed phase of its own
-        # on every path, which sets the (stable) cross term of co-sited sectors at the receiver.
-        chain = site_rng(self._seed, tx.site, f"chain phase {tx.pci if tx.pci >= 0 else index}").uniform(0, 2 * np.pi)
+        chain = transmit_chain_phase(self._seed, tx.site, tx.pci if tx.pci >= 0 else index)
         parameters = LinkParameters(tx.site, site.los, profile.name, site.shadow_fading_db,
                                     float(delay_spread), float(max_doppler))
         return _Link(tx, parameters, has_specular, excess, amplitude, phase, doppler, float(chain),
@@ -228,6 +226,10 @@ class StatisticalChannel:
     def link_parameters(self, emitter_index: int) -> LinkParameters:
         """Large-scale state drawn for ``emitter_index`` (LOS, shadowing, delay spread, ...)."""
         return self._links[emitter_index].parameters
+
+    def los_at(self, emitter_index: int, t: float) -> bool:
+        """Whether the receiver sees the cell's antenna at ``t`` (drawn once per site here)."""
+        return self._links[emitter_index].parameters.los
 
     def geometric_delay_s(self, emitter_index: int, t: float) -> float:
         """Straight-line propagation delay d(t)/c from the cell's antenna to the receiver (s)."""

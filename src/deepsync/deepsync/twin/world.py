@@ -17,11 +17,13 @@ from deepsync.frontend.config import FrontendConfig
 from deepsync.geo import LocalFrame
 from deepsync.lte.numerology import SUBCARRIERS_PER_RB, Numerology
 from deepsync.twin.antenna import SectorAntenna
+from deepsync.twin.raytrace.channel import RayTracedChannel
 from deepsync.twin.statistical_channel import StatisticalChannel, Transmitter
 from deepsync.twin.route import Trajectory
 from deepsync.twin.scenario import (
     AUTO_FREQUENCY_ERROR_PPB,
     TIMING_OFFSET_RANGE_US,
+    RayTracingSettings,
     ReceiverSpec,
     Scenario,
     SiteSpec,
@@ -75,7 +77,7 @@ class Twin:
     sites: tuple[TwinSite, ...]
     cells: tuple[CellInfo, ...]
     emitters: list[Emitter]
-    channel: StatisticalChannel
+    channel: StatisticalChannel | RayTracedChannel
     receiver: Trajectory
     frontend: FrontendConfig
 
@@ -125,10 +127,21 @@ def build_twin(scenario: Scenario) -> Twin:
                 SectorAntenna(cell.azimuth_deg, cell.downtilt_deg, cell.antenna), cell.pci,
             ))
     receiver = _trajectory(scenario.receiver, frame)
-    channel = StatisticalChannel(transmitters, receiver, scenario.environment, scenario.channel,
-                                 scenario.seed, scenario.receiver.height_m)
+    channel = _channel(scenario, frame, transmitters, receiver)
     return Twin(scenario, frame, sites, tuple(cells), emitters, channel, receiver,
                 scenario.frontend)
+
+
+def _channel(scenario: Scenario, frame: LocalFrame, transmitters: list[Transmitter],
+             receiver: Trajectory) -> StatisticalChannel | RayTracedChannel:
+    """The one place a scenario's channel model is turned into its channel."""
+    settings = scenario.channel
+    if isinstance(settings, RayTracingSettings):
+        from deepsync.twin.raytrace.build import raytraced_channel  # noqa: PLC0415 (tqdm, scene files)
+
+        return raytraced_channel(settings, scenario, frame, transmitters, receiver)
+    return StatisticalChannel(transmitters, receiver, scenario.environment, settings, scenario.seed,
+                              scenario.receiver.height_m)
 
 
 def _resolve_site(site: SiteSpec, frame: LocalFrame, seed: int) -> TwinSite:

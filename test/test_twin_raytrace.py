@@ -1,0 +1,335 @@
+"""The ray-traced channel (deepsync.twin.raytrace) against geometry worked out by hand, on a
+scene made here: one 20 x 30 m block, 15 m tall, on flat ground, from a GeoJSON footprint.
+Tracing tests skip without the optional extra (the reason says what to install)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from deepsync.configio import ConfigError
+from deepsync.geo import LocalFrame
+from deepsync.twin import build_twin
+from deepsync.twin.raytrace import backend, tracing
+from deepsync.twin.scenario import RayTracingSettings, parse_scenario
+from deepsync.types import SPEED_OF_LIGHT_M_S
+
+ORIGIN = {"latitude_deg": 48.0, "longitude_deg": 11.0, "height_m": 500.0}
+FRAME = LocalFrame(**ORIGIN)
+BLOCK = [(0.0, 0.0), (20.0, 0.0), (20.0, 30.0), (0.0, 30.0)]  # east, north (m): the block's footprint
+BLOCK_HEIGHT_M = 15.0
+TX = np.array([-30.0, 10.0, 10.0])       # west of the block, below its roof
+IN_VIEW = np.array([-10.0, 20.0, 1.5])   # between the antenna and the block's west wall
+BEHIND = np.array([40.0, 15.0, 1.5])     # east of the block: hidden from the antenna
+CARRIER_HZ = 2.115e9
+QUICK = tracing.TraceSettings(max_depth=1, diffraction=False, refraction=False, samples_per_source=100_000)
+
+needs_sionna = pytest.mark.skipif(backend.missing() is not None, reason=f"ray tracing: {backend.missing()}")
+
+
+def _lat_lon(east: float, north: float) -> dict:
+    lat, lon, _ = FRAME.enu_to_geodetic(np.array([east, north, 0.0]))
+    return {"latitude_deg": float(lat), "longitude_deg": float(lon)}
+
+
+@pytest.fixture(scope="module")
+def footprints(tmp_path_factory):
+    ring = [[_lat_lon(*corner)["longitude_deg"], _lat_lon(*corner)["latitude_deg"]] for corner in BLOCK + BLOCK[:1]]
+    collection = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"name": "block", "height": f"{BLOCK_HEIGHT_M:g} m"},
+         "geometry": {"type": "Polygon", "coordinates": [ring]}}]}
+    path = tmp_path_factory.mktemp("city") / "block.geojson"
+    path.write_text(json.dumps(collection))
+    return path
+
+
+@pytest.fixture(scope="module")
+def scene(footprints, tmp_path_factory):
+    if backend.missing():
+        pytest.skip(f"ray tracing: {backend.missing()}")
+    from deepsync.twin.raytrace.scenes import open_scene
+
+    return open_scene(str(footprints), FRAME, tmp_path_factory.mktemp("cache"))
+
+
+@pytest.fixture(scope="module")
+def traced(scene):
+    return tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW, BEHIND], QUICK)
+
+
+def _distance(a, b) -> float:
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)))
+
+
+@needs_sionna
+def test_the_line_of_sight_delay_is_the_distance_over_c(traced):
+    paths = traced.at(0)
+    assert paths["los"].sum() == 1 and paths["los"][0]  # the direct path, and it comes first
+    assert paths["delays_s"][0] * SPEED_OF_LIGHT_M_S == pytest.approx(_distance(TX, IN_VIEW), abs=1e-3)
+    # free-space amplitude lambda / (4 pi d), carrier phase -2 pi f d / c
+    d = _distance(TX, IN_VIEW)
+    expected = SPEED_OF_LIGHT_M_S / CARRIER_HZ / (4 * math.pi * d) * np.exp(-2j * np.pi * CARRIER_HZ * d / SPEED_OF_LIGHT_M_S)
+    assert abs(paths["gains"][0] - expected) < 1e-3 * abs(expected) * 50  # float32 phase of 100 cycles
+    assert paths["arrival_enu"][0] == pytest.approx((TX - IN_VIEW) / d, abs=1e-5)
+
+
+@needs_sionna
+def test_single_reflections_are_at_their_mirror_image_distances(traced):
+    paths = traced.at(0)
+    reflected = paths["delays_s"][paths["interactions"] == tracing.Interaction.SPECULAR] * SPEED_OF_LIGHT_M_S
+    wall_image = TX * [-1, 1, 1]    # the west wall is the plane east = 0
+    ground_image = TX * [1, 1, -1]  # the ground is up = 0
+    assert sorted(reflected) == pytest.approx(sorted([_distance(wall_image, IN_VIEW), _distance(ground_image, IN_VIEW)]),
+                                              abs=1e-3)
+    assert len(paths["delays_s"]) == 3  # depth 1: direct, wall, ground; nothing else
+
+
+@needs_sionna
+def test_a_receiver_behind_the_building_has_no_direct_path(scene):
+    paths = tracing.trace_paths(scene, TX, CARRIER_HZ, [BEHIND], tracing.TraceSettings(samples_per_source=100_000)).at(0)
+    assert len(paths["delays_s"]) > 0 and not paths["los"].any()
+    # what reaches it goes through the walls (on the straight line, thin-slab refraction bends
+    # no ray) and arrives far weaker than free space would bring it
+    assert all(flags & tracing.Interaction.REFRACTION for flags in paths["interactions"])
+    d = _distance(TX, BEHIND)
+    assert paths["delays_s"][0] * SPEED_OF_LIGHT_M_S == pytest.approx(d, abs=1e-3)
+    free_space = SPEED_OF_LIGHT_M_S / CARRIER_HZ / (4 * math.pi * d)
+    assert abs(paths["gains"][0]) < free_space / 10
+
+
+@needs_sionna
+def test_round_a_corner_the_first_path_is_diffracted_at_the_edge(scene):
+    receiver = np.array([40.0, -10.0, 1.5])  # south-east: the block's south-west edge (0, 0) sees both ends
+    settings = tracing.TraceSettings(max_depth=1, refraction=False, samples_per_source=100_000)
+    paths = tracing.trace_paths(scene, TX, CARRIER_HZ, [receiver], settings).at(0)
+    assert not paths["los"].any()
+    heights = np.linspace(0.0, BLOCK_HEIGHT_M, 150_001)  # the shortest way over the vertical edge (Keller's cone)
+    via_edge = np.min(np.hypot(np.hypot(*TX[:2]), TX[2] - heights) + np.hypot(np.hypot(*receiver[:2]), receiver[2] - heights))
+    assert paths["delays_s"][0] * SPEED_OF_LIGHT_M_S == pytest.approx(via_edge, abs=1e-3)
+    assert paths["interactions"][0] == tracing.Interaction.DIFFRACTION
+
+
+@needs_sionna
+def test_the_cache_returns_the_same_paths_and_any_changed_input_misses(scene, tmp_path, monkeypatch):
+    traces = []
+    real = tracing._trace
+    monkeypatch.setattr(tracing, "_trace", lambda *a: traces.append(a) or real(*a))
+    first = tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], QUICK, tmp_path)
+    again = tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], QUICK, tmp_path)
+    assert len(traces) == 1
+    for name in ("valid", "delays_s", "gains", "los", "interactions", "departure_enu", "arrival_enu"):
+        assert np.array_equal(getattr(first, name), getattr(again, name)), name
+    moved = IN_VIEW + [0.0, 0.01, 0.0]
+    tracing.trace_paths(scene, TX, CARRIER_HZ, [moved], QUICK, tmp_path)
+    tracing.trace_paths(scene, TX + [0.0, 0.0, 0.01], CARRIER_HZ, [IN_VIEW], QUICK, tmp_path)
+    tracing.trace_paths(scene, TX, CARRIER_HZ + 1.0, [IN_VIEW], QUICK, tmp_path)
+    tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], tracing.TraceSettings(max_depth=2, samples_per_source=100_000), tmp_path)
+    assert len(traces) == 5
+    # a damaged cache file is traced again and replaced, not an error
+    [stored] = [p for p in (tmp_path / "paths").iterdir()
+                if p.name == tracing.cache_key(scene, TX, CARRIER_HZ, np.array([IN_VIEW]), QUICK) + ".npz"]
+    stored.write_bytes(stored.read_bytes()[:100])
+    again = tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], QUICK, tmp_path)
+    assert len(traces) == 6 and np.array_equal(again.delays_s, first.delays_s)
+    assert tracing.TracedPaths.load(stored).delays_s.shape == first.delays_s.shape
+    # the positions are stored in the map frame: another frame is another trace
+    from deepsync.twin.raytrace.scenes import RayScene
+
+    elsewhere = RayScene(scene.xml_path, scene.frame, LocalFrame(48.0001, 11.0, 500.0), scene.name)
+    assert tracing.cache_key(elsewhere, TX, CARRIER_HZ, np.array([IN_VIEW]), QUICK) != \
+        tracing.cache_key(scene, TX, CARRIER_HZ, np.array([IN_VIEW]), QUICK)
+
+
+@needs_sionna
+def test_a_cache_that_cannot_be_written_is_a_warning_not_a_lost_trace(scene, tmp_path):
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")
+    with pytest.warns(UserWarning, match="ray-tracing cache: cannot write"):
+        traced = tracing.trace_paths(scene, TX, CARRIER_HZ, [IN_VIEW], QUICK, blocked)
+    assert traced.at(0)["los"][0]
+
+
+@needs_sionna
+def test_rooftops_and_three_sector_sites_make_a_scenario_site(scene):
+    from deepsync.twin.raytrace.sites import rooftops, three_sector_site
+
+    [roof] = rooftops(scene, 3, min_area_m2=100.0)  # the one building
+    assert roof.building == "block" and roof.height_m == pytest.approx(BLOCK_HEIGHT_M)
+    east, north, up = roof.position_enu
+    assert 0 < east < 20 and 0 < north < 30 and up == pytest.approx(BLOCK_HEIGHT_M, abs=0.01)
+    assert rooftops(scene, 3, max_height_m=10.0) == []  # too tall a roof is no candidate
+    lat, lon, _ = FRAME.enu_to_geodetic(roof.position_enu)
+    site = three_sector_site("R", float(lat), float(lon), roof.height_m + 3.0, n_id_1=7, earfcn=300)
+    parsed = parse_scenario({"name": "x", "seed": 1, "origin": ORIGIN, "sites": [site],
+                             "receiver": {"height_m": 1.5, "position": _lat_lon(-10, 5)}})
+    assert [c.pci for c in parsed.sites[0].cells] == [21, 22, 23]
+    assert [c.azimuth_deg for c in parsed.sites[0].cells] == [0.0, 120.0, 240.0]
+
+
+def _scenario(footprints, waypoints, *, cache_dir, loop=False, site_height_m=10.0, **channel):
+    site = {"name": "W", **_lat_lon(*TX[:2]), "height_m": site_height_m,
+            "cells": [{"pci": 3, "earfcn": 300, "bandwidth_mhz": 10.0, "eirp_dbm": 60.0,
+                       "azimuth_deg": 90.0, "downtilt_deg": 0.0}]}
+    return parse_scenario({
+        "name": "block", "seed": 1, "origin": ORIGIN, "sites": [site],
+        "channel": {"model": "raytraced", "scene": str(footprints), "cache_dir": str(cache_dir),
+                    "max_depth": 1, "diffraction": False, "refraction": False, "samples_per_source": 100_000,
+                    **channel},
+        "receiver": {"height_m": 1.5, "route": {"speed_mps": 1.0, "loop": loop,
+                                                "waypoints": [_lat_lon(*p) for p in waypoints]}}})
+
+
+@needs_sionna
+@pytest.mark.parametrize(("waypoints", "loop", "named"), [
+    ([(-10, -5), (10, 15), (-10, 40)], False, "scenario.receiver.route.waypoints[1]: inside building 'block'"),
+    ([(-10, 5), (30, 5)], False, "the leg from waypoint 0 to waypoint 1 passes through building 'block'"),
+    ([(-5, -5), (-5, 40), (25, 40)], True, "the leg from waypoint 2 to waypoint 0 passes through building 'block'"),
+])
+def test_a_route_through_a_building_is_refused_naming_the_point(footprints, tmp_path, waypoints, loop, named):
+    with pytest.raises(ConfigError, match=named.replace("[", r"\[").replace("]", r"\]")):
+        build_twin(_scenario(footprints, waypoints, cache_dir=tmp_path, loop=loop))
+
+
+@needs_sionna
+def test_an_antenna_inside_a_building_is_refused(footprints, tmp_path):
+    scenario = _scenario(footprints, [(-10, -5), (-10, 40)], cache_dir=tmp_path)
+    site = scenario.sites[0]
+    inside = {"name": "W", **_lat_lon(10.0, 10.0), "height_m": 12.0, "cells": [
+        {"pci": 3, "earfcn": 300, "bandwidth_mhz": 10.0, "eirp_dbm": 60.0, "azimuth_deg": 90.0, "downtilt_deg": 0.0}]}
+    data = {"name": "block", "seed": 1, "origin": ORIGIN, "sites": [inside],
+            "channel": {"model": "raytraced", "scene": scenario.channel.scene, "cache_dir": str(tmp_path)},
+            "receiver": {"height_m": 1.5, "position": _lat_lon(-10, 5)}}
+    with pytest.raises(ConfigError, match=r"scenario.sites\[0\].height_m: the antenna .* inside building 'block'"):
+        build_twin(parse_scenario(data))
+    assert site.height_m == 10.0
+
+
+@needs_sionna
+def test_the_twin_moves_paths_with_the_receiver_between_traced_points(footprints, tmp_path):
+    # a walk north along the west wall: the direct path stays clear all the way
+    twin = build_twin(_scenario(footprints, [(-10, 0), (-10, 30)], cache_dir=tmp_path, route_step_m=2.0))
+    channel = twin.channel
+    for t in (0.2, 4.9, 7.3, 29.5):  # between traced points (every 2 m at 1 m/s)
+        paths = channel.paths(0, t)
+        assert channel.los_at(0, t)
+        first = int(np.argmin(paths.delays_s))
+        # the first-order move keeps the direct path on the true distance, within the second-order
+        # term (half a step)^2 / (2 d) (2.3 cm here) and float32's millimetre
+        d = twin.geometric_delay_s(0, t) * SPEED_OF_LIGHT_M_S
+        moved = np.linalg.norm(twin.receiver_enu(t) - channel.traced(0).receivers_enu[channel.sample_index(t)])
+        assert moved <= 1.0 + 1e-9
+        assert paths.delays_s[first] * SPEED_OF_LIGHT_M_S == pytest.approx(d, abs=moved**2 / (2 * d) + 1e-3)
+        if moved > 0.5:  # and plainly better than holding the sample point's delay
+            assert abs(paths.delays_s[first] * SPEED_OF_LIGHT_M_S - d) < 0.1 * moved
+        # its Doppler is the rate of its delay, -f d(delay)/dt, up to the turn of the direction
+        # between the sample point and here (moved / d rad of the 7 Hz that 1 m/s gives)
+        dt = 1e-3
+        rate = (twin.geometric_delay_s(0, t + dt) - twin.geometric_delay_s(0, t - dt)) / (2 * dt)
+        full = CARRIER_HZ_OF_EARFCN_300 * 1.0 / SPEED_OF_LIGHT_M_S
+        assert paths.doppler_hz[first] == pytest.approx(-rate * CARRIER_HZ_OF_EARFCN_300, abs=full * moved / d + 0.01)
+        # and the phase moves with it: exp(j 2 pi f_D dt) over a millisecond
+        later = channel.paths(0, t + dt)
+        turn = np.angle(later.gains[first] / paths.gains[first])
+        assert turn == pytest.approx(2 * np.pi * paths.doppler_hz[first] * dt, abs=1e-3)
+
+
+CARRIER_HZ_OF_EARFCN_300 = 2.14e9  # band 1: 2110 MHz + 0.1 MHz x 300
+
+
+@needs_sionna
+def test_the_sector_pattern_and_chain_phase_weight_the_traced_gains(footprints, tmp_path):
+    twin = build_twin(_scenario(footprints, [(-10, 0), (-10, 30)], cache_dir=tmp_path))
+    channel, tx = twin.channel, twin.channel._links[0].transmitter
+    k = channel.sample_index(3.0)
+    traced = channel.traced(0)
+    order = traced.path_order(k)
+    ratio = channel.paths(0, twin.receiver.duration_s * 0 + 3.0).gains / traced.gains[k, order]
+    expected = 10 ** (tx.antenna.gain_db(traced.departure_enu[k, order]) / 20)
+    # at a traced point itself the move is nil: only the pattern and one common phase remain
+    position_offset = np.linalg.norm(twin.receiver_enu(3.0) - traced.receivers_enu[k])
+    assert position_offset < 1e-9
+    assert np.abs(ratio) == pytest.approx(expected, rel=1e-9)
+    assert np.ptp(np.angle(ratio)) < 1e-9
+    # a receiver standing at that point gets the same paths without Doppler
+    from deepsync.twin.raytrace.channel import static_paths
+
+    standing = static_paths(traced, k, tx.antenna)
+    assert np.array_equal(standing.delays_s, traced.delays_s[k, order]) and not standing.doppler_hz.any()
+    turned = channel.paths(0, 3.0).gains / standing.gains  # only the chain phase differs
+    assert np.abs(turned) == pytest.approx(1.0, abs=1e-9) and np.ptp(np.angle(turned)) < 1e-9
+
+
+@pytest.mark.parametrize(("channel", "named"), [
+    ({"model": "raytrace", "scene": "munich"}, "scenario.channel.model: unknown value 'raytrace'"),
+    ({"model": "raytraced"}, "scenario.channel.scene: required but missing"),
+    ({"model": "raytraced", "scene": "atlantis"}, "scenario.channel.scene: 'atlantis' is neither a bundled scene"),
+    ({"model": "raytraced", "scene": "munich", "max_depth": 12}, "scenario.channel.max_depth: 12 is outside"),
+    ({"model": "raytraced", "scene": "munich", "diffraction": "yes"}, "scenario.channel.diffraction: expected true or false"),
+    ({"model": "raytraced", "scene": "munich", "route_step_m": 0}, "scenario.channel.route_step_m: 0.0 is outside"),
+    ({"model": "raytraced", "scene": "munich", "profile_los": "TDL-D"}, "scenario.channel: unknown key profile_los"),
+    ({"model": "raytraced", "scene": "munich", "scene_origin": {"latitude_deg": 95, "longitude_deg": 0}},
+     "scenario.channel.scene_origin.latitude_deg: 95.0 is outside"),
+    ({"model": "raytraced", "scene": "munich", "cache_dir": " "}, "scenario.channel.cache_dir: must not be empty"),
+    ({"model": "statistical", "scene": "munich"}, "scenario.channel: unknown key scene"),
+])
+def test_scenario_errors_name_the_channel_field(channel, named):
+    data = {"name": "x", "seed": 1, "origin": ORIGIN, "channel": channel,
+            "sites": [{"name": "A", **_lat_lon(0, 0), "height_m": 20.0, "cells": [
+                {"pci": 1, "earfcn": 300, "bandwidth_mhz": 10.0, "eirp_dbm": 60.0, "azimuth_deg": 0.0,
+                 "downtilt_deg": 0.0}]}],
+            "receiver": {"height_m": 1.5, "position": _lat_lon(50, 50)}}
+    with pytest.raises(ConfigError, match=named.replace("[", r"\[")):
+        parse_scenario(data)
+
+
+def test_a_mitsuba_scene_needs_its_origin_and_a_geojson_scene_parses(tmp_path, footprints):
+    xml = tmp_path / "scene.xml"
+    xml.write_text("<scene version='2.1.0'/>")
+    base = {"name": "x", "seed": 1, "origin": ORIGIN,
+            "sites": [{"name": "A", **_lat_lon(0, 0), "height_m": 20.0, "cells": [
+                {"pci": 1, "earfcn": 300, "bandwidth_mhz": 10.0, "eirp_dbm": 60.0, "azimuth_deg": 0.0,
+                 "downtilt_deg": 0.0}]}],
+            "receiver": {"height_m": 1.5, "position": _lat_lon(50, 50)}}
+    with pytest.raises(ConfigError, match="scenario.channel.scene: .* needs scene_origin"):
+        parse_scenario({**base, "channel": {"model": "raytraced", "scene": str(xml)}})
+    parsed = parse_scenario({**base, "channel": {"model": "raytraced", "scene": str(xml),
+                                                 "scene_origin": {"latitude_deg": 48, "longitude_deg": 11}}})
+    assert parsed.channel.scene_origin.latitude_deg == 48.0
+    parsed = parse_scenario({**base, "channel": {"model": "raytraced", "scene": str(footprints), "max_depth": 2}})
+    assert isinstance(parsed.channel, RayTracingSettings)
+    assert parsed.channel.trace_settings == tracing.TraceSettings(max_depth=2)
+    assert parse_scenario({**base}).channel.profile_los == "TDL-D"  # statistical stays the default
+
+
+def test_footprints_without_a_height_are_refused_naming_the_feature(tmp_path):
+    pytest.importorskip("shapely", reason="the optional extra deepsync[raytrace] is not installed")
+    from deepsync.twin.raytrace.buildings import read_footprints
+
+    ring = [[11.0, 48.0], [11.0001, 48.0], [11.0001, 48.0001], [11.0, 48.0]]
+    path = tmp_path / "f.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"building:levels": "4"}, "geometry": {"type": "Polygon", "coordinates": [ring]}},
+        {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    with pytest.raises(ConfigError, match=r"features\[1\]: has neither 'height' nor 'building:levels'"):
+        read_footprints(path, FRAME)
+    heights = [b.height_m for b in read_footprints(path, FRAME, default_height_m=7.0)]
+    assert heights == [12.0, 7.0]  # 4 levels of 3 m, then the default
+
+
+@needs_sionna
+def test_our_interaction_flags_are_sionnas():
+    constants = backend.sionna_rt().constants.InteractionType
+    for flag in tracing.Interaction:
+        assert int(flag) == getattr(constants, flag.name)
+
+
+def test_the_munich_example_scenario_parses_as_a_ray_traced_walk():
+    from pathlib import Path
+
+    from deepsync.twin import load_scenario
+
+    scenario = load_scenario(Path(__file__).resolve().parents[1] / "config" / "scenarios" / "munich_walk.yaml")
+    assert isinstance(scenario.channel, RayTracingSettings) and scenario.channel.scene == "munich"
+    assert len(scenario.sites) == 6 and all(len(site.cells) == 3 for site in scenario.sites)
+    assert scenario.channel.trace_settings == tracing.TraceSettings()
