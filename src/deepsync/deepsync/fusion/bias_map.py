@@ -1,31 +1,35 @@
-"""Site bias maps: how late each site's arrivals read, over the map, known before the run.
+"""Site bias maps: how late each site's arrivals read, where a survey went, known before the run.
 
-In a city the envelope's peak lags a site's first path by its NLOS pull, 25-165 m on the
-simulated walks, changing over tens of metres of street. The tracker learns each site's pull
-online (its bias states), but without an anchor a pull is weakly observable: it trades against
-position. A map says it in advance: for each site, on a regular grid over the ``map`` frame,
-the mean range bias (m) and its 1-sigma.
+In a city the envelope's peak lags a site's straight line by its NLOS pull (25-165 m on the
+statistical walks, up to 300 m and for whole streets on the ray-traced one), changing over tens
+of metres. The tracker learns each site's pull online (its bias states), but without an anchor a
+pull is weakly observable: it trades against position. A map says it in advance: for each site,
+on a regular grid over the ``map`` frame, the mean range bias (m) and its 1-sigma, known within
+a kernel's width of where a survey went.
 
-* **Where a map comes from**: a survey, a run at known positions (a receiver with GNSS, or
-  the simulator's truth) through :func:`survey_bias_map`; or a ray-traced twin of the city.
-* **How fusion uses it** (:meth:`BiasMap.correct`): each site's range is read at the tracked
-  position, the map's mean taken off it and the map's sigma made the site's bias prior in place
-  of the blanket ``multipath_std_m``; the tracker's bias states then carry only what the map
-  got wrong. Where the map has no value, or the position is too uncertain to read it, the
-  arrival is left as it was: a map never stops a site being used.
+* **Where a map comes from**: a survey, a run at known positions (a receiver with GNSS, or a
+  twin's truth: statistical or ray-traced) through :func:`survey_bias_map`.
+* **Where it is read**: the pull changes by up to 100 m over 50 m of street, so a map read at a
+  fix tens of metres off corrects wrongly. Each stack hearing three mapped sites or more reads
+  it where its sites, each with its map taken off, agree best (:meth:`BiasMap.locate`, among
+  the survey's own nodes); a stack hearing fewer reads it at the latest such place, widened by
+  the speed the receiver may have walked since (the fusion stage does this).
+* **How fusion uses it** (:meth:`BiasMap.correct`): the map's mean comes off each mapped site's
+  range and the map's sigma (averaged over where the receiver may be, its spread there added)
+  replaces the blanket ``multipath_std_m``; the tracker's bias states then carry only what the
+  map got wrong. An unmapped site, or one off the map, is left as it was: a map never stops a
+  site being used.
 * **Gauge**: TDOA sees a bias common to every site as the receiver clock, so a map holds each
-  site's bias against the others (a survey: against its most heard site) and only differences
-  count.
-* **A vague position** reads the map averaged over its uncertainty, the map's spread there
-  added to its sigma: a lost track learns little from it, a tracked one much.
-* **A wrong map**: its sigma is floored (``min_std_m``); a site whose map is far off still
-  pulls the fix by what the map claims. Build a map against the tower database it will be used with: the survey
-  holds the site clocks of that database as the rest of its bias.
+  site's bias against the others; only differences count.
+* **A wrong map** (its sigma floored at ``min_std_m``) pulls by what it claims: build a map
+  against the tower database it will be used with, whose site clocks are the rest of each
+  site's bias.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 from collections.abc import Mapping, Sequence
@@ -36,11 +40,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
-from deepsync.fusion.calibration import CalibrationConfig, CalibrationObservation, ReceiverClock, calibrate_sites
+from deepsync.fusion.calibration import CalibrationObservation
+from deepsync.fusion.snapshot import chi_square_limit
 
 FORMAT = "deepsync-bias-map-1"
 MAX_BIAS_M = 1000.0  # beyond any NLOS pull (6.7 samples at 1.92 MHz)
 _HERMITE = ((-1.0, 1 / 6), (0.0, 2 / 3), (1.0, 1 / 6))  # Gauss-Hermite nodes (in sqrt(3) sigmas) and weights
+CHI2_68_2DOF = 2.28  # chi-square with 2 degrees of freedom at 68 %
+LOCATE_GATE_PROBABILITY = 1e-3
 SURVEY_ROUNDS = 10  # turns of stack offsets and site maps: the maps move by centimetres after ten
 
 
@@ -141,8 +148,9 @@ class BiasMap:
 
     def correct(self, arrivals: Sequence[SiteArrival], position_enu: Sequence[float],
                 position_std_m: float) -> tuple[SiteArrival, ...]:
-        """The arrivals with each mapped site's bias at ``position_enu`` taken off its range and
-        its sigma made the arrival's bias sigma; unmapped sites as they were."""
+        """The arrivals with each mapped site's bias for a receiver at ``position_enu`` (known
+        to ``position_std_m``) taken off its range and its sigma made the arrival's bias sigma;
+        sites the map cannot say there as they were."""
         out = []
         for arrival in arrivals:
             value = self.at(arrival.site, float(position_enu[0]), float(position_enu[1]), position_std_m)
@@ -152,6 +160,46 @@ class BiasMap:
                                               bias_std_m=std)
             out.append(arrival)
         return tuple(out)
+
+    @functools.cached_property
+    def _nodes(self) -> np.ndarray:
+        """(N, 2) every node some site's map knows: where a survey went."""
+        points = []
+        for grid in self.sites.values():
+            rows, cols = np.nonzero(np.isfinite(grid.mean_m))
+            points.append(np.column_stack([grid.x0_m + cols * grid.step_m, grid.y0_m + rows * grid.step_m]))
+        return np.unique(np.round(np.concatenate(points), 3), axis=0) if points else np.empty((0, 2))
+
+    def locate(self, arrivals: Sequence[SiteArrival]) -> tuple[np.ndarray, float] | None:
+        """The mapped point (a node some site's map knows: where the survey went) at which the
+        stack's sites, each with its map taken off, agree best with one receiver clock, and the
+        spread (m, 1-sigma) of the nodes that fit about as well; None with fewer than three
+        mapped sites, or where even the best node fails the chi-square test (the receiver is off
+        the map). Nodes, not the plane: off the survey the map says nothing, and a pull that
+        changes over tens of metres fits somewhere by chance in a plane."""
+        nodes = self._nodes
+        mapped = [a for a in arrivals if a.site in self.sites]
+        if len(mapped) < 3 or not len(nodes):
+            return None
+        east, north = nodes[:, 0], nodes[:, 1]
+        reference = mapped[0].range_mod_m
+        residual, weight = [], []
+        for arrival in mapped:
+            mean, std = self.sites[arrival.site].values(east, north)
+            distance = np.hypot(east - arrival.position_enu[0], north - arrival.position_enu[1])
+            noise = arrival.timing_std_m**2 + arrival.clock_std_m**2 + np.maximum(np.nan_to_num(std), self.min_std_m) ** 2
+            residual.append(unwrap_range(arrival.range_mod_m - reference, 0.0) - distance - np.nan_to_num(mean))
+            weight.append(np.where(np.isfinite(mean), 1.0 / noise, 0.0))
+        residual, weight = np.array(residual), np.array(weight)
+        counted = (weight > 0).sum(axis=0)
+        clock = (weight * residual).sum(axis=0) / np.maximum(weight.sum(axis=0), 1e-300)
+        cost = np.where(counted >= 3, (weight * (residual - clock) ** 2).sum(axis=0), np.inf)
+        best = int(np.argmin(cost))
+        if not cost[best] <= chi_square_limit(LOCATE_GATE_PROBABILITY, int(counted[best]) - 1):
+            return None
+        near = cost <= cost[best] + CHI2_68_2DOF
+        spread = math.sqrt(np.mean((east[near] - east[best]) ** 2 + (north[near] - north[best]) ** 2) / 2)
+        return nodes[best], spread
 
     def check_frame(self, origin: tuple[float, float, float], what: str) -> None:
         """ValueError unless the map was made in the frame with ``origin`` (within a metre)."""
@@ -209,7 +257,6 @@ class SurveyConfig:
     smoothing_m: float = 15.0
     min_weight: float = 3.0
     arrivals_per_group: float = 5.0
-    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
         for name in ("step_m", "smoothing_m", "min_weight", "arrivals_per_group"):
@@ -224,10 +271,9 @@ def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: 
     heard them.
 
     Within one stack every site reads the same receiver clock, so what two sites read beyond
-    their true distances differs by their biases alone. The clock's trend is taken from a
-    calibration fit (``calibrate_sites``: a polynomial per segment, which also keeps a site's
-    arrivals some milliseconds apart in one stack on one clock); what is left common to a
-    stack is its own offset. Offsets and per-site maps are then fitted in turns (each map a
+    their true distances differs by their biases alone (their arrivals lie within a frame, 10 ms,
+    over which a receiver clock a few ppm off moves by metres); what is common to a stack is its
+    own offset. Offsets and per-site maps are then fitted in turns (each map a
     Gaussian-kernel average of its site's biases, Huber-trimmed: a false lock a sample off is not
     a pull); their gauge: the maps average zero over the survey's arrivals. Stacks hearing one
     site say nothing of any bias and are left out."""
@@ -236,8 +282,7 @@ def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: 
     flat = [o for stack in stacks for o in stack]
     if not flat:
         raise ValueError("a survey needs stacks that heard two or more sites at known positions, got none")
-    clock = calibrate_sites(flat, config.calibration).clock
-    stack, read = _clock_read(stacks, clock)
+    stack, read = _stack_read(stacks)
     # what reads a kilometre off its stack's other sites is no pull (a false lock, a wrong clock):
     # left out, and stacks left with one site with it
     kept = np.abs(read - _stack_medians(stack, read)[stack]) <= MAX_BIAS_M
@@ -247,7 +292,7 @@ def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: 
     if not flat:
         raise ValueError(f"no two sites of one stack read within {MAX_BIAS_M:g} m of each other beyond their true "
                          "distances: the survey's positions or the tower database are wrong")
-    stack, read = _clock_read(stacks, clock)
+    stack, read = _stack_read(stacks)
     truth = np.array([o.truth_enu for o in flat], dtype=np.float64)[:, :2]
     sites = np.array([o.arrival.position_enu for o in flat], dtype=np.float64)
     names = np.array([o.arrival.site for o in flat])
@@ -276,14 +321,16 @@ def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: 
     return BiasMap(origin, grids, made_by)
 
 
-def _clock_read(stacks: Sequence[Sequence[CalibrationObservation]], clock: ReceiverClock) -> tuple[np.ndarray, np.ndarray]:
-    """Each arrival's stack index and what it reads beyond its true distance and the clock (m)."""
+def _stack_read(stacks: Sequence[Sequence[CalibrationObservation]]) -> tuple[np.ndarray, np.ndarray]:
+    """Each arrival's stack index and what it reads beyond its true distance (m), against its
+    stack's first arrival (the frame's ambiguity taken out)."""
     flat = [o for stack in stacks for o in stack]
     stack = np.repeat(np.arange(len(stacks)), [len(s) for s in stacks])
     truth = np.array([o.truth_enu for o in flat], dtype=np.float64)
     sites = np.array([o.arrival.position_enu for o in flat], dtype=np.float64)
     y_mod = np.array([o.arrival.range_mod_m for o in flat]) - np.linalg.norm(truth - sites, axis=1)
-    return stack, unwrap_range(y_mod - clock.bias_m(np.array([o.arrival.time_s for o in flat])), 0.0)
+    first = np.searchsorted(stack, np.arange(len(stacks)))
+    return stack, unwrap_range(y_mod - y_mod[first][stack], 0.0)
 
 
 def _stack_medians(stack: np.ndarray, values: np.ndarray) -> np.ndarray:
