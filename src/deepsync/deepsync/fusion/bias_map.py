@@ -32,6 +32,7 @@ import dataclasses
 import functools
 import itertools
 import math
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +43,8 @@ from scipy.spatial import cKDTree
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.snapshot import chi_square_limit
+from deepsync.schema import check_settings, setting
+from deepsync.towers import TowerDatabase
 
 FORMAT = "deepsync-bias-map-1"
 MAX_BIAS_M = 1000.0  # beyond any NLOS pull (6.7 samples at 1.92 MHz)
@@ -208,6 +211,13 @@ class BiasMap:
             raise ValueError(f"bias map ({self.made_by or 'no source'}) was made in the frame at {self.origin}, "
                              f"{what} is at {tuple(origin)}: use a map made with the same tower database's origin")
 
+    def check_database(self, towers: TowerDatabase) -> None:
+        """ValueError unless ``towers`` has an origin and the map was made in its ``map`` frame."""
+        if towers.origin is None:
+            raise ValueError(f"tower database {towers.name!r} has no origin: a bias map needs the map frame's")
+        origin = towers.origin
+        self.check_frame((origin.latitude_deg, origin.longitude_deg, origin.height_m), f"tower database {towers.name!r}")
+
 
 def save_bias_map(bias_map: BiasMap, path: str | Path) -> Path:
     """Write ``bias_map`` as one ``.npz`` file (no pickles)."""
@@ -230,7 +240,11 @@ def save_bias_map(bias_map: BiasMap, path: str | Path) -> Path:
 def load_bias_map(path: str | Path) -> BiasMap:
     """Read a map written by :func:`save_bias_map`; ValueError naming the file and what is wrong."""
     path = Path(path)
+    if not path.exists():
+        raise ValueError(f"bias map {str(path)!r} does not exist")
     try:
+        if not zipfile.is_zipfile(path):  # numpy would try it as a pickle, and say so
+            raise ValueError(f"not a DeepSync bias map (an .npz archive, {FORMAT})")
         with np.load(path, allow_pickle=False) as data:
             if "format" not in data or str(data["format"]) != FORMAT:
                 raise ValueError(f"not a DeepSync bias map ({FORMAT})")
@@ -241,28 +255,26 @@ def load_bias_map(path: str | Path) -> BiasMap:
                 sites[name] = BiasGrid(x0, y0, step, data[f"mean{k}"], data[f"std{k}"])
             return BiasMap(tuple(float(v) for v in data["origin"]), sites, str(data["made_by"]),
                            float(data["min_std_m"]))
-    except FileNotFoundError:
-        raise ValueError(f"bias map {str(path)!r} does not exist") from None
     except (OSError, KeyError, ValueError, TypeError) as error:
         raise ValueError(f"bias map {str(path)!r} cannot be read: {error}") from None
 
 
 @dataclass(frozen=True)
 class SurveyConfig:
-    """``step_m``: the grid's spacing; ``smoothing_m``: the Gaussian kernel's 1-sigma over which
-    arrivals are averaged (shorter than the pull's 40 m decorrelation, longer than a stack's
-    walk); a node needs ``min_weight`` arrivals' worth of kernel weight to be known."""
+    """How a survey becomes a map (:func:`survey_bias_map`)."""
 
-    step_m: float = 10.0
-    smoothing_m: float = 15.0
-    min_weight: float = 3.0
-    arrivals_per_group: float = 5.0
+    step_m: float = setting(10.0, help="Spacing of the bias map's grid.", unit="m", bounds=(0.0, 1e4), open_low=True)
+    smoothing_m: float = setting(15.0, help="1-sigma of the Gaussian kernel over which a survey's arrivals are "
+                                 "averaged into a node: shorter than the pull's 40 m decorrelation, longer than "
+                                 "a stack's walk.", unit="m", bounds=(0.0, 1e4), open_low=True)
+    min_weight: float = setting(3.0, help="Arrivals' worth of kernel weight a node needs to be known.",
+                                bounds=(0.0, 1e4), open_low=True)
+    arrivals_per_group: float = setting(5.0, help="Arrivals counted as one independent measurement of a pull "
+                                        "(overlapping stacks, a pull that holds for tens of metres).",
+                                        bounds=(0.0, 1e4), open_low=True)
 
     def __post_init__(self) -> None:
-        for name in ("step_m", "smoothing_m", "min_weight", "arrivals_per_group"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1e4:
-                raise ValueError(f"{name}: {value!r} must be a positive number (<= 1e4)")
+        check_settings(self)
 
 
 def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: tuple[float, float, float],
