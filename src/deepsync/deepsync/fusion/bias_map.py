@@ -269,10 +269,6 @@ class SurveyConfig:
                                  "a stack's walk.", unit="m", bounds=(0.0, 1e4), open_low=True)
     min_weight: float = setting(3.0, help="Arrivals' worth of kernel weight a node needs to be known.",
                                 bounds=(0.0, 1e4), open_low=True)
-    arrivals_per_group: float = setting(5.0, help="Arrivals counted as one independent measurement of a pull "
-                                        "(overlapping stacks, a pull that holds for tens of metres).",
-                                        bounds=(0.0, 1e4), open_low=True)
-
     def __post_init__(self) -> None:
         check_settings(self)
 
@@ -360,18 +356,17 @@ def _kernel_average(points: np.ndarray, values: np.ndarray, queries: np.ndarray,
     query, point = pairs["i"], pairs["j"]
     weight = np.exp(-0.5 * (pairs["v"] / config.smoothing_m) ** 2)
     n = len(queries)
-    mean = spread = np.zeros(n)
+    # the sigma is what a new run's arrival meets there: the survey's own spread about the mean,
+    # not the mean's standard error (tighter sigmas made the route set's tracks follow a map read
+    # a node off, and lose 20 m on two of three walks)
+    mean = std = np.zeros(n)
     for round_ in range(2):
         if round_:
-            weight = np.where(np.abs(values[point] - mean[query]) <= 3 * np.maximum(spread[query], 1.0), weight, 0.0)
+            weight = np.where(np.abs(values[point] - mean[query]) <= 3 * np.maximum(std[query], 1.0), weight, 0.0)
         total = np.bincount(query, weight, n)
         safe = np.maximum(total, 1e-300)
         mean = np.bincount(query, weight * values[point], n) / safe
-        spread = np.sqrt(np.maximum(np.bincount(query, weight * values[point] ** 2, n) / safe - mean**2, 0.0))
-    # the sigma of the mean: the spread over the arrivals' effective number, counted in independent
-    # groups (overlapping stacks repeat one arrival's noise, and a pull holds for tens of metres)
-    effective = total**2 / np.maximum(np.bincount(query, weight**2, n), 1e-300) / config.arrivals_per_group
-    std = spread / np.sqrt(np.maximum(effective, 1.0))
+        std = np.sqrt(np.maximum(np.bincount(query, weight * values[point] ** 2, n) / safe - mean**2, 0.0))
     # a survey knows the pull where it went, not beside it: a node further than a kernel sigma
     # from every arrival is unknown (the pull changes over tens of metres across the street too)
     nearest = cKDTree(points).query(queries, distance_upper_bound=config.smoothing_m)[0]
