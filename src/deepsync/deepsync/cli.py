@@ -1,5 +1,5 @@
 """The ``deepsync`` command: simulate recordings, inspect bags, detect cells, evaluate a route,
-calibrate site clocks, run the demo.
+calibrate site clocks, survey site bias maps, run the demo.
 
 Argument parsing and printing only: the work is done by the pipeline (``deepsync.pipeline``)
 over a source (``deepsync.sources``), and reported by ``deepsync.eval``."""
@@ -24,11 +24,12 @@ from deepsync.bag import POSE_TOPIC, BagError, BagInfo, bag_info
 from deepsync.configio import ConfigError
 from deepsync.eval.cell_search import CellSearch, SearchedStack
 from deepsync.eval.compare import DEFAULT_TOLERANCE_M, compare_poses
+from deepsync.fusion.bias_map import BiasMap, SurveyConfig, load_bias_map
 from deepsync.jobs import JobRunner
 from deepsync.motion import DEFAULT_MOTION, MOTION
 from deepsync.numeric import one_blas_thread
 from deepsync.pipeline import PipelineConfig, StackResult, setting_paths
-from deepsync.schema import Setting, add_flag
+from deepsync.schema import Setting, add_flag, settings
 from deepsync.sources import BagSource, SampleFormat, open_source
 from deepsync.sync.stacking import StackConfig
 from deepsync.timing import network_install_hint
@@ -107,6 +108,20 @@ def _aiding_plan(args: argparse.Namespace):
     from deepsync.eval.aiding import AidingPlan
 
     return AidingPlan(args.gnss_interval, args.gnss_std, args.odometry_std)
+
+
+def _bias_map_argument(command: argparse.ArgumentParser) -> None:
+    command.add_argument("--bias-map", metavar="MAP.npz",
+                         help="site bias map (deepsync survey-map) made with the same tower database: each mapped "
+                         "site's range bias where the survey went comes off its ranges before fusion")
+
+
+def _bias_map(args: argparse.Namespace) -> BiasMap | None:
+    return None if args.bias_map is None else load_bias_map(args.bias_map)
+
+
+def _bias_map_text(bias_map: BiasMap | None) -> str:
+    return "" if bias_map is None else f"; bias map of {len(bias_map.sites)} site(s) ({bias_map.made_by})"
 
 
 def _job_arguments(command: argparse.ArgumentParser, workers: int) -> None:
@@ -252,8 +267,10 @@ def _cmd_evaluate_routes(args: argparse.Namespace) -> int:
 
     runner = JobRunner(args.workers, args.ray)
     aiding = _aiding_plan(args)
-    print(f"route evaluation of {len(args.bag)} bag(s) with {args.towers}, on {runner.description}; {aiding.describes}")
-    for bag, summary in evaluate_route_set(args.bag, args.towers, args.out, runner, _pipeline_config(args), aiding):
+    print(f"route evaluation of {len(args.bag)} bag(s) with {args.towers}, on {runner.description}; {aiding.describes}"
+          + ("" if args.bias_map is None else f"; bias map {args.bias_map}"))
+    for bag, summary in evaluate_route_set(args.bag, args.towers, args.out, runner, _pipeline_config(args), aiding,
+                                           args.bias_map):
         print(f"  {bag}: {summary['stacks']} stacks, heard {', '.join(summary['sites_heard']) or 'no site'}")
     print(f"  written: {write_table(args.out, args.bag)}")
     return 0
@@ -461,15 +478,16 @@ def _cmd_evaluate_route(args: argparse.Namespace) -> int:
 
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
+    bias_map = _bias_map(args)
     config = _pipeline_config(args)
     aiding = _aiding_plan(args)
     print(f"route evaluation of {source.description}\n  tower database {args.towers}, "
-          f"{_stacks_text(config, args.motion)}; {aiding.describes}")
+          f"{_stacks_text(config, args.motion)}; {aiding.describes}{_bias_map_text(bias_map)}")
     initial_pose = None if args.initial_pose_std is None else InitialPose(args.initial_pose_std)
     if initial_pose is not None:
         print(f"  the tracker starts from the true start position off by N(0, {args.initial_pose_std:g} m) per axis")
-    summary, paths = evaluate_route(source, towers, Path(args.out), config,
-                                    progress=not args.quiet, initial_pose=initial_pose, aiding=aiding)
+    summary, paths = evaluate_route(source, towers, Path(args.out), config, progress=not args.quiet,
+                                    initial_pose=initial_pose, aiding=aiding, bias_map=bias_map)
     _print_route(summary)
     print("  written: " + ", ".join(str(p) for p in paths))
     return 130 if summary["interrupted"] else 0
@@ -501,16 +519,39 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_survey_map(args: argparse.Namespace) -> int:
+    from deepsync.eval.bias_map import survey_route
+    from deepsync.fusion.bias_map import save_bias_map
+
+    source = BagSource(args.bag)
+    towers = load_tower_database(args.towers)
+    config = _pipeline_config(args)
+    survey = SurveyConfig(step_m=args.step_m, smoothing_m=args.smoothing_m)
+    print(f"site bias map from {source.description}\n  tower database {args.towers}, "
+          f"{_stacks_text(config, args.motion)}; grid every {survey.step_m:g} m, kernel {survey.smoothing_m:g} m")
+    surveyed = survey_route(source, towers, config, survey, progress=not args.quiet)
+    print(f"  {surveyed.stacks_used} of {len(surveyed.run.epochs)} stacks heard two sites or more; biases relative "
+          "to the other sites (a bias common to all is the receiver clock)")
+    for site in surveyed.sites:
+        known = (f"{site.known_nodes} nodes known, bias {site.low_m:+.0f} to {site.high_m:+.0f} m" if site.known_nodes
+                 else "no node known (heard too seldom)")
+        print(f"    site {site.site}: {known}")
+    print(f"  written: {save_bias_map(surveyed.bias_map, args.out)}")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from deepsync.replay import parse_stages, replay_bag
 
     stages = parse_stages(args.stages)
     towers = None if args.towers is None else load_tower_database(args.towers)
+    bias_map = _bias_map(args)
     config = _pipeline_config(args)
     print(f"replay of {args.bag} through {', '.join(stages)}; "
-          + (f"tower database {args.towers}" if towers else "no tower database") + f", {_stacks_text(config, args.motion)}")
-    summary = replay_bag(args.bag, args.out, towers, config, stages=stages,
-                         copy_inputs=args.copy_inputs, overwrite=args.overwrite, progress=not args.quiet, say=_say)
+          + (f"tower database {args.towers}" if towers else "no tower database") + f", {_stacks_text(config, args.motion)}"
+          + _bias_map_text(bias_map))
+    summary = replay_bag(args.bag, args.out, towers, config, stages=stages, copy_inputs=args.copy_inputs,
+                         overwrite=args.overwrite, progress=not args.quiet, say=_say, bias_map=bias_map)
     print(f"  {summary.inputs} input messages, {summary.stacks} stacks, {summary.signal_seconds:.1f} s of signal in "
           f"{summary.wall_seconds:.1f} s ({summary.realtime_factor:.1f}x real time)")
     print(f"  written to {summary.out}: " + (", ".join(f"{t} {n}" for t, n in summary.written.items()) or "nothing"))
@@ -748,6 +789,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
                        "sites are heard to start)")
     _aiding_arguments(route)
+    _bias_map_argument(route)
     route.set_defaults(run=_cmd_evaluate_route)
 
     routes = commands.add_parser("evaluate-routes", help="evaluate-route on many bags, in local processes or on a "
@@ -756,6 +798,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "tower database YAML with origin, positions and timing", many_bags=True)
     routes.add_argument("--out", required=True, type=_output_file, help="where the reports (one directory per bag) go")
     _aiding_arguments(routes)
+    _bias_map_argument(routes)
     _job_arguments(routes, workers)
     routes.set_defaults(run=_cmd_evaluate_routes)
 
@@ -771,7 +814,19 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--copy-inputs", action="store_true",
                         help="also copy every input topic (the envelope too); the truth is always copied")
     replay.add_argument("--overwrite", action="store_true", help="replace an existing bag")
+    _bias_map_argument(replay)
     replay.set_defaults(run=_cmd_replay)
+
+    survey_map = commands.add_parser("survey-map", help="a site bias map from a recording with ground truth: each "
+                                     "heard site's range bias where the recording went, for --bias-map")
+    _replay_arguments(survey_map, "bag with /deepsync/envelope and /deepsync/truth/pose (a simulated walk, or one "
+                      "at surveyed positions)", "tower database YAML the map will be used with (origin, positions "
+                      "and timing: its site clocks are the rest of each site's bias)")
+    survey_map.add_argument("--out", required=True, type=_output_file, help="the bias map (.npz) to write")
+    surveying = settings(SurveyConfig)
+    add_flag(survey_map, surveying["step_m"], "--step-m", default=SurveyConfig().step_m)
+    add_flag(survey_map, surveying["smoothing_m"], "--smoothing-m", default=SurveyConfig().smoothing_m)
+    survey_map.set_defaults(run=_cmd_survey_map)
 
     calibrate = commands.add_parser("calibrate", help="estimate each heard site's frame timing offset and drift "
                                     "from a recording with ground truth; write the updated tower database")

@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
 
 from deepsync.frontend.config import FrontendConfig
+from deepsync.fusion.bias_map import BiasMap
 from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage
 from deepsync.motion import DEFAULT_MOTION, MOTION, MotionModel, motion_model
 from deepsync.schema import Setting, settings
@@ -210,16 +211,22 @@ class Pipeline:
     """Sync, timing and fusion stages for one front end (and one tower database, if any).
 
     ``frontend`` None builds no sync or timing stage: a pipeline that only fuses arrivals (a
-    bag of ``CellTimingArray``) needs no templates and so no front end.
+    bag of ``CellTimingArray``) needs no templates and so no front end. ``bias_map``: the sites'
+    range biases known from a survey, for fusion (``deepsync.fusion.bias_map``); ValueError
+    with one but no fusion, or one made in another frame than the database's.
     """
 
     def __init__(self, frontend: FrontendConfig | None, config: PipelineConfig | None = None,
-                 towers: TowerDatabase | None = None) -> None:
+                 towers: TowerDatabase | None = None, *, bias_map: BiasMap | None = None) -> None:
         self.config = config or PipelineConfig()
         self.frontend = frontend
+        fusing = places_sites(towers)
+        if bias_map is not None and not fusing:
+            raise ValueError("a bias map corrects fusion's site ranges, and there is no fusion without a tower "
+                             "database that places its sites (an origin, positions and timing offsets)")
         self.sync = None if frontend is None else SyncStage(frontend, self.config.sync, towers)
         self.timing = None if frontend is None else TimingStage(frontend, self.config.timing, self.sync.templates)
-        self.fusion = FusionStage(towers, self.config.fusion) if places_sites(towers) else None
+        self.fusion = FusionStage(towers, self.config.fusion, bias_map=bias_map) if fusing else None
 
     def reconfigure(self, config: PipelineConfig) -> None:
         """Run on with ``config`` (:meth:`PipelineConfig.reconfiguration`: only what needs no

@@ -59,6 +59,7 @@ from deepsync.bag import (
 )
 from deepsync.bag.convert import CELL_TIMING_ARRAY, ENVELOPE_SAMPLES, SYNC_WINDOW_ARRAY
 from deepsync.frontend.config import FrontendConfig
+from deepsync.fusion.bias_map import BiasMap
 from deepsync.fusion.stage import FusionResult, answer_counts, sites_per_stack
 from deepsync.pipeline import Pipeline, PipelineConfig, TimedStack, places_sites
 from deepsync.sources.bagfile import bag_dir, check_same_frame, recorded_frontend
@@ -142,7 +143,7 @@ def open_input(path: str | Path) -> tuple[BagReader | SalvageReader, str | None]
 
 
 def _provenance(recorded: str | None, path: Path, stages: Sequence[str], towers: TowerDatabase | None,
-                frontend: FrontendConfig | None) -> str:
+                frontend: FrontendConfig | None, bias_map: BiasMap | None) -> str:
     """The input's provenance (its truth: sites, origin) with what this replay did added, so
     the output bag can be replayed again and scored like the input."""
     try:
@@ -150,7 +151,8 @@ def _provenance(recorded: str | None, path: Path, stages: Sequence[str], towers:
     except BagError:  # the input's own, unreadable: this replay's provenance alone
         document = {}
     document["replay"] = {"input": str(path), "input_generator": document.get("generator"), "stages": list(stages),
-                          "towers": None if towers is None else towers.name}
+                          "towers": None if towers is None else towers.name,
+                          "bias_map": None if bias_map is None else bias_map.made_by}
     document["generator"] = f"deepsync {deepsync.__version__} replay"
     if frontend is not None:
         document["frontend"] = asdict(frontend)
@@ -166,6 +168,7 @@ class _Replayer:
     out: BagWriter
     stages: tuple[str, ...]
     towers: TowerDatabase | None
+    bias_map: BiasMap | None
     config: PipelineConfig
     on_stack: Callable[[TimedStack, Pipeline], None] | None
     pipeline: Pipeline | None = None
@@ -191,11 +194,11 @@ class _Replayer:
             frontend = None if self.stages[0] == "fusion" else recorded_frontend(
                 self.bag.provenance, sample_rate, self.bag.path)
             try:
-                self.pipeline = Pipeline(frontend, self.config, self.towers)
+                self.pipeline = Pipeline(frontend, self.config, self.towers, bias_map=self.bias_map)
             except ValueError as error:  # a rate the stages cannot serve: the whole replay stops, naming the bag
                 raise ValueError(f"{self.bag.path}: {error}") from None
             self.out.set_provenance(_provenance(self.bag.provenance, self.bag.path, self.stages, self.towers,
-                                                frontend))
+                                                frontend, self.bias_map))
         return self.pipeline
 
     def _count(self, health: Sequence[Health]) -> None:
@@ -291,11 +294,14 @@ def _check_output_apart(bag: str | Path, out_dir: str | Path) -> None:
 def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | None = None,
                config: PipelineConfig | None = None, *, stages: Sequence[str] = STAGES, copy_inputs: bool = False,
                overwrite: bool = False, progress: bool = True, say: Callable[[str], None] | None = None,
-               on_stack: Callable[[TimedStack, Pipeline], None] | None = None) -> ReplaySummary:
+               on_stack: Callable[[TimedStack, Pipeline], None] | None = None,
+               bias_map: BiasMap | None = None) -> ReplaySummary:
     """Replay ``bag`` through ``stages`` into the bag ``out_dir`` (see the module docstring).
 
     ``towers`` None: the cell search runs blind and fusion is left out. ``copy_inputs`` copies
     every input topic (the envelope too) beside the truth, except those the replay produces.
+    ``bias_map`` corrects fusion's site ranges (refused where fusion does not run, or for a map
+    made in another frame than ``towers``').
     ``say`` gets each note as it arises (a blind search, fusion skipped); ``on_stack`` every
     stack that went through timing, with its fusion, and the pipeline (what the demo scores). Raises BagError / ValueError, leaving
     nothing, for input it cannot start on (no such topic, a wrong type, a stage list that is no
@@ -327,14 +333,19 @@ def replay_bag(bag: str | Path, out_dir: str | Path, towers: TowerDatabase | Non
             note(f"fusion skipped: {why}; no pose is published")
         if "fusion" in stages:  # the poses beside the copied truth, both in "map": one frame
             check_same_frame(source.provenance, bag, towers)
+        if bias_map is not None:
+            if "fusion" not in stages:
+                raise ValueError(f"a bias map corrects fusion, which this replay does not run (stages "
+                                 f"{','.join(stages)})")
+            bias_map.check_database(towers)
         if stages[0] == "sync" and towers is None:
             note("no tower database: the cell search runs blind (all 504 PCIs)")
         produced = {topic for stage in stages for topic in STAGE_OUTPUT[stage]}
         copied = _copied_topics(source, stages, copy_inputs, produced, note)
         input_topic = STAGE_INPUT[stages[0]][0]
         with BagWriter(out_dir, overwrite=overwrite) as out:
-            replayer = _Replayer(source, out, stages, towers, config, on_stack)
-            out.set_provenance(_provenance(source.provenance, source.path, stages, towers, None))
+            replayer = _Replayer(source, out, stages, towers, bias_map, config, on_stack)
+            out.set_provenance(_provenance(source.provenance, source.path, stages, towers, None, bias_map))
             total = source.message_counts.get(input_topic) if isinstance(source, BagReader) else None
             bar = tqdm(total=total, unit="msg", disable=not progress, desc="replay")
             damage = None

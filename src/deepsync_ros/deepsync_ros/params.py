@@ -31,6 +31,7 @@ from typing import TypeVar
 from deepsync.bag.convert import ANTENNA_FRAME_ID, ENVELOPE_FRAME_ID, MAP_FRAME_ID
 from deepsync.configio import build_dataclass, load_yaml
 from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
+from deepsync.fusion.bias_map import BiasMap, load_bias_map
 from deepsync.fusion.stage import FusionConfig
 from deepsync.motion import DEFAULT_MOTION, MOTION
 from deepsync.pipeline import PipelineConfig, places_sites, setting_paths
@@ -238,16 +239,18 @@ PUBLISH_NO_FIX = ParamSpec("publish_no_fix", True, "For a stack without a fix, p
                            "way).")
 FUSION_TOWERS = ParamSpec("towers", "", "Tower database YAML placing the sites (origin, positions, timing "
                           "offsets). Required.")
+BIAS_MAP = ParamSpec("bias_map", "", "Site bias map (.npz, deepsync survey-map) made with the same tower database: "
+                     "each mapped site's range bias where the survey went comes off its ranges. Empty: none.")
 
 ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME, WAIT_FOR_SUBSCRIBERS)
 CELL_SYNC = (TOWERS, FRONTEND, MOTION_PARAM, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the "
                                                         "published windows (the stream's frame)."),
              WAIT_FOR_SUBSCRIBERS)
 CELL_TIMING = (FRONTEND, *TIMING, WAIT_FOR_SUBSCRIBERS)
-TDOA_FUSION = (FUSION_TOWERS, MOTION_PARAM, *FUSION, *AIDING, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES,
+TDOA_FUSION = (FUSION_TOWERS, BIAS_MAP, MOTION_PARAM, *FUSION, *AIDING, INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES,
                PUBLISH_NO_FIX, WAIT_FOR_SUBSCRIBERS)
-DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, MOTION_PARAM, *SYNC, *TIMING, *FUSION, *AIDING, INITIAL_POSE_MIN_STD,
-                     *OUTPUT_FRAMES, PUBLISH_NO_FIX, WAIT_FOR_SUBSCRIBERS)
+DEEPSYNC_PIPELINE = (*SOURCE, SOURCE_FRAME, TOWERS, BIAS_MAP, MOTION_PARAM, *SYNC, *TIMING, *FUSION, *AIDING,
+                     INITIAL_POSE_MIN_STD, *OUTPUT_FRAMES, PUBLISH_NO_FIX, WAIT_FOR_SUBSCRIBERS)
 
 NODES: dict[str, tuple[ParamSpec, ...]] = {
     "envelope_adc": ENVELOPE_ADC,
@@ -355,6 +358,24 @@ def towers(values: Mapping[str, ParamValue], node: str, *, required: bool = Fals
         raise ParameterError(f"{node}.towers: database {database.name!r} ({path}) places no site: fixes need a map "
                              "origin and sites with position and timing_offset_us")
     return database
+
+
+def bias_map(values: Mapping[str, ParamValue], node: str, towers: TowerDatabase | None) -> BiasMap | None:
+    """The bias map ``bias_map`` names, for fusion with ``towers``; None for "". Refused where
+    there is no fusion (no database that places its sites) or the map was made in another frame."""
+    path = str(values["bias_map"])
+    if not path:
+        return None
+    _existing(path, node, "bias_map")
+    if not places_sites(towers):
+        raise ParameterError(f"{node}.bias_map: a bias map corrects fusion's site ranges, and there is no fusion "
+                             "without a tower database that places its sites (towers)")
+    try:
+        loaded = load_bias_map(path)
+        loaded.check_database(towers)
+    except ValueError as error:
+        raise ParameterError(f"{node}.bias_map: {error}") from None
+    return loaded
 
 
 def load_frontend(path: str | os.PathLike) -> FrontendConfig:

@@ -6,7 +6,7 @@ Plays a source as ``envelope_adc`` does (same parameters, pacing and /clock) str
 for every stack, ``pose`` and ``fix`` for every stack with a fix. Without a tower database that
 places its sites there is no fusion, and only ``cell_timing`` is published. A pose on
 ``/initialpose`` restarts the tracker from there, GNSS fixes and odometry aid it and the learned
-tower database is written, as in ``tdoa_fusion``.
+tower database is written, and a ``bias_map`` corrects the sites' ranges, as in ``tdoa_fusion``.
 """
 
 from __future__ import annotations
@@ -43,10 +43,11 @@ class PipelineNode(DeepSyncNode):
 
     def setup(self, values: Mapping[str, ParamValue]) -> None:
         towers = params.towers(values, self.NAME)
+        bias_map = params.bias_map(values, self.NAME, towers)
         config = params.pipeline_config(values, self.NAME)
         source = params.source(values, self.NAME)
         try:
-            self.pipeline = Pipeline(source.frontend, config, towers)
+            self.pipeline = Pipeline(source.frontend, config, towers, bias_map=bias_map)
         except ValueError as error:  # no templates for the recording's front end (its rate)
             raise ParameterError(f"{self.NAME}.source: {error}") from None
         self.frame_id = str(values["frame_id"])

@@ -11,7 +11,8 @@ why (too few sites, unknown PCIs, geometry, a lost track, ...), and list every c
 ``/initialpose`` (RViz's "2D Pose Estimate") restarts the tracker from there: one heard site is
 then enough. With ``use_gnss`` it takes ``gnss/fix`` (NavSatFix) as anchors, with
 ``use_odometry`` ``odometry`` (Odometry) as velocities (``deepsync_ros.aiding``); with
-``learned_towers`` it writes what it learned of the sites to that file. The tracker counts the
+``learned_towers`` it writes what it learned of the sites to that file; with ``bias_map`` a
+survey's site bias map (``deepsync survey-map``) corrects the sites' ranges. The tracker counts the
 overlap of the stacks each ``CellTimingArray`` says it came from (``stack_frames`` /
 ``stack_hop_frames``: cell_sync's), the motion model's where a message does not say.
 """
@@ -47,8 +48,9 @@ class TdoaFusionNode(DeepSyncNode):
 
     def setup(self, values: Mapping[str, ParamValue]) -> None:
         towers = params.towers(values, self.NAME, required=True)
+        bias_map = params.bias_map(values, self.NAME, towers)
         # fusion alone: it follows the stacks the arrivals say cell_sync used (Pipeline.fuse_arrivals)
-        self.pipeline = Pipeline(None, params.fusing_config(values, self.NAME), towers)
+        self.pipeline = Pipeline(None, params.fusing_config(values, self.NAME), towers, bias_map=bias_map)
         self.stage = self.pipeline.fusion
         self.health = StageHealth()
         self.cells = CellTable()
@@ -61,7 +63,9 @@ class TdoaFusionNode(DeepSyncNode):
                                                      self._on_arrivals, RESULTS_QOS)
         self.add_diagnostic("position fix", self.health.report)
         self.add_diagnostic("cells", self.cells.report)
-        self.get_logger().info(f"fixes against tower database {towers.name!r} ({len(towers.sites)} sites)")
+        self.get_logger().info(f"fixes against tower database {towers.name!r} ({len(towers.sites)} sites)"
+                               + ("" if bias_map is None else f", bias map of {len(bias_map.sites)} sites "
+                                  f"({bias_map.made_by})"))
 
     def _on_arrivals(self, message: CellTimingArray) -> None:
         arrived = time.monotonic()

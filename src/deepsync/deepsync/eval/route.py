@@ -30,6 +30,7 @@ from deepsync.eval.route_scores import CHI2_2DOF_95, METHODS, horizontal_error, 
 from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.rssi import RssiAverager, RssiConfig, fit_path_loss, solve_rssi
+from deepsync.fusion.bias_map import BiasMap
 from deepsync.fusion.snapshot import position_bound
 from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage, answer_counts, sites_per_stack
 from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
@@ -68,8 +69,8 @@ def read_truth_track(bag: str | Path) -> TruthTrack:
     """The bag's ``/deepsync/truth/pose`` track; ValueError naming the bag if it has none."""
     with BagReader(bag) as reader:
         if TRUTH_POSE_TOPIC not in reader.topics:
-            raise ValueError(f"{bag}: no ground truth ({TRUTH_POSE_TOPIC}); evaluating or calibrating a route "
-                             "needs a simulated recording or one with surveyed positions")
+            raise ValueError(f"{bag}: no ground truth ({TRUTH_POSE_TOPIC}); evaluating, calibrating or surveying a "
+                             "route needs a simulated recording or one with surveyed positions")
         poses = [(stamp_to_ns(item.message.header.stamp), position_from_pose_msg(item.message))
                  for item in reader.messages([TRUTH_POSE_TOPIC])]
     if len(poses) < 2:
@@ -118,6 +119,12 @@ class RouteRun:
         was when its code arrived."""
         return [CalibrationObservation(site, epoch.site_truth[site.site]) for epoch in self.epochs
                 if until_ns is None or epoch.stamp_ns <= until_ns for site in epoch.sites]
+
+    def observations_by_stack(self) -> list[list[CalibrationObservation]]:
+        """Every stack's sites with where the receiver truly was when each code arrived: a
+        survey (``fusion.bias_map.survey_bias_map``) compares sites within a stack."""
+        return [[CalibrationObservation(site, epoch.site_truth[site.site]) for site in epoch.sites]
+                for epoch in self.epochs]
 
 
 @dataclass
@@ -179,11 +186,12 @@ class InitialPose:
 
 
 def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None,
-               initial_pose: InitialPose | None = None, aiding: AidingPlan | None = None) -> RouteRun:
-    """Fusion over a replay's arrivals with ``towers``, every stack paired with the truth; the
-    tracker started from ``initial_pose`` where one is given, and given the GNSS fixes and
-    odometry ``aiding`` draws from the truth."""
-    stage = FusionStage(towers, config)
+               initial_pose: InitialPose | None = None, aiding: AidingPlan | None = None,
+               bias_map: BiasMap | None = None) -> RouteRun:
+    """Fusion over a replay's arrivals with ``towers`` (and ``bias_map``), every stack paired
+    with the truth; the tracker started from ``initial_pose`` where one is given, and given the
+    GNSS fixes and odometry ``aiding`` draws from the truth."""
+    stage = FusionStage(towers, config, bias_map=bias_map)
     plan = aiding or AidingPlan()
     truth = recorded.truth
     stamps = [arrivals.stamp_ns for arrivals in recorded.arrivals]
@@ -231,10 +239,12 @@ def score_stacks(bag: str, fused: Sequence[tuple[StackArrivals, FusionResult, in
 
 def replay_route(source: BagSource, towers: TowerDatabase, config: PipelineConfig | None = None,
                  progress: bool = True, initial_pose: InitialPose | None = None,
-                 aiding: AidingPlan | None = None) -> RouteRun:
-    """Replay and fuse in one go."""
+                 aiding: AidingPlan | None = None, bias_map: BiasMap | None = None) -> RouteRun:
+    """Replay and fuse in one go (a bias map made in another frame is refused before the replay)."""
     config = config or PipelineConfig()
-    return fuse_route(replay(source, towers, config, progress), towers, config.fusion, initial_pose, aiding)
+    if bias_map is not None:
+        bias_map.check_database(towers)
+    return fuse_route(replay(source, towers, config, progress), towers, config.fusion, initial_pose, aiding, bias_map)
 
 
 def _epoch(arrivals: StackArrivals, fusion: FusionResult, reference_ns: int, truth: TruthTrack,
@@ -437,9 +447,10 @@ def _epoch_record(epoch: RouteEpoch, run: RouteRun) -> dict:
 
 def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, config: PipelineConfig | None = None,
                    progress: bool = True, initial_pose: InitialPose | None = None,
-                   aiding: AidingPlan | None = None) -> tuple[dict, list[Path]]:
-    """Replay, score and report a route: the summary and the files written."""
-    run = replay_route(source, towers, config, progress, initial_pose, aiding)
+                   aiding: AidingPlan | None = None, bias_map: BiasMap | None = None) -> tuple[dict, list[Path]]:
+    """Replay, score and report a route (its fusion corrected by ``bias_map``): the summary and
+    the files written."""
+    run = replay_route(source, towers, config, progress, initial_pose, aiding, bias_map)
     if not run.epochs:
         raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
     model = add_rssi_fixes(run, RssiConfig(receiver_height_m=(config or PipelineConfig()).fusion.snapshot.receiver_height_m))

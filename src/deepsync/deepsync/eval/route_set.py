@@ -18,6 +18,7 @@ from pathlib import Path
 
 from deepsync.eval.aiding import AidingPlan
 from deepsync.eval.route import evaluate_route
+from deepsync.fusion.bias_map import load_bias_map
 from deepsync.jobs import JobRunner
 from deepsync.pipeline import PipelineConfig
 from deepsync.sources import BagSource
@@ -33,27 +34,30 @@ def report_dir(out_dir: str | Path, bag: str | Path) -> Path:
 
 
 def evaluate_route_set(bags: list[str | Path], towers: str | Path, out_dir: str | Path, runner: JobRunner,
-                       config: PipelineConfig | None = None,
-                       aiding: AidingPlan | None = None) -> Iterator[tuple[str, dict]]:
+                       config: PipelineConfig | None = None, aiding: AidingPlan | None = None,
+                       bias_map: str | Path | None = None) -> Iterator[tuple[str, dict]]:
     """(bag, summary) of every bag as its report is finished, the tracker given what ``aiding``
-    draws from each bag's truth; bags with a report are skipped."""
-    load_tower_database(towers)  # a bad database fails here, before any job starts
+    draws from each bag's truth and fusion corrected by the bias map file ``bias_map``; bags
+    with a report are skipped."""
+    database = load_tower_database(towers)  # a bad database or map fails here, before any job starts
+    if bias_map is not None:
+        load_bias_map(bias_map).check_database(database)
     names = [report_dir(out_dir, bag).name for bag in bags]
     if len(set(names)) < len(names):
         raise ValueError("two bags of the set have the same name: their reports would collide")
-    jobs = [(str(bag), str(towers), str(out_dir), config, aiding) for bag in bags
-            if not (report_dir(out_dir, bag) / REPORT).exists()]
+    jobs = [(str(bag), str(towers), str(out_dir), config, aiding, None if bias_map is None else str(bias_map))
+            for bag in bags if not (report_dir(out_dir, bag) / REPORT).exists()]
     return runner.map(_evaluate_one, jobs)
 
 
 def _evaluate_one(bag: str, towers: str, out_dir: str, config: PipelineConfig | None,
-                  aiding: AidingPlan | None) -> tuple[str, dict]:
+                  aiding: AidingPlan | None, bias_map: str | None) -> tuple[str, dict]:
     final = report_dir(out_dir, bag)
     final.parent.mkdir(parents=True, exist_ok=True)
     partial = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}."))
     try:
         summary, _ = evaluate_route(BagSource(bag), load_tower_database(towers), partial, config, progress=False,
-                                    aiding=aiding)
+                                    aiding=aiding, bias_map=None if bias_map is None else load_bias_map(bias_map))
         if final.exists():
             shutil.rmtree(final)
         os.replace(partial, final)

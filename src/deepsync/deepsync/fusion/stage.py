@@ -35,6 +35,7 @@ import numpy as np
 
 from deepsync.fusion.aiding import PositionAid, VelocityAid
 from deepsync.fusion.anchors import Anchors, SiteArrival, frame_reference_ns
+from deepsync.fusion.bias_map import BiasMap
 from deepsync.fusion.calibration import SiteCalibration, calibrated_database
 from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
@@ -153,9 +154,15 @@ class FusionStage:
     """Site ranges, snapshot solver and tracker for one tower database."""
 
     def __init__(self, towers: TowerDatabase, config: FusionConfig | None = None,
-                 frame: LocalFrame | None = None) -> None:
+                 frame: LocalFrame | None = None, bias_map: BiasMap | None = None) -> None:
         self.config = config or FusionConfig()
         self.anchors = Anchors(towers, frame)
+        if bias_map is not None:
+            f = self.anchors.frame
+            bias_map.check_frame((f.latitude_deg, f.longitude_deg, f.height_m), f"tower database {towers.name!r}")
+        self.bias_map = bias_map
+        self._reading: tuple[np.ndarray, float] | None = None  # the latest tracked fix and its sigma
+        self._matched: tuple[np.ndarray, float, float] | None = None  # the latest map match, its sigma, its time
         self.tracker = Tracker(self.config.tracker, len(self.anchors.anchors)) if self.config.track else None
         self.reference_ns: int | None = None
         self._last_stamp_ns: int | None = None
@@ -226,6 +233,21 @@ class FusionStage:
         covariance[:2, :2] = (axes * np.maximum(variances, c.gnss_min_std_m**2)) @ axes.T
         return PositionAid(time_s, position, covariance, "GNSS fix" + (f" ({fix.frame_id})" if fix.frame_id else ""))
 
+    def _mapped(self, sites: Sequence[SiteArrival], time_s: float) -> tuple[SiteArrival, ...]:
+        """The sites with the bias map's pull taken off, read where the map says the receiver
+        is (``BiasMap.locate``: three mapped sites or more), else at the latest such place,
+        widened by the speed prior since, else at the latest tracked fix; as they were where
+        none is known (the map never stops a site being used)."""
+        reading = self.bias_map.locate(sites)
+        if reading is not None:
+            self._matched = (reading[0], reading[1], time_s)
+        elif self._matched is not None:
+            where, spread, since = self._matched
+            reading = (where, math.hypot(spread, self.config.tracker.initial_speed_std_mps * (time_s - since)))
+        else:
+            reading = self._reading
+        return tuple(sites) if reading is None else self.bias_map.correct(sites, *reading)
+
     def learned_database(self) -> TowerDatabase | None:
         """The tower database with what the tracker has learned of each site with states: its
         range bias (with site clock states, its clock offset and drift) folded into the site's
@@ -258,12 +280,15 @@ class FusionStage:
             self._latest_aid_ns.clear()
             if self.tracker is not None:
                 self.tracker.reset()
+            self._reading = self._matched = None
         if self.reference_ns is None:
             self.reference_ns = frame_reference_ns(arrivals.stamp_ns)
         self._last_stamp_ns = arrivals.stamp_ns
         sites, problems = self.anchors.site_arrivals(arrivals, self.reference_ns, self.config.min_std_m,
                                                      self.config.multipath_std_m)
         events = [Health(HealthKind.UNANCHORED, problem) for problem in problems]
+        if self.bias_map is not None:
+            sites = list(self._mapped(sites, (arrivals.stamp_ns - self.reference_ns) * 1e-9))
         clock_rate = None if arrivals.clock_drift_ppm is None else arrivals.clock_drift_ppm * 1e-6
         tracked = None
         prior = None
@@ -273,6 +298,7 @@ class FusionStage:
             tracked = self.tracker.update(sites, arrivals.stamp_ns, time_s, clock_rate)
             events += [Health(HealthKind.AIDING_REFUSED, note) for note in self.tracker.take_notes()]
             prior = tracked.position_enu if isinstance(tracked, Fix) else None
+            self._reading = None if prior is None else (np.asarray(prior), tracked.horizontal_std_m)
         if problems and not sites:
             unknown = NoFix(arrivals.stamp_ns, NoFixReason.UNKNOWN_SITES, "; ".join(problems))
             return FusionResult(tracked, (), tuple(events), lambda: unknown, self.config.tracker.max_std_m)
