@@ -302,7 +302,6 @@ def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: 
                          "distances: the survey's positions or the tower database are wrong")
     stack, read = _stack_read(stacks)
     truth = np.array([o.truth_enu for o in flat], dtype=np.float64)[:, :2]
-    sites = np.array([o.arrival.position_enu for o in flat], dtype=np.float64)
     names = np.array([o.arrival.site for o in flat])
     mine = {str(name): names == name for name in sorted(set(names))}
     mapped = np.zeros(len(flat))
