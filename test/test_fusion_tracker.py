@@ -655,3 +655,14 @@ def test_a_lost_track_starts_again_and_no_single_site_steers_it():
     assert "the track was lost" in (tracker.last_restart or "")
     restarted = [(fix, truth) for fix, truth in zip(outcomes[1500:], route.truth[1500:]) if isinstance(fix, Fix)]
     assert len(restarted) > 50 and all(horizontal_error(fix, truth) < 3 * fix.horizontal_std_m for fix, truth in restarted)
+
+
+def test_a_start_whose_solve_is_numerically_singular_has_no_covariance():
+    # information that rounding left indefinite (every site along one line, the solve run off to
+    # 1e9 m): inverted, its variances were -1e15 and read as a 0 m sigma, and a track started there
+    from deepsync.fusion.track_start import covariance_from_information
+
+    indefinite = np.array([[1.0, 1.0], [1.0, 1.0 - 1e-15]])
+    assert np.all(np.isinf(covariance_from_information(indefinite)))
+    assert np.all(np.isinf(covariance_from_information(np.ones((2, 2)))))  # exactly singular
+    np.testing.assert_allclose(covariance_from_information(np.diag([2.0, 4.0])), np.diag([0.5, 0.25]))
