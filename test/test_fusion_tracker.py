@@ -660,7 +660,7 @@ def test_a_lost_track_starts_again_and_no_single_site_steers_it():
 def test_a_start_whose_solve_is_numerically_singular_has_no_covariance():
     # information that rounding left indefinite (every site along one line, the solve run off to
     # 1e9 m): inverted, its variances were -1e15 and read as a 0 m sigma, and a track started there
-    from deepsync.fusion.track_start import covariance_from_information
+    from deepsync.numeric import covariance_from_information
 
     indefinite = np.array([[1.0, 1.0], [1.0, 1.0 - 1e-15]])
     assert np.all(np.isinf(covariance_from_information(indefinite)))

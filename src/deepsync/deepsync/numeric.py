@@ -1,5 +1,6 @@
-"""Numerical helpers every stage uses: the parabolic peak and the robust noise spread, and
-one BLAS thread for a process that runs the stages.
+"""Numerical helpers every stage uses: the parabolic peak and the robust noise spread, a
+least-squares covariance that refuses to exist where rounding broke it, and one BLAS thread
+for a process that runs the stages.
 
 The first two are used where a correlation is examined: a peak on a grid of lags is refined by
 the parabola through it and its two neighbours, and the noise of a correlation that holds a few
@@ -8,6 +9,8 @@ do not move.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -43,6 +46,19 @@ def mad_spread(values: ArrayLike, axis: int | None = None, keepdims: bool = Fals
         deviations = np.abs(values - centre) if centre else np.abs(values)
     # the deviations are this function's own: the median may reorder them in place (no copy)
     return MAD_TO_SIGMA * np.median(deviations, axis=axis, keepdims=keepdims, overwrite_input=True)
+
+
+def covariance_from_information(information: np.ndarray) -> np.ndarray:
+    """The inverse of a least-squares information matrix, or infinite variances where it has
+    none: singular, or so near it that rounding left the inverse indefinite (a track start whose
+    solve ran off to 1e9 m, every site seen along one line, got variances of -1e17 m^2, which
+    read as a 0 m sigma and started a track there)."""
+    try:
+        covariance = np.linalg.inv(information)
+        np.linalg.cholesky(covariance)
+        return covariance
+    except np.linalg.LinAlgError:
+        return np.full(information.shape, math.inf)
 
 
 def one_blas_thread() -> threadpool_limits:

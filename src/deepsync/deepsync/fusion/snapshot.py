@@ -38,6 +38,7 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from deepsync.fusion.anchors import SiteArrival, site_names, unwrap_range
+from deepsync.numeric import covariance_from_information
 from deepsync.schema import check_settings, setting
 from deepsync.types import MAX_CELL_RANGE_M, SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason
 
@@ -215,11 +216,7 @@ class SnapshotProblem:
             prior = np.zeros((1, dims + 1))
             prior[0, 2] = float(np.median(self.sigma[keep])) / self.config.height_prior_std_m
             h = np.vstack([h, prior])
-        try:
-            trace = float(np.trace(np.linalg.inv(h.T @ h)))
-        except np.linalg.LinAlgError:
-            return math.inf
-        return math.sqrt(trace) if math.isfinite(trace) and trace > 0 else math.inf  # < 0: singular in rounding
+        return math.sqrt(float(np.trace(covariance_from_information(h.T @ h))))  # inf: singular, in rounding too
 
 
 def solve_snapshot(arrivals: Sequence[SiteArrival], config: SnapshotConfig | None = None, *, stamp_ns: int = 0,

@@ -32,6 +32,7 @@ from scipy.optimize import least_squares
 
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
 from deepsync.fusion.snapshot import chi_square_limit, solve_snapshot
+from deepsync.numeric import covariance_from_information
 from deepsync.types import SPEED_OF_LIGHT_M_S, NoFix, PositionPrior
 
 if TYPE_CHECKING:  # the tracker's config; the tracker imports this module
@@ -49,19 +50,6 @@ class Start:
     latest_s: float
     sites: tuple[str, ...]
     rejected: tuple[str, ...]
-
-
-def covariance_from_information(information: np.ndarray) -> np.ndarray:
-    """The inverse of a least-squares information matrix, or infinite variances where it has
-    none: singular, or so near it that rounding left the inverse indefinite (a solve that ran
-    off to 1e9 m, every site seen along one line, gave variances of -1e17 m^2, which read as
-    a 0 m sigma and started a track there)."""
-    try:
-        covariance = np.linalg.inv(information)
-        np.linalg.cholesky(covariance)
-        return covariance
-    except np.linalg.LinAlgError:
-        return np.full(information.shape, math.inf)
 
 
 def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
@@ -101,7 +89,8 @@ def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_ra
     if dof > 0 and chi_square > chi_square_limit(config.snapshot.outlier_probability, dof):
         return (f"the {int(keep.sum())} arrivals of {', '.join(kept)} contradict their sigmas taken as static "
                 f"(chi-square {chi_square:.1f} with {dof} degrees of freedom)")
-    covariance = covariance_from_information(problem.jacobian(theta, keep).T @ problem.jacobian(theta, keep))
+    jacobian = problem.jacobian(theta, keep)
+    covariance = covariance_from_information(jacobian.T @ jacobian)
     horizontal = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0))
     typical = float(np.median(problem.sigma[keep]))
     if prior is None and not horizontal <= config.snapshot.max_gdop * typical:  # a prior bounds it
