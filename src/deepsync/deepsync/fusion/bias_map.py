@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import itertools
 import math
 import zipfile
 from collections.abc import Mapping, Sequence
@@ -43,12 +42,15 @@ from scipy.spatial import cKDTree
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
 from deepsync.fusion.calibration import CalibrationObservation
 from deepsync.fusion.snapshot import chi_square_limit
+from deepsync.outputs import replacing
 from deepsync.schema import check_settings, setting
 from deepsync.towers import TowerDatabase
 
 FORMAT = "deepsync-bias-map-1"
 MAX_BIAS_M = 1000.0  # beyond any NLOS pull (6.7 samples at 1.92 MHz)
-_HERMITE = ((-1.0, 1 / 6), (0.0, 2 / 3), (1.0, 1 / 6))  # Gauss-Hermite nodes (in sqrt(3) sigmas) and weights
+# 3 x 3 Gauss-Hermite points over a receiver's position uncertainty: nodes in sqrt(3) sigmas, weights
+_HERMITE_EAST, _HERMITE_NORTH = (axis.ravel() for axis in np.meshgrid([-1.0, 0.0, 1.0], [-1.0, 0.0, 1.0]))
+_HERMITE_WEIGHTS = np.outer([1 / 6, 2 / 3, 1 / 6], [1 / 6, 2 / 3, 1 / 6]).ravel()
 CHI2_68_2DOF = 2.28  # chi-square with 2 degrees of freedom at 68 %
 LOCATE_GATE_PROBABILITY = 1e-3
 SURVEY_ROUNDS = 10  # turns of stack offsets and site maps: the maps move by centimetres after ten
@@ -94,17 +96,17 @@ class BiasGrid:
         j = np.clip(np.floor(u), 0, max(nx - 2, 0)).astype(np.intp)
         i = np.clip(np.floor(v), 0, max(ny - 2, 0)).astype(np.intp)
         fu, fv = np.clip(u - j, 0, 1), np.clip(v - i, 0, 1)
-        total = mean = variance = 0.0
+        total = mean = sigma = 0.0
         for di, dj, weight in ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv), (1, 1, fu * fv)):
             rows, cols = np.minimum(i + di, ny - 1), np.minimum(j + dj, nx - 1)
             node_mean, node_std = self.mean_m[rows, cols], self.std_m[rows, cols]
             weight = np.where(np.isfinite(node_mean) & inside, weight, 0.0)
             total = total + weight
             mean = mean + weight * np.nan_to_num(node_mean)
-            variance = variance + weight * np.nan_to_num(node_std)
+            sigma = sigma + weight * np.nan_to_num(node_std)
         known = total > 0
         safe = np.where(known, total, 1.0)
-        return np.where(known, mean / safe, np.nan), np.where(known, variance / safe, np.nan)
+        return np.where(known, mean / safe, np.nan), np.where(known, sigma / safe, np.nan)
 
 
 @dataclass(frozen=True)
@@ -135,19 +137,14 @@ class BiasMap:
         if grid is None or not math.isfinite(position_std_m):
             return None
         step = math.sqrt(3.0) * max(position_std_m, 0.0)
-        means, variances, weights = [], [], []
-        for (du, wu), (dv, wv) in itertools.product(_HERMITE, _HERMITE):
-            value = grid.at(east_m + du * step, north_m + dv * step)
-            if value is not None:
-                means.append(value[0])
-                variances.append(max(value[1], self.min_std_m) ** 2)
-                weights.append(wu * wv)
-        if sum(weights) < 0.5:
+        means, sigmas = grid.values(east_m + step * _HERMITE_EAST, north_m + step * _HERMITE_NORTH)
+        known = np.isfinite(means)
+        if _HERMITE_WEIGHTS[known].sum() < 0.5:
             return None
-        w = np.array(weights) / sum(weights)
-        mean = float(w @ np.array(means))
-        spread = float(w @ (np.array(means) - mean) ** 2)
-        return mean, math.sqrt(float(w @ np.array(variances)) + spread)
+        w = _HERMITE_WEIGHTS[known] / _HERMITE_WEIGHTS[known].sum()
+        mean = float(w @ means[known])
+        spread = float(w @ (means[known] - mean) ** 2)
+        return mean, math.sqrt(float(w @ np.maximum(sigmas[known], self.min_std_m) ** 2) + spread)
 
     def correct(self, arrivals: Sequence[SiteArrival], position_enu: Sequence[float],
                 position_std_m: float) -> tuple[SiteArrival, ...]:
@@ -232,7 +229,7 @@ def save_bias_map(bias_map: BiasMap, path: str | Path) -> Path:
         arrays[f"grid{k}"] = np.array([grid.x0_m, grid.y0_m, grid.step_m])
         arrays[f"mean{k}"], arrays[f"std{k}"] = grid.mean_m, grid.std_m
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("wb") as f:  # a name ending other than .npz is kept as given
+    with replacing(path) as temporary, temporary.open("wb") as f:  # whole or not at all; any name kept as given
         np.savez_compressed(f, **arrays)
     return path
 
