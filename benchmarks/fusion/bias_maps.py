@@ -21,18 +21,13 @@ import json
 import sys
 from pathlib import Path
 
-from threadpoolctl import threadpool_limits
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the route set's bags, configurations and summaries
 import route_set as rs  # noqa: E402
 
-from deepsync.eval.calibrate import oracle_database  # noqa: E402
-from deepsync.eval.route import fuse_route, replay  # noqa: E402
+from deepsync.eval.route import fuse_route  # noqa: E402
 from deepsync.fusion.anchors import Anchors  # noqa: E402
 from deepsync.fusion.bias_map import BiasMap, survey_bias_map  # noqa: E402
-from deepsync.pipeline import PipelineConfig  # noqa: E402
-from deepsync.sources import BagSource  # noqa: E402
-from deepsync.towers import TowerDatabase, load_tower_database  # noqa: E402
+from deepsync.towers import TowerDatabase  # noqa: E402
 
 PAIRS = {  # name: (route, survey bag, bag it is used on)
     **{f"city_walk_s{k}": ("city_walk", f"city_walk_evening_s{k}", f"city_walk_day_s{k}") for k in (1, 2, 3)},
@@ -43,14 +38,6 @@ CONFIGURATIONS = ("no anchor", "GNSS 60 s")
 WRONG_BY_M = 50.0
 METRES_PER_DEGREE_LATITUDE = 111_320.0
 OUT = rs.RESULTS / "bias_maps.json"
-
-
-def recorded(route: str, bag: str) -> tuple:
-    """A bag's replay and its database with the recording's true clocks."""
-    source = BagSource(rs.BAGS / bag)
-    towers = oracle_database(load_tower_database(rs.REPO / "config" / "towers" / f"{rs.ROUTES[route][1]}.yaml"), source)
-    with threadpool_limits(limits=1):
-        return replay(source, towers, PipelineConfig.for_motion(rs.ROUTES[route][3]), progress=False), towers
 
 
 def survey(run_replay, towers: TowerDatabase, config, made_by: str) -> BiasMap:
@@ -68,9 +55,9 @@ def moved_first_site(towers: TowerDatabase) -> TowerDatabase:
 
 def measure(pair: str) -> dict:
     route, survey_bag, bag = PAIRS[pair]
-    config = PipelineConfig.for_motion(rs.ROUTES[route][3]).fusion
-    survey_replay, survey_towers = recorded(route, survey_bag)
-    test_replay, towers = recorded(route, bag)
+    survey_replay, survey_towers, pipeline = rs.replayed(route, rs.BAGS / survey_bag)
+    test_replay, towers, _ = rs.replayed(route, rs.BAGS / bag)
+    config = pipeline.fusion
     maps = {"no map": None,
             "map": survey(survey_replay, survey_towers, config, survey_bag),
             "wrong map": survey(survey_replay, moved_first_site(survey_towers), config,

@@ -45,6 +45,7 @@ from deepsync.eval.aiding import AidingPlan
 from deepsync.eval.calibrate import oracle_database
 from deepsync.eval.route import (
     SINCE_ANCHOR_BINS_S,
+    Replay,
     RouteRun,
     add_rssi_fixes,
     fuse_route,
@@ -58,7 +59,7 @@ from deepsync.fusion.stage import published_answer
 from deepsync.pipeline import PipelineConfig
 from deepsync.recording import record_scenario
 from deepsync.sources import BagSource
-from deepsync.towers import load_tower_database
+from deepsync.towers import TowerDatabase, load_tower_database
 from deepsync.types import Fix, NoFix
 
 REPO = Path(__file__).resolve().parents[2]
@@ -151,14 +152,20 @@ def since_anchor_errors(run: RouteRun) -> list[tuple[float, float]]:
     return [pair for pair in pairs if math.isfinite(pair[0])]
 
 
-def measure(route: str, bag: Path) -> dict:
-    """Every configuration's numbers on one bag (one replay, fusion per configuration)."""
+def replayed(route: str, bag: Path) -> tuple[Replay, TowerDatabase, PipelineConfig]:
+    """A route's bag replayed (cell search and timing) with its motion model's settings, and its
+    tower database holding the recording's true clocks."""
     source = BagSource(bag)
     towers = oracle_database(load_tower_database(REPO / "config" / "towers" / f"{ROUTES[route][1]}.yaml"), source)
     config = PipelineConfig.for_motion(ROUTES[route][3])
-    started = time.monotonic()
     with threadpool_limits(limits=1):
-        recorded = replay(source, towers, config, progress=False)
+        return replay(source, towers, config, progress=False), towers, config
+
+
+def measure(route: str, bag: Path) -> dict:
+    """Every configuration's numbers on one bag (one replay, fusion per configuration)."""
+    started = time.monotonic()
+    recorded, towers, config = replayed(route, bag)
     row: dict = {"bag": str(bag.relative_to(REPO)), "replay_s": time.monotonic() - started}
     plain = fuse_route(recorded, towers, config.fusion)
     model = add_rssi_fixes(plain, RssiConfig(receiver_height_m=config.fusion.snapshot.receiver_height_m))
