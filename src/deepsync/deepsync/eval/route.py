@@ -117,8 +117,8 @@ class RouteRun:
     def observations(self, until_ns: int | None = None) -> list[CalibrationObservation]:
         """Every site heard (in stacks stamped up to ``until_ns``), with where the receiver truly
         was when its code arrived."""
-        return [CalibrationObservation(site, epoch.site_truth[site.site]) for epoch in self.epochs
-                if until_ns is None or epoch.stamp_ns <= until_ns for site in epoch.sites]
+        return [observation for epoch, stack in zip(self.epochs, self.observations_by_stack())
+                if until_ns is None or epoch.stamp_ns <= until_ns for observation in stack]
 
     def observations_by_stack(self) -> list[list[CalibrationObservation]]:
         """Every stack's sites with where the receiver truly was when each code arrived: a
