@@ -21,6 +21,7 @@ from deepsync.fusion.bias_map import (
     BiasGrid,
     BiasMap,
     SurveyConfig,
+    bias_map_from_points,
     load_bias_map,
     save_bias_map,
     survey_bias_map,
@@ -350,3 +351,16 @@ def test_the_bias_map_parameter_loads_a_map_for_fusion_or_names_what_is_wrong(tm
         params.bias_map({"bias_map": str(good)}, "deepsync_pipeline", None)
     with pytest.raises(ParameterError, match="expected a string"):
         params.checked(params.TDOA_FUSION, {"bias_map": 3}, "tdoa_fusion")
+
+
+def test_a_map_from_points_averages_each_sites_biases_where_it_has_them() -> None:
+    points = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    made = bias_map_from_points({"A": (points, np.array([40.0, 40.0, 40.0, 40.0])),
+                                 "B": (points[:1], np.array([-5.0])), "C": (points[:0], np.empty(0))},
+                                ORIGIN_TUPLE, SurveyConfig(step_m=5.0, smoothing_m=8.0, min_weight=0.5))
+    assert set(made.sites) == {"A", "B"}  # a site without a point is left out
+    assert made.sites["A"].at(5.0, 5.0)[0] == pytest.approx(40.0)
+    assert made.sites["B"].at(0.0, 0.0)[0] == pytest.approx(-5.0)
+    assert made.sites["B"].at(10.0, 10.0) is None  # 14 m: beyond a kernel sigma of its one point
+    with pytest.raises(ValueError, match="at least one site"):
+        bias_map_from_points({"A": (points[:0], np.empty(0))}, ORIGIN_TUPLE)

@@ -333,3 +333,64 @@ def test_the_munich_example_scenario_parses_as_a_ray_traced_walk():
     assert isinstance(scenario.channel, RayTracingSettings) and scenario.channel.scene == "munich"
     assert len(scenario.sites) == 6 and all(len(site.cells) == 3 for site in scenario.sites)
     assert scenario.channel.trace_settings == tracing.TraceSettings()
+
+
+@needs_sionna
+def test_a_street_grid_leaves_out_what_lies_inside_a_building(scene):
+    from deepsync.twin.raytrace.sites import street_grid
+
+    nodes = street_grid(scene, (-10.0, -10.0), (30.0, 40.0), 1.5, 5.0)
+    inside = (nodes[:, 0] > 0) & (nodes[:, 0] < 20) & (nodes[:, 1] > 0) & (nodes[:, 1] < 30)
+    assert not inside.any()
+    assert len(nodes) == 9 * 11 - 3 * 5  # the box's nodes less the block's (a point on a wall is outside)
+    assert np.all(nodes[:, 2] == 1.5)
+    with pytest.raises(ValueError, match="positive step"):
+        street_grid(scene, (0.0, 0.0), (10.0, 10.0), 1.5, 0.0)
+
+
+@needs_sionna
+def test_a_traced_map_reads_the_straight_line_where_the_site_is_in_view(footprints, tmp_path):
+    """The whole chain at every street node, one site: where the antenna sees the node the lock
+    is on the direct path (bias near 0, well inside a sample's 156 m); the map holds it."""
+    import yaml
+
+    from deepsync.eval.traced_map import TracedMapConfig, traced_bias_map
+    from deepsync.fusion.bias_map import load_bias_map
+
+    scenario = _scenario(footprints, [(-10, -5), (-10, 40)], cache_dir=tmp_path / "cache")
+    site = scenario.sites[0]
+    path = tmp_path / "block.yaml"
+    path.write_text(yaml.safe_dump({
+        "name": "block", "seed": 1, "origin": ORIGIN,
+        "sites": [{"name": "W", "latitude_deg": site.latitude_deg, "longitude_deg": site.longitude_deg,
+                   "height_m": site.height_m, "cells": [{"pci": 3, "earfcn": 300, "bandwidth_mhz": 10.0,
+                                                         "eirp_dbm": 60.0, "azimuth_deg": 90.0,
+                                                         "downtilt_deg": 0.0, "load": 0.3}]}],
+        "channel": {"model": "raytraced", "scene": str(footprints), "cache_dir": str(tmp_path / "cache"),
+                    "max_depth": 1, "diffraction": False, "refraction": False, "samples_per_source": 100_000},
+        "receiver": {"height_m": 1.5, "route": {"speed_mps": 1.0, "waypoints": [_lat_lon(-10, -5),
+                                                                                 _lat_lon(-10, 40)]}}}))
+    config = TracedMapConfig(margin_m=10.0, node_step_m=15.0, stack_frames=4, hop_frames=2, stacks=4)
+    out = tmp_path / "map.npz"
+    traced = traced_bias_map(path, out, config, progress=False)
+    assert traced.path == out and not (tmp_path / "map.npz.parts").exists()  # the jobs' parts go
+    assert traced.nodes == 10  # x -20, -5; y -15, 0 ... 45: all in view of the antenna
+    assert set(traced.heard) == {"W"} and traced.heard["W"] >= 8  # 4-frame stacks may miss a node
+    bias_map = load_bias_map(out)
+    assert set(bias_map.sites) == {"W"}
+    for east, north in ((-20.0, 0.0), (-5.0, 30.0)):
+        bias, _ = bias_map.at("W", east, north)
+        assert abs(bias) < 15.0
+
+
+def test_a_traced_map_refuses_a_statistical_scenario_and_bad_settings(tmp_path):
+    from pathlib import Path
+
+    from deepsync.eval.traced_map import TracedMapConfig, traced_bias_map
+
+    campus = Path(__file__).resolve().parents[1] / "config" / "scenarios" / "campus.yaml"
+    with pytest.raises(ConfigError, match="channel model is statistical"):
+        traced_bias_map(campus, tmp_path / "map.npz")
+    assert not list(tmp_path.iterdir())
+    with pytest.raises(ValueError, match="node_step_m"):
+        TracedMapConfig(node_step_m=0.0)

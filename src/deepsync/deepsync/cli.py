@@ -540,6 +540,27 @@ def _cmd_survey_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_trace_map(args: argparse.Namespace) -> int:
+    from deepsync.eval.traced_map import TracedMapConfig, traced_bias_map
+
+    config = TracedMapConfig(margin_m=args.margin_m, node_step_m=args.step_m, smoothing_m=args.smoothing_m)
+    runner = JobRunner(args.workers, args.ray)
+    print(f"site bias map traced from {args.scenario}: street nodes every {config.node_step_m:g} m within "
+          f"{config.margin_m:g} m of the receiver, each site simulated alone for {config.stacks} stacks of "
+          f"{config.stack_frames} frames there, on {runner.description}")
+    traced = traced_bias_map(args.scenario, args.out, config, runner, progress=not args.quiet)
+    print(f"  {traced.nodes} street nodes; whole biases (the simulator knows the receiver clock)")
+    for site in traced.sites:
+        known = (f"heard at {traced.heard[site.site]} nodes, {site.known_nodes} map nodes known, bias "
+                 f"{site.low_m:+.0f} to {site.high_m:+.0f} m" if site.known_nodes else "no map node known")
+        print(f"    site {site.site}: {known}")
+    unheard = sorted(name for name, count in traced.heard.items() if not count)
+    if unheard:
+        print(f"  never heard, not mapped: {', '.join(unheard)}")
+    print(f"  written: {traced.path}")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from deepsync.replay import parse_stages, replay_bag
 
@@ -827,6 +848,21 @@ def build_parser() -> argparse.ArgumentParser:
     add_flag(survey_map, surveying["step_m"], "--step-m", default=SurveyConfig().step_m)
     add_flag(survey_map, surveying["smoothing_m"], "--smoothing-m", default=SurveyConfig().smoothing_m)
     survey_map.set_defaults(run=_cmd_survey_map)
+
+    trace_map = commands.add_parser("trace-map", help="a site bias map from a ray-traced scenario alone (no "
+                                    "recording): each site's bias on the streets around its receiver, for --bias-map")
+    trace_map.add_argument("scenario", help="ray-traced scenario YAML (channel: {model: raytraced}); its receiver's "
+                           "route or position says where to map")
+    trace_map.add_argument("--out", required=True, type=_output_file, help="the bias map (.npz) to write")
+    from deepsync.eval.traced_map import TracedMapConfig
+
+    tracing = settings(TracedMapConfig)
+    for name in ("margin_m", "smoothing_m"):
+        add_flag(trace_map, tracing[name], f"--{name.replace('_', '-')}", default=getattr(TracedMapConfig(), name))
+    add_flag(trace_map, tracing["node_step_m"], "--step-m", default=TracedMapConfig().node_step_m)
+    _job_arguments(trace_map, 1)
+    trace_map.add_argument("--quiet", action="store_true", help="no progress bars")
+    trace_map.set_defaults(run=_cmd_trace_map)
 
     calibrate = commands.add_parser("calibrate", help="estimate each heard site's frame timing offset and drift "
                                     "from a recording with ground truth; write the updated tower database")

@@ -19,7 +19,7 @@ import platform
 import reprlib
 import shutil
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -95,10 +95,13 @@ def cell_summaries(twin: Twin) -> list[CellSummary]:
     return out
 
 
-def truth_timing(twin: Twin, simulator: EnvelopeSimulator, n_samples: int) -> Iterator[tuple[int, float, int]]:
+def truth_timing(emitters: Sequence[Emitter], geometric_delay_s: Callable[[int, float], float],
+                 simulator: EnvelopeSimulator, n_samples: int) -> Iterator[tuple[int, float, int]]:
     """(pci, toa, emitter index) of every subframe-0 sync code that starts inside the stream, in
     order of arrival (emitter order among equal arrivals), computed as they are consumed: an hour
-    of four cells holds 1.4 million codes, and the first chunk should not wait for them all."""
+    of four cells holds 1.4 million codes, and the first chunk should not wait for them all.
+    ``geometric_delay_s(i, t)``: emitter i's straight-line delay to the receiver at true time t
+    (the truth is the first path's arrival as if nothing stood in the way)."""
     rate = simulator.config.adc_rate_hz
     end_time = float(simulator.clock.true_time(n_samples / rate))
 
@@ -107,11 +110,11 @@ def truth_timing(twin: Twin, simulator: EnvelopeSimulator, n_samples: int) -> It
         last = emitter.frame_index_at(end_time) + 1
         for k in range(first, last + 1):  # a frame moves the arrival on by far more than the path changes
             sent = emitter.frame_start_s(k)  # the site's frame clock, drift and all
-            toa = float(simulator.sample_index(sent + sync_code_offset_seconds() + twin.geometric_delay_s(i, sent)))
+            toa = float(simulator.sample_index(sent + sync_code_offset_seconds() + geometric_delay_s(i, sent)))
             if 0 <= toa < n_samples:
                 yield toa, i, emitter.cell.pci
 
-    for toa, i, pci in heapq.merge(*(arrivals(i, emitter) for i, emitter in enumerate(twin.emitters))):
+    for toa, i, pci in heapq.merge(*(arrivals(i, emitter) for i, emitter in enumerate(emitters))):
         yield pci, toa, i
 
 
@@ -201,7 +204,7 @@ def record_scenario(
     chunk = max(1, round(FRAME_SECONDS * rate))
     check_output(Path(out_dir), n_samples)
 
-    codes = truth_timing(twin, simulator, n_samples)
+    codes = truth_timing(twin.emitters, twin.geometric_delay_s, simulator, n_samples)
     code = next(codes, None)
     pose_every = max(1, round(POSE_PERIOD_SECONDS * rate))
     stats = SimulationStats()

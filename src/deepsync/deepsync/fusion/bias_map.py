@@ -312,14 +312,30 @@ def survey_bias_map(stacks: Sequence[Sequence[CalibrationObservation]], origin: 
         mapped = np.nan_to_num(mapped - np.nanmean(mapped) if np.any(np.isfinite(mapped)) else mapped)
     offset = np.bincount(stack, read - mapped) / counts
     bias = read - offset[stack]
-    lo = truth.min(axis=0) - 2 * config.smoothing_m
-    hi = truth.max(axis=0) + 2 * config.smoothing_m
+    return bias_map_from_points({name: (truth[where], bias[where]) for name, where in mine.items()}, origin, config,
+                                made_by)
+
+
+def bias_map_from_points(biases: Mapping[str, tuple[np.ndarray, np.ndarray]], origin: tuple[float, float, float],
+                         config: SurveyConfig | None = None, made_by: str = "") -> BiasMap:
+    """A map from each site's range biases (m) measured at points ((N, 2) or (N, 3), map
+    frame): ``{site: (points, biases)}``. Each node of a grid over the points (two kernel
+    widths beyond them) holds the Gaussian-kernel mean and spread of the biases near it
+    (:class:`SurveyConfig`); a site with no point is left out."""
+    config = config or SurveyConfig()
+    biases = {name: (np.asarray(points, dtype=np.float64)[:, :2], np.asarray(values, dtype=np.float64))
+              for name, (points, values) in biases.items() if len(values)}
+    if not biases:
+        raise ValueError("a bias map needs at least one site's bias at one point, got none")
+    everywhere = np.concatenate([points for points, _ in biases.values()])
+    lo = everywhere.min(axis=0) - 2 * config.smoothing_m
+    hi = everywhere.max(axis=0) + 2 * config.smoothing_m
     east = lo[0] + config.step_m * np.arange(int(math.ceil((hi[0] - lo[0]) / config.step_m)) + 1)
     north = lo[1] + config.step_m * np.arange(int(math.ceil((hi[1] - lo[1]) / config.step_m)) + 1)
     nodes = np.stack(np.meshgrid(east, north), axis=-1).reshape(-1, 2)
     grids = {}
-    for name, where in mine.items():
-        mean, std = _kernel_average(truth[where], bias[where], nodes, config)
+    for name, (points, values) in biases.items():
+        mean, std = _kernel_average(points, values, nodes, config)
         grids[name] = BiasGrid(float(east[0]), float(north[0]), config.step_m, mean.reshape(len(north), len(east)),
                                std.reshape(len(north), len(east)))
     return BiasMap(origin, grids, made_by)

@@ -100,6 +100,27 @@ class Twin:
 def build_twin(scenario: Scenario) -> Twin:
     """Resolve a scenario into a twin: positions in the map frame, ``auto`` timing offsets and
     oscillator errors drawn from the seed (per site name), one emitter per cell."""
+    cells = twin_cells(scenario)
+    receiver = receiver_trajectory(scenario.receiver, cells.frame)
+    channel = _channel(scenario, cells.frame, list(cells.transmitters), receiver)
+    return Twin(scenario, cells.frame, cells.sites, cells.cells, list(cells.emitters), channel, receiver,
+                scenario.frontend)
+
+
+@dataclass(frozen=True)
+class TwinCells:
+    """A scenario's sites and cells resolved without a receiver: what sends, from where, on
+    whose clock (``emitters``) and through which antenna (``transmitters``), in cell order."""
+
+    frame: LocalFrame
+    sites: tuple[TwinSite, ...]
+    cells: tuple[CellInfo, ...]
+    emitters: tuple[Emitter, ...]
+    transmitters: tuple[Transmitter, ...]
+
+
+def twin_cells(scenario: Scenario) -> TwinCells:
+    """The scenario's sites and cells (:class:`TwinCells`), as :func:`build_twin` resolves them."""
     origin = scenario.origin
     frame = LocalFrame(origin.latitude_deg, origin.longitude_deg, origin.height_m)
     sites = tuple(_resolve_site(site, frame, scenario.seed) for site in scenario.sites)
@@ -126,10 +147,7 @@ def build_twin(scenario: Scenario) -> Twin:
                 site.name, site.position_enu, site.height_m, cell.carrier_hz,
                 SectorAntenna(cell.azimuth_deg, cell.downtilt_deg, cell.antenna), cell.pci,
             ))
-    receiver = _trajectory(scenario.receiver, frame)
-    channel = _channel(scenario, frame, transmitters, receiver)
-    return Twin(scenario, frame, sites, tuple(cells), emitters, channel, receiver,
-                scenario.frontend)
+    return TwinCells(frame, sites, tuple(cells), tuple(emitters), tuple(transmitters))
 
 
 def _channel(scenario: Scenario, frame: LocalFrame, transmitters: list[Transmitter],
@@ -158,7 +176,8 @@ def _resolve_site(site: SiteSpec, frame: LocalFrame, seed: int) -> TwinSite:
                     float(timing_us) * 1e-6, float(ppb))
 
 
-def _trajectory(receiver: ReceiverSpec, frame: LocalFrame) -> Trajectory:
+def receiver_trajectory(receiver: ReceiverSpec, frame: LocalFrame) -> Trajectory:
+    """The receiver's fixed position or route in the map frame."""
     height = frame.height_m + receiver.height_m
     if receiver.route is None:
         position = receiver.position

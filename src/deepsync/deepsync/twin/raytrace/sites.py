@@ -86,3 +86,20 @@ def check_antennas(scene: RayScene, antennas: Sequence[tuple[str, np.ndarray]]) 
             raise ConfigError(f"{where}: the antenna ({z:.1f} m above ground) is inside building "
                               f"{building.name!r} (roof {building.height_m:.1f} m) of scene {scene.name!r}: "
                               f"raise it above the roof or move it")
+
+
+def street_grid(scene: RayScene, lower_enu: ArrayLike, upper_enu: ArrayLike, height_m: float,
+                step_m: float) -> np.ndarray:
+    """(N, 3) map-frame points every ``step_m`` over the east/north box from ``lower_enu`` to
+    ``upper_enu`` (both ends included where the step lands on them), ``height_m`` up, outside
+    every building: where a receiver can stand (a street, a square, a yard)."""
+    lower, upper = np.asarray(lower_enu, dtype=np.float64)[:2], np.asarray(upper_enu, dtype=np.float64)[:2]
+    if not (step_m > 0 and np.all(np.isfinite(lower)) and np.all(np.isfinite(upper)) and np.all(upper >= lower)):
+        raise ValueError(f"a street grid needs a positive step and a box with lower <= upper, got step {step_m!r}, "
+                         f"box {lower.tolist()} .. {upper.tolist()}")
+    east = lower[0] + step_m * np.arange(int(np.floor((upper[0] - lower[0]) / step_m + 1e-9)) + 1)
+    north = lower[1] + step_m * np.arange(int(np.floor((upper[1] - lower[1]) / step_m + 1e-9)) + 1)
+    grid = np.stack(np.meshgrid(east, north), axis=-1).reshape(-1, 2)
+    points = np.column_stack([grid, np.full(len(grid), float(height_m))])
+    inside = [scene.buildings.at(x, y, z) is not None for x, y, z in scene.to_scene(points).tolist()]
+    return points[~np.asarray(inside, dtype=bool)]
