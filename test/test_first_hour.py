@@ -96,7 +96,7 @@ def test_export_onnx_says_what_it_does_before_its_long_steps(tmp_path, capsys, m
     assert main(["export-onnx", "--out", str(tmp_path / "net.onnx")]) == 0
     assert "exporting: torch's exporter traces the network" in said_before["export"]
     assert "done in" in said_before["check"] and "checking it in onnxruntime" in said_before["check"]
-    assert "docs/timing_network.md" in said_before["check"] and "1.00e-06" in capsys.readouterr().out
+    assert "docs/design/timing_network.md" in said_before["check"] and "1.00e-06" in capsys.readouterr().out
 
 
 def test_calibrate_keeps_the_tower_files_comments_and_layout(tmp_path, capsys):

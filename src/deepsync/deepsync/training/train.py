@@ -16,7 +16,7 @@ alone (the dense layers after the fusion; encoders, batch norms and the offset f
 offset stays as it was) learns the 68.3 % quantile of the error's size given the input, by the
 pinball loss on log |error|. The Gaussian NLL fits the error's variance, and where errors are a
 narrow core and a tail of wrong lobes, a sigma from the variance holds 75-85 % of them, not the
-68 % a 1-sigma should (``docs/timing_network.md``).
+68 % a 1-sigma should (``docs/design/timing_network.md``).
 
 Interrupt at any time: ``<run_dir>/last.pt`` (saved every ``eval_every`` steps, with the
 optimiser) is where a rerun resumes, and every batch is drawn from ``(seed, step, rank)``, so a
