@@ -19,7 +19,7 @@ from deepsync.pipeline import PipelineConfig
 from deepsync.sources import BagSource
 from deepsync.timing.stage import Estimator, TimingConfig
 from deepsync_ros import params
-from deepsync_ros.health import PlaybackConfig
+from deepsync_ros.playback import PlaybackConfig
 from deepsync_ros.params import ParameterError
 
 REPO = Path(__file__).resolve().parents[1]

@@ -43,7 +43,7 @@ from deepsync.sync.stage import SyncConfig
 from deepsync.timing.stage import TimingConfig
 from deepsync.towers import TowerDatabase, load_tower_database
 
-from .health import PlaybackConfig
+from .playback import PlaybackConfig
 
 ParamValue = bool | int | float | str
 T = TypeVar("T")
