@@ -11,15 +11,16 @@ pass. Later work (fusion, the timing network, the ROS nodes) adds its own files 
 """
 
 import copy
+import dataclasses
 import re
-import typing
 from pathlib import Path
 
 import pytest
 import yaml
 
 from deepsync.configio import ConfigError
-from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
+from deepsync.frontend.config import FrontendConfig
+from deepsync.schema import settings
 from deepsync.sync.search import SearchConfig
 from deepsync.sync.stacking import StackConfig
 from deepsync.sync.stage import SyncConfig
@@ -107,14 +108,6 @@ def test_bad_frontend_section_of_a_scenario_names_the_path(overrides, field, all
 def test_frontend_edge_values_pass(overrides):
     config = FrontendConfig(**overrides)
     assert all(getattr(config, name) == value for name, value in overrides.items())
-
-
-def test_every_frontend_number_has_a_range():
-    hints = typing.get_type_hints(FrontendConfig)
-    numbers = {name for name, hint in hints.items() if {int, float} & {hint, *typing.get_args(hint)}}
-    assert numbers == set(FRONTEND_RANGES)
-    for low, high, _unit in FRONTEND_RANGES.values():
-        assert low < high
 
 
 # -- scenario files ----------------------------------------------------------------------------
@@ -487,21 +480,51 @@ def test_the_shipped_training_run_is_inside_every_range():
     assert load_run_config(TRAINING_YAML).training.steps == 8000
 
 
-@pytest.mark.parametrize("module, cls, ranges", [
-    ("deepsync.training.train", "TrainConfig", "TRAIN_RANGES"),
-    ("deepsync.training.dataset", "DatasetConfig", "DATASET_RANGES"),
-    ("deepsync.timing.model", "TimingNetConfig", "NET_RANGES"),
+@pytest.mark.parametrize("module, cls", [
+    ("deepsync.frontend.config", "FrontendConfig"),
+    ("deepsync.training.train", "TrainConfig"),
+    ("deepsync.training.dataset", "DatasetConfig"),
+    ("deepsync.timing.model", "TimingNetConfig"),
 ])
-def test_every_number_of_a_training_run_has_a_range(module, cls, ranges):
+def test_every_field_of_a_front_end_or_training_config_is_a_setting_and_every_number_bounded(module, cls):
     import importlib
 
-    loaded = importlib.import_module(module)
-    hints = typing.get_type_hints(getattr(loaded, cls))
-    numbers = {name for name, hint in hints.items()
-               if {int, float} & {hint, *typing.get_args(hint), *(a for arg in typing.get_args(hint)
-                                                                  for a in typing.get_args(arg))}}
-    numbers -= {"frame_means"}  # counts checked against max_frames instead
-    assert numbers == set(getattr(loaded, ranges))
+    config = getattr(importlib.import_module(module), cls)
+    described = settings(config)
+    assert set(described) == {field.name for field in dataclasses.fields(config)}
+    assert all(setting.help.endswith(".") for setting in described.values())
+    numbers = {name for name, setting in described.items() if setting.kind in (int, float) and not setting.choices}
+    assert numbers and all(described[name].bounds is not None for name in numbers)
+    assert all(low < high for low, high in (described[name].bounds for name in numbers))
+
+
+@pytest.mark.parametrize("module, cls, field, value, message", [
+    ("deepsync.timing.model", "TimingNetConfig", "channels", (8, 16), "channels must be 3 integers, got (8, 16)"),
+    ("deepsync.timing.model", "TimingNetConfig", "kernels", (14, 7.5, 5), "kernels must be an integer, got 7.5"),
+    ("deepsync.timing.model", "TimingNetConfig", "fusion", "sum", "fusion must be one of cross_attention, "),
+    ("deepsync.training.dataset", "DatasetConfig", "channel", "fading", "channel must be one of tdl, clean"),
+    ("deepsync.training.dataset", "DatasetConfig", "frame_means", (1, 5), "frame_means must be within [2, 100] "
+                                                                          "frames, got 1"),
+    ("deepsync.training.train", "TrainConfig", "run_dir", 5, "run_dir must be a string, got 5"),
+    ("deepsync.frontend.config", "FrontendConfig", "adc_bits", 12.5, "adc_bits must be an integer, got 12.5"),
+    ("deepsync.frontend.config", "FrontendConfig", "video_gain_db", float("inf"), "video_gain_db must be a finite"),
+])
+def test_a_bad_field_of_a_training_or_front_end_config_is_named(module, cls, field, value, message):
+    import importlib
+
+    with pytest.raises(ValueError) as refused:
+        getattr(importlib.import_module(module), cls)(**{field: value})
+    assert message in str(refused.value)
+
+
+def test_a_choice_given_by_name_is_held_as_its_kind():
+    from deepsync.timing.model import Fusion, Head, TimingNetConfig
+    from deepsync.training.dataset import Channel, DatasetConfig
+
+    config = TimingNetConfig(fusion="correlation", head="soft_argmax")
+    assert config.fusion is Fusion.CORRELATION and config.head is Head.SOFT_ARGMAX
+    assert config == TimingNetConfig(fusion=Fusion.CORRELATION, head=Head.SOFT_ARGMAX)
+    assert DatasetConfig(channel="clean").channel is Channel.CLEAN
 
 
 def test_a_network_config_counts_its_weights_without_building_them():

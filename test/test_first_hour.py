@@ -96,7 +96,7 @@ def test_export_onnx_says_what_it_does_before_its_long_steps(tmp_path, capsys, m
     assert main(["export-onnx", "--out", str(tmp_path / "net.onnx")]) == 0
     assert "exporting: torch's exporter traces the network" in said_before["export"]
     assert "done in" in said_before["check"] and "checking it in onnxruntime" in said_before["check"]
-    assert "docs/timing_network.md" in said_before["check"] and "1.00e-06" in capsys.readouterr().out
+    assert "docs/design/timing_network.md" in said_before["check"] and "1.00e-06" in capsys.readouterr().out
 
 
 def test_calibrate_keeps_the_tower_files_comments_and_layout(tmp_path, capsys):
@@ -253,3 +253,35 @@ def test_setup_without_root_or_sudo_says_how_to_add_the_packages_later(tmp_path)
     assert code == 0 and "needs root or sudo" in out and "apt-get install python3-rosidl" in out and not calls, out
     code, out, calls = _debian_packages(tmp_path / "sudoer", "exit 0", uid=1000, sudo=True)
     assert code == 0 and "as root through sudo" in out and "Debian packages installed" in out, out
+
+
+def _resolves(dotted: str) -> bool:
+    """Whether ``a.b.c.Name`` is a module, or an attribute of the longest module prefix."""
+    import importlib
+
+    parts = dotted.split(".")
+    for cut in range(len(parts), 0, -1):
+        try:
+            found = importlib.import_module(".".join(parts[:cut]))
+        except ImportError:
+            continue
+        for name in parts[cut:]:
+            if not hasattr(found, name):
+                return False
+            found = getattr(found, name)
+        return True
+    return False
+
+
+def test_every_module_a_config_files_comments_name_exists():
+    """A copied training config's header named modules that did not exist: what the shipped
+    configs point a reader to must be there."""
+    import re
+
+    files = [*(REPO / "config").rglob("*.yaml"), *(REPO / "src" / "deepsync_ros" / "config").rglob("*.yaml")]
+    named = {(path.relative_to(REPO).as_posix(), dotted) for path in files for line in path.read_text().splitlines()
+             if "#" in line for dotted in re.findall(r"\bdeepsync(?:_ros)?(?:\.\w+)+", line.split("#", 1)[1])}
+    assert any(dotted == "deepsync.training.train.TrainConfig" for _, dotted in named)
+    assert _resolves("deepsync.timing.model.TimingNetConfig") and not _resolves("deepsync.timing.model.NoSuch")
+    missing = sorted(f"{path}: {dotted}" for path, dotted in named if not _resolves(dotted.rstrip(".")))
+    assert not missing, f"config comments name what does not exist: {missing}"

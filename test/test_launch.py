@@ -30,6 +30,7 @@ SHARE = "$(find-pkg-share deepsync_ros)"
 DOCUMENTED = {
     "source": f"{SHARE}/bags/campus",
     "towers": f"{SHARE}/config/towers/campus.yaml",
+    "bias_map": "",
     "params_file": f"{SHARE}/config/deepsync_nodes.yaml",
     "extra_params_file": "",
     "use_sim_time": "true",
@@ -210,7 +211,7 @@ def test_launch_file_never_imports_numpy_or_deepsync() -> None:
 # --- the helpers, run without ROS -------------------------------------------------------------
 
 HELPERS = ("_as_bool", "_number", "_interpreter_command", "_check_dependencies", "_params_key_matches",
-           "_unmatched_nodes", "_is_bag", "_is_address", "_refusal", "_end_of_a_required_node")
+           "_unmatched_nodes", "_is_bag", "_is_address", "_refusal", "_end_of_a_required_node", "_node_overrides")
 
 
 def _load_helpers() -> dict:
@@ -239,6 +240,19 @@ def test_number_refuses_what_is_not_a_finite_number(text: str) -> None:
     with pytest.raises(ValueError, match="antenna_x:="):
         H["_number"]("antenna_x", text)
     assert H["_number"]("antenna_x", " -0.25 ") == -0.25
+
+
+def test_a_bias_map_reaches_the_fusing_nodes_and_an_empty_one_leaves_the_params_file() -> None:
+    bag = str(REPO / "bags" / "campus")
+    given = H["_node_overrides"](bag, "towers.yaml", "walk.npz", "vehicle", realtime=True, loop=False,
+                                 use_sim_time=True)
+    assert {name for name, values in given.items() if "bias_map" in values} == {"tdoa_fusion", "deepsync_pipeline"}
+    assert given["tdoa_fusion"]["bias_map"] == given["deepsync_pipeline"]["bias_map"] == "walk.npz"
+    assert given["cell_sync"] == {"towers": "towers.yaml", "frontend": bag, "motion": "vehicle"}
+    unset = H["_node_overrides"](bag, "towers.yaml", "", "", realtime=True, loop=False, use_sim_time=True)
+    assert not any("bias_map" in values or "motion" in values for values in unset.values())
+    assert "frontend" not in H["_node_overrides"]("topic", "t.yaml", "", "", realtime=True, loop=False,
+                                                  use_sim_time=True)["cell_sync"]
 
 
 class _Exited:

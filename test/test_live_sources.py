@@ -556,7 +556,7 @@ class Gated(Pieces):
 
 
 def test_the_player_polls_a_live_source_without_waiting_pacing_or_looping() -> None:
-    from deepsync_ros.health import Playback, PlaybackConfig
+    from deepsync_ros.playback import Playback, PlaybackConfig
 
     data = noise_cu8(2 * FRAME)
     gate = threading.Event()

@@ -13,7 +13,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "docs" / "results"
 MANIFEST = RESULTS / "MANIFEST.yaml"
-PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+PAGES = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
 # a file name a page may write: plain, with a * or with {a,b} alternatives
 MENTION = re.compile(r"[\w./*{},<>-]*\.(?:json|png|csv|\{[\w,]+\})")
 
@@ -78,4 +78,4 @@ def test_every_producer_exists(command):
 def test_every_results_file_is_cited():
     cited = set().union(*(mentions(page.read_text()) for page in PAGES))
     uncited = [name for name in results_files() if not matches(sorted(cited), name)]
-    assert not uncited, f"docs/results files no page of README.md or docs/*.md cites: {uncited}"
+    assert not uncited, f"docs/results files no page of README.md or docs/**/*.md cites: {uncited}"

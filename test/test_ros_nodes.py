@@ -22,7 +22,7 @@ from deepsync.pipeline import Pipeline, StackResult
 from deepsync.sources import BagSource
 from deepsync.towers import load_tower_database
 from deepsync.types import EnvelopeChunk, Fix, HealthKind
-from deepsync_ros.health import chunk_end_ns
+from deepsync_ros.playback import chunk_end_ns
 
 REPO = Path(__file__).resolve().parents[1]
 CAMPUS_BAG = str(REPO / "bags" / "campus")

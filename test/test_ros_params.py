@@ -19,7 +19,7 @@ from deepsync.pipeline import PipelineConfig
 from deepsync.sources import BagSource
 from deepsync.timing.stage import Estimator, TimingConfig
 from deepsync_ros import params
-from deepsync_ros.health import PlaybackConfig
+from deepsync_ros.playback import PlaybackConfig
 from deepsync_ros.params import ParameterError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -226,6 +226,17 @@ def test_the_yaml_declares_exactly_the_specd_parameters_at_their_defaults() -> N
             assert value == spec.default, f"{node}.{spec.name}: the YAML says {value!r}, the node {spec.default!r}"
             if spec.name in PATH_PARAMETERS:
                 assert value == "", f"{node}.{spec.name}: paths are the launch file's to set"
+
+
+def test_the_yaml_is_written_from_the_specs_and_repeats_no_help_by_hand() -> None:
+    """The file's help is each spec's own description (what ``ros2 param describe`` shows),
+    written by deepsync_ros.nodes_yaml: a parameter added, dropped or re-described shows here."""
+    from deepsync_ros.nodes_yaml import nodes_yaml as written
+
+    assert NODES_YAML.read_text() == written(), (
+        "config/deepsync_nodes.yaml is not what the parameter specs write: run PYTHONPATH=src/deepsync:"
+        "src/deepsync_ros python -m deepsync_ros.nodes_yaml > src/deepsync_ros/config/deepsync_nodes.yaml")
+    assert written().count("# Hold the first output until a subscriber") == 1  # five nodes have it: said once
 
 
 def test_the_readmes_node_table_lists_every_parameter_and_estimator() -> None:

@@ -490,7 +490,7 @@ def test_non_finite_samples_are_an_error_naming_the_file_and_the_sample(tmp_path
 
 
 def bag_reproduced_bit_for_bit() -> bool:
-    """Where the bundled bags are reproduced bit for bit (README, docs/simulator.md): Linux on
+    """Where the bundled bags are reproduced bit for bit (README, docs/design/simulator.md): Linux on
     x86-64 with AVX2 and FMA, whose C math library (glibc's FMA variants) made them; numpy's and
     OpenBLAS's kernels do not matter (test_simulator_physics)."""
     from numpy.core._multiarray_umath import __cpu_features__

@@ -320,7 +320,7 @@ def test_a_run_config_that_does_not_fit_names_the_field(tmp_path):
         ({"training": {"calibration_steps": -1}}, "calibration_steps"),
         ({"schedule": {}}, "unknown section schedule"),
         ({"training": {"learning_rat": 1.0}}, "learning_rat"),
-        ({"model": {"fusion": "sum"}}, "fusion: 'sum' must be one of cross_attention, concatenation"),
+        ({"model": {"fusion": "sum"}}, "model: fusion must be one of cross_attention, concatenation, .*got 'sum'"),
     ]:
         path.write_text(yaml.safe_dump(content))
         with pytest.raises(ConfigError, match=message):

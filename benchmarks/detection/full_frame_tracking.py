@@ -38,7 +38,7 @@ from deepsync.towers import load_tower_database
 from full_frame_template import COARSE, TRACK_LAGS, refine, unit_templates, wrapped
 
 REPO = Path(__file__).resolve().parents[2]
-# a fix every 10 frames, as docs/results/full_frame_tracking_*.json and docs/cell_search.md count
+# a fix every 10 frames, as docs/results/full_frame_tracking_*.json and docs/design/cell_search.md count
 # sites per stack: the default 100-frame stack (a walker's) would hear more per stack and give
 # ten times fewer stacks to count over
 TEN_FRAMES = PipelineConfig().with_choices(n_frames=10)

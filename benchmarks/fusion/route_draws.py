@@ -3,7 +3,7 @@ changes along the route.
 
 The scenario's seed draws each site's LOS state, shadowing and delay spread once; with
 ``channel: spatial_consistency: true`` the shadowing and the delay spread then follow the
-receiver's distance along the walk (38.901's 30-50 m correlation distances, ``docs/simulator.md``).
+receiver's distance along the walk (38.901's 30-50 m correlation distances, ``docs/design/simulator.md``).
 For each seed, with and without it, this makes the bag (kept in bags/generated/ for the next
 run; seed 1 without it is ``route_dense`` itself, made by scripts/route_bags.sh), replays it
 through the pipeline (10-frame stacks, the dense walk's tower database) and prints the sites

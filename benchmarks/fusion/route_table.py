@@ -135,7 +135,7 @@ def evaluate(name: str, frames: int = 10) -> dict:
     for variant, run in runs.items():
         model = add_rssi_fixes(run, RssiConfig())
         table[variant] = {**summarize_route(second_half(run)), "rssi_model": model}
-    if frames == 10:  # the figures docs/fusion.md shows
+    if frames == 10:  # the figures docs/design/fusion.md shows
         figures = RESULTS / name
         route_figures.plot_cdf(second_half(runs["calibrated"]), Path(f"{figures}_cdf.png"))
         route_figures.plot_map(runs["calibrated"], Anchors(calibrated), Path(f"{figures}_map.png"))

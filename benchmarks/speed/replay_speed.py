@@ -247,7 +247,7 @@ def main() -> int:
             report["speed"][name] = {"stages_ms_per_second_of_data": stage_speed(bag, args.seconds),
                                      "replay_bag": whole_replay(bag)}
             print(name, json.dumps(report["speed"][name], indent=1))
-        # a tracker's choices: a fix every 0.2 s or 0.5 s from 20 or 50 frames (docs/fusion.md: both
+        # a tracker's choices: a fix every 0.2 s or 0.5 s from 20 or 50 frames (docs/design/fusion.md: both
         # track the dense walk better than 10), the per-stack work done a half or a fifth as often
         for frames in LONGER_STACKS:
             report[f"speed_{frames}_frames"] = {name: {"stages_ms_per_second_of_data": stage_speed(

@@ -650,7 +650,7 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
     checkpoint = load_checkpoint(args.checkpoint or DEFAULT_CHECKPOINT)
     with _ticking("exporting: torch's exporter traces the network (about a minute and a half on 2 cores)"):
         path = export_onnx(checkpoint, args.out)
-    print(f"  written {path} (one self-contained file; its inputs and outputs: docs/timing_network.md)")
+    print(f"  written {path} (one self-contained file; its inputs and outputs: docs/design/timing_network.md)")
     with _ticking("checking it in onnxruntime against torch on random inputs"):
         difference = check_onnx(path, checkpoint)
     print(f"  largest |onnxruntime - torch| {difference:.2e}")

@@ -19,7 +19,6 @@ from typing import Any, TypeVar
 
 import yaml
 
-from deepsync.schema import Setting
 
 T = TypeVar("T")
 _YAML11_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
@@ -124,25 +123,6 @@ def _check_tree(value: object, where: str, depth: int, sizes: dict[int, int]) ->
             raise ConfigError(f"{where}: expands to more than {MAX_VALUES:,} values (aliases nested in aliases?)")
     sizes[id(value)] = total
     return total
-
-
-
-Ranges = Mapping[str, tuple[float, float, str]]
-"""Field name -> (lowest, highest, unit): the inclusive physical or practical range of a
-config's number (a tuple field: of each of its values)."""
-
-
-def check_ranges(config: object, ranges: Ranges) -> None:
-    """ValueError naming the first field of ``config`` outside its range in ``ranges`` (a
-    number, or every value of a tuple of numbers), or a number that is not finite. Run from a
-    frozen config's ``__post_init__``, so that no value that cannot work gets past its door
-    (a field declared with ``deepsync.schema.setting`` is checked by ``check_settings``)."""
-    for name, (low, high, unit) in ranges.items():
-        value = getattr(config, name)
-        bounded = Setting(name, float, "", unit, (low, high))
-        for item in value if isinstance(value, tuple) else (value,):
-            if item is not None:
-                bounded.check(item)
 
 
 def require_mapping(value: object, where: str) -> Mapping[str, Any]:

@@ -16,6 +16,7 @@ import argparse
 import dataclasses
 import math
 import reprlib
+import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -28,7 +29,8 @@ _SETTING = "deepsync.setting"  # the key of a field's metadata that holds its Se
 class Setting:
     """What a user may set: ``name``, ``kind`` (bool, int, float or str), a sentence of ``help``,
     the ``unit``, inclusive ``bounds`` of a number (``open_low`` / ``open_high`` exclude an end),
-    or the ``choices`` of a name (a registry: name -> what the config holds)."""
+    or the ``choices`` of a name (a registry: name -> what the config holds). ``sequence``: the
+    value is a tuple of such values, each checked, ``length`` of them (None: any number)."""
 
     name: str
     kind: type
@@ -38,6 +40,8 @@ class Setting:
     open_low: bool = False
     open_high: bool = False
     choices: Mapping[str, Any] | None = None
+    sequence: bool = False
+    length: int | None = None
 
     @property
     def interval(self) -> str:
@@ -71,21 +75,35 @@ class Setting:
 
     def check(self, value: object, name: str | None = None) -> None:
         """ValueError naming the setting (or ``name``) unless ``value`` is of its kind, finite,
-        within its bounds and one of its choices (a name, or what a name stands for)."""
+        within its bounds and one of its choices (a name, or what a name stands for); of a
+        sequence, unless it is a tuple of ``length`` such values."""
         name = name or self.name
+        if self.sequence:
+            if not isinstance(value, tuple) or (self.length is not None and len(value) != self.length):
+                raise ValueError(f"{name} must be {self.length or 'a list of'} {self._kind_text(plural=True)}, got "
+                                 f"{reprlib.repr(value)}")
+            for item in value:
+                self._check_one(item, name)
+            return
+        self._check_one(value, name)
+
+    def _kind_text(self, plural: bool = False) -> str:
+        if plural:
+            return {bool: "true/false values", int: "integers", float: "numbers", str: "strings"}[self.kind]
+        return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}[self.kind]
+
+    def _check_one(self, value: object, name: str) -> None:
         if self.choices is not None:
             if value not in self.names and not any(value is item for item in self.choices.values()):
                 raise ValueError(f"{name} must be one of {', '.join(self.names)}, got {reprlib.repr(value)}")
             return
         if self.kind is bool or self.kind is str:
             if not isinstance(value, self.kind):
-                raise ValueError(f"{name} must be {'true or false' if self.kind is bool else 'a string'}, got "
-                                 f"{reprlib.repr(value)}")
+                raise ValueError(f"{name} must be {self._kind_text()}, got {reprlib.repr(value)}")
             return
         if isinstance(value, bool) or not isinstance(value, (int, float)) or (
                 self.kind is int and not isinstance(value, int)):
-            raise ValueError(f"{name} must be {'an integer' if self.kind is int else 'a number'}, got "
-                             f"{reprlib.repr(value)}")
+            raise ValueError(f"{name} must be {self._kind_text()}, got {reprlib.repr(value)}")
         if isinstance(value, float) and not math.isfinite(value):  # an int is (and 10**400 overflows a float)
             raise ValueError(f"{name} must be a finite number, got {reprlib.repr(value)}")
         if self.bounds is not None:
@@ -132,17 +150,27 @@ _CACHE: dict[type, dict[str, Setting]] = {}
 def _settings(cls: type) -> dict[str, Setting]:
     if cls not in _CACHE:
         hints = typing.get_type_hints(cls)
-        _CACHE[cls] = {field.name: Setting(field.name, _kind(hints[field.name]), **field.metadata[_SETTING])
-                       for field in dataclasses.fields(cls) if _SETTING in field.metadata}
+        found = {}
+        for field in dataclasses.fields(cls):
+            if _SETTING in field.metadata:
+                kind, shape = _shape(hints[field.name])
+                found[field.name] = Setting(field.name, kind, **field.metadata[_SETTING], **shape)
+        _CACHE[cls] = found
     return _CACHE[cls]
 
 
-def _kind(annotation: Any) -> type:
-    """bool, int, float or str of a field's annotation (``int | None``: int); a registry's
-    object: str, the name a user writes."""
-    options = [a for a in typing.get_args(annotation) if a is not type(None)] or [annotation]
-    kind = options[0]
-    return kind if kind in (bool, int, float, str) else str
+def _shape(annotation: Any) -> tuple[type, dict[str, Any]]:
+    """A field annotation's kind (bool, int, float or str; ``int | None``: int; a registry's
+    object: str, the name a user writes) and, for a tuple, ``sequence`` and its ``length``
+    (``tuple[float, float]``: 2, ``tuple[int, ...]``: any)."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        annotation = next(a for a in typing.get_args(annotation) if a is not type(None))
+    shape: dict[str, Any] = {}
+    if typing.get_origin(annotation) is tuple:
+        items = typing.get_args(annotation)
+        shape = {"sequence": True, "length": None if Ellipsis in items else len(items)}
+        annotation = items[0]
+    return (annotation if annotation in (bool, int, float, str) else str), shape
 
 
 def of(cls: type, name: str) -> Setting:
@@ -162,12 +190,23 @@ def check_settings(config: object) -> None:
             described.check(value)
 
 
+def resolve_choices(config: object) -> None:
+    """Each choice field of frozen ``config`` given by its name (as YAML and files hold it)
+    set to what the name stands for; after :func:`check_settings`, in ``__post_init__``."""
+    for name, described in settings(type(config)).items():
+        value = getattr(config, name)
+        if described.choices is not None and isinstance(value, str) and value in described.choices:
+            object.__setattr__(config, name, described.choices[value])
+
+
 def add_flag(parser: argparse.ArgumentParser | argparse._ArgumentGroup, described: Setting, flag: str, *,
              default: Any = None, unset: str | None = None, **more: Any) -> argparse.Action:
     """A command-line flag for a setting: its type checks the bounds, its choices are the
     registry's, its help is the setting's with the default (``unset``: what no value means).
     The action remembers its setting (``action.setting``) for the test that no flag of a config
     field is written by hand."""
+    if described.sequence:
+        raise ValueError(f"{described.name}: a sequence setting is not a flag of its own")
     if described.choices is not None:
         more.update(choices=described.names, metavar=more.get("metavar", "NAME"))
     elif described.kind is bool:

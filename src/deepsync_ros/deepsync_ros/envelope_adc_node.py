@@ -19,7 +19,7 @@ from deepsync.types import EnvelopeChunk
 
 from . import params
 from .conversions import envelope_to_msg
-from .health import Playback
+from .playback import Playback
 from .node_base import REJECTION_LOG_PERIOD_S, DeepSyncNode, PacedPlayer, run
 from .params import ParamValue
 

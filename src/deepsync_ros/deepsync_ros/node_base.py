@@ -59,7 +59,8 @@ from .conversions import (
     no_fix_to_navsat_msg,
     prior_from_pose_msg,
 )
-from .health import CellTable, Playback, Report, StageHealth, chunk_end_ns, sites_geojson
+from .health import CellTable, Report, StageHealth, sites_geojson
+from .playback import Playback, chunk_end_ns
 from .params import ParameterError, ParamSpec, ParamValue, checked
 
 # Reliable keeps a message from being lost on the wire, not from being overwritten: a keep-last
@@ -434,7 +435,7 @@ class AidingListener:
 
 
 class PacedPlayer:
-    """Plays a :class:`~deepsync_ros.health.Playback` into ``consume`` from a steady-clock timer
+    """Plays a :class:`~deepsync_ros.playback.Playback` into ``consume`` from a steady-clock timer
     (a ROS-time timer would wait on the very /clock this player may publish), optionally
     publishing /clock at each chunk's end: the receiver time at which its last sample exists."""
 

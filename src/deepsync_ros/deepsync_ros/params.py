@@ -30,12 +30,12 @@ from typing import TypeVar
 
 from deepsync.bag.convert import ANTENNA_FRAME_ID, ENVELOPE_FRAME_ID, MAP_FRAME_ID
 from deepsync.configio import build_dataclass, load_yaml
-from deepsync.frontend.config import FRONTEND_RANGES, FrontendConfig
+from deepsync.frontend.config import FrontendConfig
 from deepsync.fusion.bias_map import BiasMap, load_bias_map
 from deepsync.fusion.stage import FusionConfig
 from deepsync.motion import DEFAULT_MOTION, MOTION
 from deepsync.pipeline import PipelineConfig, places_sites, setting_paths
-from deepsync.schema import Setting
+from deepsync.schema import Setting, of
 from deepsync.sources import SampleFormat, Source, bag_frontend, open_source
 from deepsync.sources.address import is_live_address
 from deepsync.sources.bagfile import is_bag_path
@@ -43,7 +43,7 @@ from deepsync.sync.stage import SyncConfig
 from deepsync.timing.stage import TimingConfig
 from deepsync.towers import TowerDatabase, load_tower_database
 
-from .health import PlaybackConfig
+from .playback import PlaybackConfig
 
 ParamValue = bool | int | float | str
 T = TypeVar("T")
@@ -158,7 +158,7 @@ SOURCE = (
               "or metadata (rtl_tcp: cu8).", choices=("", *(f.value for f in SampleFormat))),
     ParamSpec("sample_rate", 0.0, "Sample rate of a raw file or a live stream [Hz]; 0: from the recording "
               "(rtl_tcp, soapy: 1.92e6).",
-              range=(0.0, FRONTEND_RANGES["adc_rate_hz"][1])),
+              range=(0.0, of(FrontendConfig, "adc_rate_hz").bounds[1])),
     ParamSpec("realtime", True, "Pace the chunks by their stamps on a steady clock (true) or publish them as "
               "fast as they come (false).", read_only=False),
     ParamSpec("rate", 1.0, "Playback speed: 1 = real time, 2 = twice as fast (with realtime).",

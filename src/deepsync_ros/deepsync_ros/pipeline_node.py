@@ -23,7 +23,8 @@ from deepsync.types import EnvelopeChunk
 
 from . import params
 from .conversions import cell_timing_array_to_msg
-from .health import CellTable, Playback, StageHealth
+from .health import CellTable, StageHealth
+from .playback import Playback
 from .node_base import (
     RESULTS_QOS,
     AidingListener,

@@ -65,6 +65,13 @@ def generate_launch_description():
                         "one_process:=true: a blind search, cell timings but no position.",
         ),
         DeclareLaunchArgument(
+            "bias_map",
+            default_value="",
+            description="Site bias map (.npz, deepsync survey-map) made with the towers database, for "
+                        "tdoa_fusion (or the one-process node): each mapped site's range bias comes off "
+                        "its ranges. '': the params file's (none).",
+        ),
+        DeclareLaunchArgument(
             "params_file",
             default_value=_share("config", "deepsync_nodes.yaml"),
             description="Node parameters (keys /**/<node name>: ros__parameters:). The launch "
@@ -243,6 +250,25 @@ def _number(name, text):
     return value
 
 
+def _node_overrides(source, towers, bias_map, motion, *, realtime, loop, use_sim_time):
+    """Node name -> the parameters the launch arguments set on top of the params files; an
+    argument left '' (motion, bias_map) leaves the files' value."""
+    frontend = {"frontend": source} if (source != TOPIC_SOURCE and _is_bag(source)) else {}
+    playback = {"source": source, "realtime": realtime, "loop": loop,
+                # the recording's stamps become /clock when every node runs on sim time
+                "publish_clock": use_sim_time}
+    # one motion for the nodes that stack and the node that tracks: they must agree
+    moving = {"motion": motion} if motion else {}
+    corrected = {"bias_map": bias_map} if bias_map else {}
+    return {
+        "envelope_adc": playback,
+        "cell_sync": {"towers": towers, **frontend, **moving},
+        "cell_timing": dict(frontend),
+        "tdoa_fusion": {"towers": towers, **corrected, **moving},
+        ONE_PROCESS: {**playback, "towers": towers, **corrected, **moving},
+    }
+
+
 def _end_of_a_required_node(event, context):
     """``on_exit`` of every DeepSync node: the chain cannot run without any of them. Another
     status than 0 while the launch runs is a failure: raised, launch logs it as one error line,
@@ -279,6 +305,7 @@ def _launch_setup(context):
         raise _refusal("base_frame:='' names no frame for the antenna's transform (or antenna_tf:=false)")
     source = arg["source"].strip()
     towers = arg["towers"].strip()
+    bias_map = arg["bias_map"].strip()
     params_file = arg["params_file"].strip()
     extra_params_file = arg["extra_params_file"].strip()
     namespace = arg["namespace"].strip().strip("/")
@@ -291,11 +318,13 @@ def _launch_setup(context):
     if blind and not one_process:
         raise _refusal("towers:='' (a blind search, no position) needs one_process:=true: the "
                        "tdoa_fusion node needs a tower database")
+    if blind and bias_map:
+        raise _refusal("bias_map:=... corrects fusion's site ranges, and towers:='' runs no fusion")
     missing = [f"{name}:={path}" for name, path in
-               (("source", source), ("towers", towers), ("params_file", params_file),
+               (("source", source), ("towers", towers), ("bias_map", bias_map), ("params_file", params_file),
                 ("extra_params_file", extra_params_file))
                if not (name == "source" and (from_topic or _is_address(path))) and not (name == "towers" and blind)
-               and not (name == "extra_params_file" and not path) and not os.path.exists(path)]
+               and not (name in ("bias_map", "extra_params_file") and not path) and not os.path.exists(path)]
     if missing:
         raise _refusal("no such file or directory: " + ", ".join(missing))
 
@@ -320,19 +349,8 @@ def _launch_setup(context):
         logger.warning(f"{params_file} has no entry for {', '.join(unmatched)}: they run on their "
                        "defaults (write the keys as /**/<node name> to match any namespace)")
 
-    frontend = {"frontend": source} if (not from_topic and _is_bag(source)) else {}
-    playback = {"source": source, "realtime": realtime, "loop": loop,
-                # the recording's stamps become /clock when every node runs on sim time
-                "publish_clock": use_sim_time}
-    # one motion for the nodes that stack and the node that tracks: they must agree
-    motion = {"motion": arg["motion"].strip()} if arg["motion"].strip() else {}
-    overrides = {
-        "envelope_adc": playback,
-        "cell_sync": {"towers": towers, **frontend, **motion},
-        "cell_timing": dict(frontend),
-        "tdoa_fusion": {"towers": towers, **motion},
-        ONE_PROCESS: {**playback, "towers": towers, **motion},
-    }
+    overrides = _node_overrides(source, towers, bias_map, arg["motion"].strip(), realtime=realtime, loop=loop,
+                                use_sim_time=use_sim_time)
     nodes = []
     for name in executables:
         parameters = [params_file, *([extra_params_file] if extra_params_file else []),

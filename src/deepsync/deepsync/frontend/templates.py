@@ -253,7 +253,7 @@ class SyncTemplates:
         envelope sampled with its code starting at p samples is sum_m A_m(k) e^{-j (w_k + 2 pi m) p}
         over the orders m (frequency k + m x frame bins); a template built at p = 0 and moved by
         a phase ramp takes every A_m as in band, and is off by up to 0.08 samples at p between
-        whole samples (docs/timing_network.md). These are the A_m, m != 0, of the orders whose
+        whole samples (docs/design/timing_network.md). These are the A_m, m != 0, of the orders whose
         band the video filter passes above ``FOLD_FLOOR_DB`` (none for 1.4 MHz, whose envelope
         is made at the ADC rate), code-aligned as ``code_aligned_crs`` and in its units but with
         no per-symbol mean removed: the folded content is far above the symbol rate. Cached."""

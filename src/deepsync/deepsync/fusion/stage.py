@@ -66,7 +66,7 @@ class FusionConfig:
     arrival's sigma as its white noise, must be told; ``multipath_std_m``
     is the range bias multipath and NLOS add to a site, beyond the timing stage's sigma (which
     measures noise, not where the channel moved the envelope's peak). Measured along the
-    simulated routes (docs/fusion.md): LOS sites 0-15 m, NLOS 40-90 m in the dense scenario,
+    simulated routes (docs/design/fusion.md): LOS sites 0-15 m, NLOS 40-90 m in the dense scenario,
     about 200 m (common to both sites heard) in the urban one, 25-230 m and changing along the
     route on the city walks with a channel that follows the walker; there a 40 m sigma left the
     tracker overconfident without an anchor (NEES 4.7-9.4 over three draws), 60 m holds it at

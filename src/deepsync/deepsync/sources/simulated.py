@@ -5,7 +5,7 @@ and receiver clock epoch, so the first seconds of this stream equal the recorded
 Useful to run the nodes on a scenario nobody has recorded. The simulator computes the real
 physics (every resource element of every cell, the square law, the channel): about 0.9x real
 time on one core for the campus scenario on this project's machines, less for more cells
-(docs/simulator.md). A paced consumer falls behind, and says so (the ``envelope_adc`` node's
+(docs/design/simulator.md). A paced consumer falls behind, and says so (the ``envelope_adc`` node's
 diagnostics); ``workers`` spreads the stream over processes.
 """
 

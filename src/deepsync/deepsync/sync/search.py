@@ -31,7 +31,7 @@ only counts as a new cell if it is a PCI not yet found, shows a PSS at its PSS p
 (with a database) is not better explained by a PCI outside it: the database limits what is
 reported, not what is believed. (The stage then asks for a cell to persist over stacks.)
 
-What the envelope can tell (``benchmarks/detection/cell_search.py``, ``docs/cell_search.md``): the PSS
+What the envelope can tell (``benchmarks/detection/cell_search.py``, ``docs/design/cell_search.md``): the PSS
 envelopes of N_ID2 = 1 and 2 (roots 29 and 34, complex conjugates) are identical, and the SSS
 envelopes of different N_ID1 correlate up to ~0.97, so identity is carried as ranked
 candidates with scores and a tower database decides which may be reported.

@@ -45,25 +45,11 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from deepsync.configio import check_ranges
+from deepsync.schema import check_settings, resolve_choices, setting
 
 
 LOG_VARIANCE_RANGE = (-12.0, 6.0)  # the sigma head's output is clamped to this: 0.0025 to 20 samples
 
-# The range of every size (inclusive). Each is far beyond what a sync stage's windows or a
-# tracker's CPU ask for (the shipped network: windows of 296 samples, 8-32 channels, 41,000
-# weights), and together with MAX_PARAMETERS keeps a typo or a tampered checkpoint from
-# allocating gigabytes before anything else is checked.
-NET_RANGES: dict[str, tuple[float, float, str]] = {
-    "window_length": (1, 4096, "samples"),  # 2 ms at 1.92 MS/s: a window is the code +- a margin
-    "template_length": (1, 4096, "samples"),
-    "channels": (1, 1024, ""),
-    "kernels": (1, 256, "samples"),
-    "pool": (1, 64, "samples"),
-    "heads": (1, 64, ""),
-    "hidden": (1, 65536, ""),
-    "dropout": (0.0, 0.99, ""),
-}
 MAX_PARAMETERS = 16_000_000
 """Weights a network may have (64 MB of float32; Adam keeps two more copies while training):
 400 times the shipped network's."""
@@ -89,35 +75,32 @@ class Head(enum.Enum):
 class TimingNetConfig:
     """Sizes of the network; ``window_length`` and ``template_length`` are the sync stage's."""
 
-    window_length: int = 296  # W: samples per frame window (template + 2 x margin at 1.92 MS/s)
-    template_length: int = 276  # T: samples of the cell's code template
-    channels: tuple[int, int, int] = (8, 16, 32)  # per convolution; the last is the token width C
-    kernels: tuple[int, int, int] = (14, 7, 5)  # decreasing: coarse shape first, then detail
-    pool: int = 2  # samples per token
-    heads: int = 4
-    hidden: tuple[int, int] = (64, 32)  # the dense layers before the two outputs
-    dropout: float = 0.1
-    fusion: Fusion = Fusion.CROSS_ATTENTION
-    head: Head = Head.DENSE
+    # Every size's range is far beyond what a sync stage's windows or a tracker's CPU ask for (the
+    # shipped network: windows of 296 samples, 8-32 channels, 41,000 weights), and together with
+    # MAX_PARAMETERS keeps a typo or a tampered checkpoint from allocating gigabytes before
+    # anything else is checked. 4096 samples are 2 ms at 1.92 MS/s: a window is the code +- a margin.
+    window_length: int = setting(296, help="W: samples per frame window (template + 2 x margin at 1.92 MS/s).",
+                                 unit="samples", bounds=(1, 4096))
+    template_length: int = setting(276, help="T: samples of the cell's code template.", unit="samples",
+                                   bounds=(1, 4096))
+    channels: tuple[int, int, int] = setting((8, 16, 32), help="Channels of each convolution; the last is the "
+                                             "token width C.", bounds=(1, 1024))
+    # decreasing: coarse shape first, then detail
+    kernels: tuple[int, int, int] = setting((14, 7, 5), help="Kernel of each convolution.", unit="samples",
+                                            bounds=(1, 256))
+    pool: int = setting(2, help="Samples per token.", unit="samples", bounds=(1, 64))
+    heads: int = setting(4, help="Attention heads; they divide the token width.", bounds=(1, 64))
+    hidden: tuple[int, int] = setting((64, 32), help="Widths of the dense layers before the two outputs.",
+                                      bounds=(1, 65536))
+    dropout: float = setting(0.1, help="Dropout rate while training.", bounds=(0.0, 0.99))
+    fusion: Fusion = setting(Fusion.CROSS_ATTENTION, help="How the template's tokens meet the signal's.",
+                             choices={kind.value: kind for kind in Fusion})
+    head: Head = setting(Head.DENSE, help="How the fused tokens become an offset.",
+                         choices={kind.value: kind for kind in Head})
 
     def __post_init__(self) -> None:
-        for name, kind in (("fusion", Fusion), ("head", Head)):
-            value = getattr(self, name)
-            if not isinstance(value, kind):  # the name, as YAML and checkpoints hold it
-                try:
-                    object.__setattr__(self, name, kind(value))
-                except ValueError:
-                    raise ValueError(f"{name}: {value!r} must be one of {', '.join(k.value for k in kind)}") from None
-        for name in ("window_length", "template_length", "pool", "heads", "channels", "kernels", "hidden"):
-            value = getattr(self, name)
-            values = value if isinstance(value, tuple) else (value,)
-            if not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
-                what = "whole numbers" if isinstance(value, tuple) else "a whole number"
-                raise ValueError(f"{name}: {value!r} must be {what}")
-        if len(self.channels) != 3 or len(self.kernels) != 3 or len(self.hidden) != 2:
-            raise ValueError(f"channels {self.channels!r} and kernels {self.kernels!r}: three positive integers each; "
-                             f"hidden {self.hidden!r}: two")
-        check_ranges(self, NET_RANGES)
+        check_settings(self)
+        resolve_choices(self)  # the names, as YAML and checkpoints hold them
         if self.channels[-1] % self.heads:
             raise ValueError(f"heads: {self.heads} must divide the token width channels[-1] = {self.channels[-1]}")
         if self.template_length > self.window_length:

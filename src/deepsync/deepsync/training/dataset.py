@@ -67,8 +67,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from deepsync.configio import check_ranges, choice_name
+from deepsync.configio import choice_name
 from deepsync.outputs import replacing
+from deepsync.schema import check_settings, resolve_choices, setting
 from deepsync.frontend.channel import Emitter, FixedChannel, Paths
 from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator, SimulationStats
@@ -100,51 +101,43 @@ class Channel(enum.Enum):
     CLEAN = "clean"  # the direct path alone, no multipath or fading: where an estimator meets its bound
 
 
-# The range of every number of the dataset section (inclusive): what a receiver can meet,
-# and sizes far beyond the shipped run's (256 examples per shard of 12 frames).
-DATASET_RANGES: dict[str, tuple[float, float, str]] = {
-    "seed": (0, 2**63 - 1, ""),
-    "max_frames": (2, 100, "frames"),
-    "window_margin": (1, 100, "samples"),
-    "max_coarse_error": (1, 99, "samples"),
-    "re_power_dbm": (-160.0, 0.0, "dBm"),  # per resource element at the antenna
-    "carrier_hz": (400e6, 6e9, "Hz"),  # the LTE bands
-    "max_speed_mps": (0.0, 140.0, "m/s"),  # the scenario's receiver speed range
-    "max_clock_ppm": (0.0, 1000.0, "ppm"),  # the front end's clock_offset_ppm range
-    "max_site_drift_ppb": (0.0, 1000.0, "ppb"),  # the scenario's site oscillator range
-    "examples_per_shard": (1, 65_536, "examples"),
-    "cosited_share": (0.0, 1.0, ""),
-    "cosited_power_db": (-60.0, 20.0, "dB"),
-}
-
-
 @dataclass(frozen=True)
 class DatasetConfig:
     """The training distribution; each shard records it, and a changed field means new data."""
 
-    seed: int = 2025
-    max_frames: int = 12  # frames per example: the model may take any first n of them
-    window_margin: int = 10  # the sync stage's default: windows of 276 + 2 x 10 samples
-    max_coarse_error: int = 8  # whole samples between the coarse and the true code start
-    re_power_dbm: tuple[float, float] = (-110.0, -68.0)  # target cell, per RE at the antenna
-    carrier_hz: float = 2.12e9
-    max_speed_mps: float = 15.0
-    max_clock_ppm: float = 0.5
-    max_site_drift_ppb: float = 50.0
-    examples_per_shard: int = 256
-    channel: Channel = Channel.TDL
-    cosited_share: float = 0.0  # scenes whose target has a co-sited sector (module docstring)
-    cosited_power_db: tuple[float, float] = (-12.0, 0.0)  # that sector's power relative to the target
-    frame_means: tuple[int, ...] = ()  # stacked frames of each mean frame kept (module docstring)
+    # Ranges: what a receiver can meet, and sizes far beyond the shipped run's (256 examples per
+    # shard of 12 frames).
+    seed: int = setting(2025, help="Seed every shard is drawn from (with its split and index).", bounds=(0, 2**63 - 1))
+    max_frames: int = setting(12, help="Frames per example: the model may take any first n of them.", unit="frames",
+                              bounds=(2, 100))
+    window_margin: int = setting(10, help="Samples kept on either side of the code (the sync stage's default: "
+                                 "windows of 276 + 2 x 10 samples).", unit="samples", bounds=(1, 100))
+    max_coarse_error: int = setting(8, help="Largest distance between the coarse and the true code start.",
+                                    unit="samples", bounds=(1, 99))
+    re_power_dbm: tuple[float, float] = setting((-110.0, -68.0), help="Target cell's received power per resource "
+                                                "element at the antenna, drawn within.", unit="dBm",
+                                                bounds=(-160.0, 0.0))
+    carrier_hz: float = setting(2.12e9, help="Carrier frequency (the LTE bands).", unit="Hz", bounds=(400e6, 6e9))
+    max_speed_mps: float = setting(15.0, help="Largest receiver speed (Doppler).", unit="m/s", bounds=(0.0, 140.0))
+    # the front end's clock_offset_ppm range
+    max_clock_ppm: float = setting(0.5, help="Largest receiver clock error.", unit="ppm", bounds=(0.0, 1000.0))
+    # the scenario's site oscillator range
+    max_site_drift_ppb: float = setting(50.0, help="Largest site clock drift.", unit="ppb", bounds=(0.0, 1000.0))
+    examples_per_shard: int = setting(256, help="Examples a shard holds.", unit="examples", bounds=(1, 65_536))
+    channel: Channel = setting(Channel.TDL, help="How every cell of a scene reaches the receiver.",
+                               choices={kind.value: kind for kind in Channel})
+    cosited_share: float = setting(0.0, help="Share of scenes whose target has a co-sited sector (module "
+                                   "docstring).", bounds=(0.0, 1.0))
+    cosited_power_db: tuple[float, float] = setting((-12.0, 0.0), help="That sector's power relative to the "
+                                                    "target, drawn within.", unit="dB", bounds=(-60.0, 20.0))
+    frame_means: tuple[int, ...] = setting((), help="Stacked frames of each mean frame kept, increasing, at most "
+                                           "max_frames (module docstring).", unit="frames", bounds=(2, 100))
 
     def __post_init__(self) -> None:
-        if not isinstance(self.channel, Channel):  # the name, as YAML and the shards hold it
-            try:
-                object.__setattr__(self, "channel", Channel(self.channel))
-            except ValueError:
-                raise ValueError(f"channel: {self.channel!r} must be one of "
-                                 f"{', '.join(c.value for c in Channel)}") from None
-        check_ranges(self, DATASET_RANGES)
+        if isinstance(self.frame_means, list):
+            object.__setattr__(self, "frame_means", tuple(self.frame_means))
+        check_settings(self)
+        resolve_choices(self)  # the name, as YAML and the shards hold it
         if not 1 <= self.max_coarse_error < self.window_margin:
             raise ValueError(f"max_coarse_error: {self.max_coarse_error!r} must be 1..window_margin-1 "
                              f"({self.window_margin - 1}) so the true code stays inside the window")
@@ -154,8 +147,7 @@ class DatasetConfig:
         low, high = self.cosited_power_db
         if not low <= high:
             raise ValueError(f"cosited_power_db: {self.cosited_power_db!r} must be a non-decreasing pair of numbers")
-        object.__setattr__(self, "frame_means", tuple(self.frame_means))
-        if (not all(isinstance(f, int) and 2 <= f <= self.max_frames for f in self.frame_means)
+        if (not all(f <= self.max_frames for f in self.frame_means)
                 or list(self.frame_means) != sorted(set(self.frame_means))):
             raise ValueError(f"frame_means: {self.frame_means!r} must be increasing frame counts in 2..max_frames "
                              f"({self.max_frames})")

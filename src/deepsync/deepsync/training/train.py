@@ -16,7 +16,7 @@ alone (the dense layers after the fusion; encoders, batch norms and the offset f
 offset stays as it was) learns the 68.3 % quantile of the error's size given the input, by the
 pinball loss on log |error|. The Gaussian NLL fits the error's variance, and where errors are a
 narrow core and a tail of wrong lobes, a sigma from the variance holds 75-85 % of them, not the
-68 % a 1-sigma should (``docs/timing_network.md``).
+68 % a 1-sigma should (``docs/design/timing_network.md``).
 
 Interrupt at any time: ``<run_dir>/last.pt`` (saved every ``eval_every`` steps, with the
 optimiser) is where a rerun resumes, and every batch is drawn from ``(seed, step, rank)``, so a
@@ -49,9 +49,10 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from deepsync.configio import ConfigError, build_dataclass, check_ranges, choice_name, load_yaml, require_mapping
+from deepsync.configio import ConfigError, build_dataclass, choice_name, load_yaml, require_mapping
 from deepsync.frontend.config import FrontendConfig
 from deepsync.outputs import check_writable, replacing, write_text
+from deepsync.schema import check_settings, setting
 from deepsync.timing.checkpoint import TrainingRange, load_checkpoint, save_checkpoint
 from deepsync.timing.estimators import SIGMA_CALIBRATION_BAND
 from deepsync.timing.inputs import Normalisation, network_inputs, noise_normalised
@@ -60,30 +61,6 @@ from deepsync.timing.network import DEFAULT_CHECKPOINT
 from deepsync.training.dataset import DatasetConfig, generate, load_split
 
 
-# The range of every number of the training section (inclusive): a value outside is a typo or
-# a unit slip; left through, it trains for hours and then fails (steps 1e308), or fails at the
-# first step (huber_delta 0, threads -1), or makes every weight NaN (learning_rate 1e308).
-TRAIN_RANGES: dict[str, tuple[float, float, str]] = {
-    "train_shards": (1, 100_000, "shards"),
-    "val_shards": (1, 10_000, "shards"),
-    "test_shards": (0, 10_000, "shards"),
-    "steps": (1, 10_000_000, "steps"),  # the shipped network took 8000
-    "batch_size": (1, 65_536, "examples"),  # and within MAX_BATCH_BYTES (RunConfig)
-    "learning_rate": (1e-9, 1.0, ""),  # Adam's steps are about this size: beyond 1 every weight diverges
-    "final_learning_rate": (1e-12, 1.0, ""),
-    "warmup_steps": (0, 10_000_000, "steps"),
-    "min_frames": (2, 100, "frames"),
-    "max_frames": (2, 100, "frames"),
-    "huber_delta": (1e-3, 1000.0, "samples"),  # 0 is no loss at all (torch refuses it)
-    "nll_weight": (0.0, 1000.0, ""),
-    "huber_min_stacked_snr_db": (-100.0, 100.0, "dB"),
-    "eval_every": (1, 10_000_000, "steps"),
-    "calibration_steps": (0, 10_000_000, "steps"),
-    "calibration_learning_rate": (1e-12, 1.0, ""),
-    "seed": (0, 2**63 - 1, ""),
-    "threads": (0, 1024, "threads"),  # 0: torch's default
-    "workers": (1, 64, "processes"),
-}
 MAX_BATCH_BYTES = 8 * 2**30
 """Memory a training batch may take (``TimingNetConfig.activation_bytes`` of its examples at
 ``max_frames``): the shipped run's batches take about 0.7 GB."""
@@ -94,34 +71,50 @@ templates and mean frames: the shipped run's take about 0.3 GB."""
 
 @dataclass(frozen=True)
 class TrainConfig:
-    data_dir: str = "data/timing"
-    train_shards: int = 80
-    val_shards: int = 6
-    test_shards: int = 8
-    run_dir: str = "runs/timing"
-    model_path: str = ""  # where a finished run copies best.pt; empty: nowhere (the network is <run_dir>/best.pt)
-    steps: int = 10000
-    batch_size: int = 128
-    learning_rate: float = 1e-3
-    final_learning_rate: float = 1e-5
-    warmup_steps: int = 200
-    min_frames: int = 4
-    max_frames: int = 12
-    huber_delta: float = 1.0
-    nll_weight: float = 0.5
+    # Ranges: a value outside is a typo or a unit slip; left through, it trains for hours and then
+    # fails (steps 1e308), or fails at the first step (huber_delta 0, threads -1), or makes every
+    # weight NaN (learning_rate 1e308).
+    data_dir: str = setting("data/timing", help="Where the examples' shards are (made there when missing).")
+    train_shards: int = setting(80, help="Shards of the training split.", unit="shards", bounds=(1, 100_000))
+    val_shards: int = setting(6, help="Shards of the validation split.", unit="shards", bounds=(1, 10_000))
+    test_shards: int = setting(8, help="Shards of the test split (made, never trained on).", unit="shards",
+                               bounds=(0, 10_000))
+    run_dir: str = setting("runs/timing", help="Where the run writes last.pt, best.pt and its curve.")
+    model_path: str = setting("", help="Where a finished run copies best.pt; empty: nowhere (the network is "
+                              "<run_dir>/best.pt).")
+    # the shipped network took 8000
+    steps: int = setting(10000, help="Training steps before the sigma calibration.", unit="steps",
+                         bounds=(1, 10_000_000))
+    # and within MAX_BATCH_BYTES (RunConfig)
+    batch_size: int = setting(128, help="Examples per step.", unit="examples", bounds=(1, 65_536))
+    # Adam's steps are about this size: beyond 1 every weight diverges
+    learning_rate: float = setting(1e-3, help="Adam's learning rate after the warm-up.", bounds=(1e-9, 1.0))
+    final_learning_rate: float = setting(1e-5, help="Learning rate the cosine decay ends at.", bounds=(1e-12, 1.0))
+    warmup_steps: int = setting(200, help="Steps of the linear warm-up.", unit="steps", bounds=(0, 10_000_000))
+    min_frames: int = setting(4, help="Fewest frames a batch is given.", unit="frames", bounds=(2, 100))
+    max_frames: int = setting(12, help="Most frames a batch is given (at most the dataset's).", unit="frames",
+                              bounds=(2, 100))
+    # 0 is no loss at all (torch refuses it)
+    huber_delta: float = setting(1.0, help="Huber loss's delta on the offset.", unit="samples", bounds=(1e-3, 1000.0))
+    nll_weight: float = setting(0.5, help="Weight of the Gaussian negative log-likelihood beside the Huber loss.",
+                                bounds=(0.0, 1000.0))
     # examples whose code is weaker than this after stacking carry no offset to learn (a random sign
     # of Huber gradient per example, drowning the rest): they train the sigma head only
-    huber_min_stacked_snr_db: float = -15.0
-    eval_every: int = 250
-    # after ``steps``: the sigma head alone, fitted to the 68.3 % quantile of |error| (above)
-    calibration_steps: int = 3000
-    calibration_learning_rate: float = 3e-4
-    seed: int = 7
-    threads: int = 0  # CPU threads for torch; 0: torch's default
-    workers: int = 2  # processes making missing shards
+    huber_min_stacked_snr_db: float = setting(-15.0, help="Stacked SNR below which an example trains the sigma "
+                                              "head only.", unit="dB", bounds=(-100.0, 100.0))
+    eval_every: int = setting(250, help="Steps between validations (and saves of last.pt).", unit="steps",
+                              bounds=(1, 10_000_000))
+    # after ``steps``: the sigma head alone, fitted to the 68.3 % quantile of |error| (module docstring)
+    calibration_steps: int = setting(3000, help="Steps calibrating the sigma head alone.", unit="steps",
+                                     bounds=(0, 10_000_000))
+    calibration_learning_rate: float = setting(3e-4, help="Learning rate of the sigma calibration.",
+                                               bounds=(1e-12, 1.0))
+    seed: int = setting(7, help="Seed every batch is drawn from (with its step and rank).", bounds=(0, 2**63 - 1))
+    threads: int = setting(0, help="CPU threads for torch; 0: torch's default.", unit="threads", bounds=(0, 1024))
+    workers: int = setting(2, help="Processes making missing shards.", unit="processes", bounds=(1, 64))
 
     def __post_init__(self) -> None:
-        check_ranges(self, TRAIN_RANGES)
+        check_settings(self)
         if not 2 <= self.min_frames <= self.max_frames:
             raise ValueError(f"min_frames {self.min_frames} and max_frames {self.max_frames}: 2 <= min <= max "
                              "(the windows are normalised by their frame-to-frame noise)")
