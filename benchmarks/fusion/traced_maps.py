@@ -6,8 +6,8 @@ receiver's route widened by 30 m), each site simulated at every street node 10 m
 other site clocks, chain phases and noise than the map's seed 5), against no map and against a
 wrong map: one made with site M1 50 m north of where it stands. Per walk, with no anchor and with
 a GNSS fix a minute: the published pose's median, p90 and NEES. Also how well the map predicts
-what each walk's sites read (the walk's own survey map at its true positions: the median
-absolute difference per site). Maps are kept in bags/generated/maps (made when missing: about
+what each site reads (``prediction_error``: per stack, at the true positions, against the
+stack's other sites). Maps are kept in bags/generated/maps (made when missing: about
 10 minutes each on two cores); writes docs/results/traced_maps.json.
 
     python benchmarks/fusion/traced_maps.py [--seeds 1 2 3] [--workers 2]
@@ -25,16 +25,16 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the route set's bags, configurations and summaries
 import route_set as rs  # noqa: E402
-from bias_maps import survey  # noqa: E402
 
-from deepsync.eval.route import fuse_route  # noqa: E402
+from deepsync.eval.route import RouteRun, fuse_route  # noqa: E402
 from deepsync.eval.traced_map import TracedMapConfig, traced_bias_map  # noqa: E402
+from deepsync.fusion.anchors import unwrap_range  # noqa: E402
 from deepsync.fusion.bias_map import BiasMap, load_bias_map  # noqa: E402
 from deepsync.jobs import JobRunner  # noqa: E402
 
 ROUTE = "munich_walk"
 SCENARIO = rs.REPO / "config" / "scenarios" / "munich_walk.yaml"
-MAPS = rs.BAGS / "maps"
+MAPS = rs.BAGS.parent / "maps"  # bags/generated/maps
 WRONG_SITE, WRONG_BY_M = "M1", 50.0
 METRES_PER_DEGREE_LATITUDE = 111_320.0
 CONFIGURATIONS = ("no anchor", "GNSS 60 s")
@@ -60,21 +60,29 @@ def traced(scenario: Path, runner: JobRunner) -> BiasMap:
     return load_bias_map(path)
 
 
-def prediction_error(predicted: BiasMap, surveyed: BiasMap) -> dict[str, float]:
-    """Per site, the median |traced - surveyed| (m) over the survey's known nodes, each map's
-    mean over those nodes taken off first (a survey knows biases against the other sites only)."""
-    out = {}
-    for name, grid in surveyed.sites.items():
-        if name not in predicted.sites:
-            continue
-        rows, cols = np.nonzero(np.isfinite(grid.mean_m))
-        east, north = grid.x0_m + cols * grid.step_m, grid.y0_m + rows * grid.step_m
-        guess, _ = predicted.sites[name].values(east, north)
-        both = np.isfinite(guess)
-        if both.sum() >= 3:
-            a, b = guess[both], grid.mean_m[rows[both], cols[both]]
-            out[name] = float(np.median(np.abs((a - a.mean()) - (b - b.mean()))))
-    return out
+def prediction_error(run: RouteRun, predicted: BiasMap) -> dict[str, dict[str, float]]:
+    """How well the map says what each site reads, as fusion sees it: per stack hearing two
+    mapped sites or more, what each reads beyond its true distance and what the map says at the
+    true position, each against the stack's mean (a receiver clock cancels); per site, the
+    median |read| (what no map leaves) and the median |read - map| (what the map leaves), m."""
+    left: dict[str, list[float]] = {}
+    raw: dict[str, list[float]] = {}
+    for epoch in run.epochs:
+        rows = []
+        for arrival in epoch.sites:
+            truth = epoch.site_truth[arrival.site]
+            value = predicted.sites[arrival.site].at(truth[0], truth[1]) if arrival.site in predicted.sites else None
+            if value is not None:
+                rows.append((arrival.site, arrival.range_mod_m - float(np.linalg.norm(truth - arrival.position_enu)),
+                             value[0]))
+        if len(rows) >= 2:
+            read = np.array([unwrap_range(r[1] - rows[0][1], 0.0) for r in rows])
+            said = np.array([r[2] for r in rows])
+            for (site, _, _), a, b in zip(rows, read - read.mean(), said - said.mean()):
+                raw.setdefault(site, []).append(abs(a))
+                left.setdefault(site, []).append(abs(a - b))
+    return {site: {"stacks": len(left[site]), "no_map_m": float(np.median(raw[site])),
+                   "map_m": float(np.median(left[site]))} for site in sorted(left)}
 
 
 def measure(seed: int, maps: dict[str, BiasMap]) -> dict:
@@ -82,7 +90,7 @@ def measure(seed: int, maps: dict[str, BiasMap]) -> dict:
     replay, towers, pipeline = rs.replayed(ROUTE, rs.BAGS / bag)
     config = pipeline.fusion
     row = {"bag": bag, "configurations": {},
-           "prediction_error_m": prediction_error(maps["traced map"], survey(replay, towers, config, bag))}
+           "prediction_error_m": prediction_error(fuse_route(replay, towers, config), maps["traced map"])}
     for name in CONFIGURATIONS:
         row["configurations"][name] = {
             label: rs.published_summary(fuse_route(replay, towers, config, aiding=rs.CONFIGURATIONS[name],
@@ -99,8 +107,8 @@ def table(rows: dict[str, dict]) -> str:
         for name, variants in row["configurations"].items():
             cells = [f"{_m(v['median_m'])}/{_m(v['p90_m'])} {_m(v['nees_mean'], '{:.1f}')}" for v in variants.values()]
             lines.append(f"{row['bag']:20s} {name:12s} " + " ".join(f"{c:>18s}" for c in cells))
-        errors = ", ".join(f"{site} {value:.0f}" for site, value in sorted(row["prediction_error_m"].items()))
-        lines.append(f"{'':20s} traced vs the walk's own survey, median |difference| m: {errors}")
+        errors = ", ".join(f"{site} {v['no_map_m']:.0f} -> {v['map_m']:.0f}" for site, v in row["prediction_error_m"].items())
+        lines.append(f"{'':20s} per stack, median |bias| left without -> with the map (m): {errors}")
     return "\n".join(lines)
 
 

@@ -239,8 +239,8 @@ PUBLISH_NO_FIX = ParamSpec("publish_no_fix", True, "For a stack without a fix, p
                            "way).")
 FUSION_TOWERS = ParamSpec("towers", "", "Tower database YAML placing the sites (origin, positions, timing "
                           "offsets). Required.")
-BIAS_MAP = ParamSpec("bias_map", "", "Site bias map (.npz, deepsync survey-map) made with the same tower database: "
-                     "each mapped site's range bias where the survey went comes off its ranges. Empty: none.")
+BIAS_MAP = ParamSpec("bias_map", "", "Site bias map (.npz, deepsync survey-map or trace-map) for the same tower "
+                     "database: each mapped site's range bias comes off its ranges where the map knows it. Empty: none.")
 
 ENVELOPE_ADC = (*SOURCE, SOURCE_FRAME, WAIT_FOR_SUBSCRIBERS)
 CELL_SYNC = (TOWERS, FRONTEND, MOTION_PARAM, *SYNC, ParamSpec("frame_id", ENVELOPE_FRAME_ID, "frame_id of the "

@@ -12,7 +12,7 @@ why (too few sites, unknown PCIs, geometry, a lost track, ...), and list every c
 then enough. With ``use_gnss`` it takes ``gnss/fix`` (NavSatFix) as anchors, with
 ``use_odometry`` ``odometry`` (Odometry) as velocities (``deepsync_ros.aiding``); with
 ``learned_towers`` it writes what it learned of the sites to that file; with ``bias_map`` a
-survey's site bias map (``deepsync survey-map``) corrects the sites' ranges. The tracker counts the
+site bias map (``deepsync survey-map`` or ``trace-map``) corrects the sites' ranges. The tracker counts the
 overlap of the stacks each ``CellTimingArray`` says it came from (``stack_frames`` /
 ``stack_hop_frames``: cell_sync's), the motion model's where a message does not say.
 """

@@ -67,7 +67,7 @@ def generate_launch_description():
         DeclareLaunchArgument(
             "bias_map",
             default_value="",
-            description="Site bias map (.npz, deepsync survey-map) made with the towers database, for "
+            description="Site bias map (.npz, deepsync survey-map or trace-map) made with the towers database, for "
                         "tdoa_fusion (or the one-process node): each mapped site's range bias comes off "
                         "its ranges. '': the params file's (none).",
         ),
