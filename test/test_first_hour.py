@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from deepsync.cli import build_parser, main
@@ -163,6 +164,37 @@ def test_the_route_map_draws_every_fix_and_its_zoom_has_units_and_hides_no_site(
         assert "campus_route" in ax.get_title()
     finally:
         plt.close(figure)
+
+
+def test_the_route_map_draws_buildings_beneath_the_route_without_widening_the_view(walk):
+    """A ray-traced scene's outlines (evaluate-route reads them from the recorded scenario): one
+    block on the route, one a kilometre off, which must not zoom the map out."""
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PolyCollection
+
+    from deepsync.eval.route_figures import map_figure
+
+    run, anchors = walk
+    plain = map_figure(run, anchors)
+    near = np.array(run.epochs[0].truth_enu[:2]) + np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 20.0], [0.0, 20.0]])
+    figure = map_figure(run, anchors, [near, near + 5000.0])
+    try:
+        ax = figure.axes[0]
+        (blocks,) = [c for c in ax.collections if isinstance(c, PolyCollection)]
+        assert len(blocks.get_paths()) == 2 and blocks.get_zorder() < min(line.get_zorder() for line in ax.get_lines())
+        assert "buildings" in ax.get_legend_handles_labels()[1]
+        assert ax.get_xlim() == plain.axes[0].get_xlim() and ax.get_ylim() == plain.axes[0].get_ylim()
+        assert any(isinstance(c, PolyCollection) for c in ax.child_axes[0].collections)  # in the zoom too
+    finally:
+        plt.close(figure)
+        plt.close(plain)
+
+
+def test_a_bag_of_a_statistical_scenario_or_none_has_no_buildings(tmp_path):
+    from deepsync.eval.route import recorded_buildings
+    from deepsync.sources import BagSource
+
+    assert recorded_buildings(BagSource(REPO / "bags" / "campus_route")) == []  # statistical
 
 
 def test_the_cdf_names_its_bag_and_the_timeline_has_a_title_integer_site_counts_and_says_what_nees_is(walk):

@@ -394,3 +394,13 @@ def test_a_traced_map_refuses_a_statistical_scenario_and_bad_settings(tmp_path):
     assert not list(tmp_path.iterdir())
     with pytest.raises(ValueError, match="node_step_m"):
         TracedMapConfig(node_step_m=0.0)
+
+
+@needs_sionna
+def test_a_scenarios_building_outlines_come_in_the_map_frame(footprints, tmp_path):
+    from deepsync.twin.raytrace.build import scenario_footprints
+
+    scenario = _scenario(footprints, [(-10, -5), (-10, 40)], cache_dir=tmp_path)
+    (ring,) = scenario_footprints(scenario.channel, FRAME)
+    assert ring.shape[1] == 2
+    assert np.allclose(ring.min(axis=0), [0.0, 0.0], atol=0.05) and np.allclose(ring.max(axis=0), [20.0, 30.0], atol=0.05)

@@ -8,7 +8,8 @@ wrong map: one made with site M1 50 m north of where it stands. Per walk, with n
 a GNSS fix a minute: the published pose's median, p90 and NEES. Also how well the map predicts
 what each site reads (``prediction_error``: per stack, at the true positions, against the
 stack's other sites). Maps are kept in bags/generated/maps (made when missing: about
-10 minutes each on two cores); writes docs/results/traced_maps.json.
+10 minutes each on two cores); writes docs/results/traced_maps.json and the first walk's route
+map with GNSS and the traced map over the scene's buildings (traced_maps_route.png).
 
     python benchmarks/fusion/traced_maps.py [--seeds 1 2 3] [--workers 2]
 """
@@ -26,9 +27,10 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the route set's bags, configurations and summaries
 import route_set as rs  # noqa: E402
 
-from deepsync.eval.route import RouteRun, fuse_route  # noqa: E402
+from deepsync.eval.route import RouteRun, fuse_route, recorded_buildings  # noqa: E402
+from deepsync.eval.route_figures import plot_map  # noqa: E402
 from deepsync.eval.traced_map import TracedMapConfig, traced_bias_map  # noqa: E402
-from deepsync.fusion.anchors import unwrap_range  # noqa: E402
+from deepsync.fusion.anchors import Anchors, unwrap_range  # noqa: E402
 from deepsync.fusion.bias_map import BiasMap, load_bias_map  # noqa: E402
 from deepsync.jobs import JobRunner  # noqa: E402
 
@@ -39,6 +41,7 @@ WRONG_SITE, WRONG_BY_M = "M1", 50.0
 METRES_PER_DEGREE_LATITUDE = 111_320.0
 CONFIGURATIONS = ("no anchor", "GNSS 60 s")
 OUT = rs.RESULTS / "traced_maps.json"
+FIGURE = rs.RESULTS / "traced_maps_route.png"  # the first walk's, GNSS 60 s with the traced map
 
 
 def wrong_scenario() -> Path:
@@ -85,17 +88,21 @@ def prediction_error(run: RouteRun, predicted: BiasMap) -> dict[str, dict[str, f
                    "map_m": float(np.median(left[site]))} for site in sorted(left)}
 
 
-def measure(seed: int, maps: dict[str, BiasMap]) -> dict:
+def measure(seed: int, maps: dict[str, BiasMap], figure: Path | None = None) -> dict:
+    """One walk's numbers; ``figure``: its route map with a GNSS fix a minute and the traced
+    map, over the scene's buildings."""
     bag = f"{ROUTE}_day_s{seed}"
     replay, towers, pipeline = rs.replayed(ROUTE, rs.BAGS / bag)
     config = pipeline.fusion
     row = {"bag": bag, "configurations": {},
            "prediction_error_m": prediction_error(fuse_route(replay, towers, config), maps["traced map"])}
     for name in CONFIGURATIONS:
-        row["configurations"][name] = {
-            label: rs.published_summary(fuse_route(replay, towers, config, aiding=rs.CONFIGURATIONS[name],
-                                                   bias_map=bias_map), config.tracker.max_std_m)
-            for label, bias_map in {"no map": None, **maps}.items()}
+        runs = {label: fuse_route(replay, towers, config, aiding=rs.CONFIGURATIONS[name], bias_map=bias_map)
+                for label, bias_map in {"no map": None, **maps}.items()}
+        row["configurations"][name] = {label: rs.published_summary(run, config.tracker.max_std_m)
+                                       for label, run in runs.items()}
+        if figure is not None and name == "GNSS 60 s":
+            plot_map(runs["traced map"], Anchors(towers), figure, recorded_buildings(replay.source))
     return row
 
 
@@ -131,7 +138,7 @@ def main() -> None:
     rows = {}
     for seed in args.seeds:
         print(f"== {ROUTE} seed {seed}", flush=True)
-        rows[str(seed)] = measure(seed, maps)
+        rows[str(seed)] = measure(seed, maps, FIGURE if seed == args.seeds[0] else None)
     print(table(rows))
     OUT.write_text(json.dumps(rows, indent=1))
     print(f"written: {OUT}")

@@ -36,6 +36,8 @@ from deepsync.fusion.stage import FusionConfig, FusionResult, FusionStage, answe
 from deepsync.pipeline import Pipeline, PipelineConfig, places_sites
 from deepsync.sources import BagSource
 from deepsync.towers import TowerDatabase
+from deepsync.twin.scenario import RayTracingSettings, load_scenario
+from deepsync.twin.world import twin_cells
 from deepsync.types import (
     SPEED_OF_LIGHT_M_S,
     UNMEASURED_VARIANCE,
@@ -392,8 +394,10 @@ def _site_timing(run: RouteRun) -> dict:
     return table
 
 
-def write_route_report(run: RouteRun, summary: dict, anchors: Anchors, out_dir: Path) -> list[Path]:
-    """``route.json`` (the summary and every stack) and the three figures, in ``out_dir``."""
+def write_route_report(run: RouteRun, summary: dict, anchors: Anchors, out_dir: Path,
+                       buildings: Sequence[np.ndarray] = ()) -> list[Path]:
+    """``route.json`` (the summary and every stack) and the three figures, in ``out_dir``; the
+    route map over ``buildings`` (outlines in the map frame) where given."""
     from deepsync.eval import route_figures  # matplotlib: only where figures are drawn
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -405,7 +409,7 @@ def write_route_report(run: RouteRun, summary: dict, anchors: Anchors, out_dir: 
     paths = [report, out_dir / "route_cdf.png", out_dir / "route_map.png", out_dir / "route_timeline.png"]
     if run.epochs:
         route_figures.plot_cdf(run, paths[1])
-        route_figures.plot_map(run, anchors, paths[2])
+        route_figures.plot_map(run, anchors, paths[2], buildings)
         route_figures.plot_timeline(run, paths[3])
     return paths if run.epochs else paths[:1]
 
@@ -455,4 +459,21 @@ def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, conf
         raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
     model = add_rssi_fixes(run, RssiConfig(receiver_height_m=(config or PipelineConfig()).fusion.snapshot.receiver_height_m))
     summary = {**summarize_route(run), "rssi_model": model}
-    return summary, write_route_report(run, summary, Anchors(towers), out_dir)
+    return summary, write_route_report(run, summary, Anchors(towers), out_dir, recorded_buildings(source))
+
+
+def recorded_buildings(source: BagSource) -> list[np.ndarray]:
+    """The building outlines (map frame, (N, 2) each) of the ray-traced scene a simulated bag
+    was recorded in, for its route map; none for a statistical or real recording, or where the
+    scenario file or the ray-tracing extra is not there to read them from."""
+    from deepsync.twin.raytrace.backend import missing  # noqa: PLC0415
+
+    try:
+        scenario = load_scenario(source.scenario_path())
+    except (ValueError, OSError):
+        return []
+    if not isinstance(scenario.channel, RayTracingSettings) or missing() is not None:
+        return []
+    from deepsync.twin.raytrace.build import scenario_footprints  # noqa: PLC0415 (Sionna's scene files)
+
+    return scenario_footprints(scenario.channel, twin_cells(scenario).frame)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -10,6 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from deepsync.eval.route_scores import CHI2_2DOF_95, METHODS, horizontal_error, nees  # noqa: E402
@@ -58,8 +60,8 @@ def cdf_figure(run: RouteRun) -> plt.Figure:
     return fig
 
 
-def plot_map(run: RouteRun, anchors: Anchors, path: Path) -> None:
-    _save(map_figure(run, anchors), path)
+def plot_map(run: RouteRun, anchors: Anchors, path: Path, buildings: Sequence[np.ndarray] = ()) -> None:
+    _save(map_figure(run, anchors, buildings), path)
 
 
 # where an inset may go, in axes fractions (x0, y0, width, height), with room left and below
@@ -67,10 +69,10 @@ def plot_map(run: RouteRun, anchors: Anchors, path: Path) -> None:
 CORNERS = ((0.58, 0.1, 0.38, 0.38), (0.14, 0.1, 0.38, 0.38), (0.58, 0.56, 0.38, 0.38), (0.14, 0.56, 0.38, 0.38))
 
 
-def map_figure(run: RouteRun, anchors: Anchors) -> plt.Figure:
+def map_figure(run: RouteRun, anchors: Anchors, buildings: Sequence[np.ndarray] = ()) -> plt.Figure:
     """The route, the sites (their names beside them), the snapshot's and the tracker's fixes,
     and where the sites shrink a short walk to a dot, an inset on it in a corner that hides no
-    site."""
+    site; over ``buildings`` (outlines in the map frame: a ray-traced scene's) where given."""
     fig, ax = plt.subplots(figsize=(7, 7))
     truth = np.array([e.truth_enu for e in run.epochs])
     heard = {s.site for e in run.epochs for s in e.sites}
@@ -84,13 +86,17 @@ def map_figure(run: RouteRun, anchors: Anchors) -> plt.Figure:
     ax.set_aspect("equal")
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
-    ax.set_title(f"{Path(run.bag).name}: route, sites (red: heard) and fixes; {run.aiding}", fontsize=10)
+    ax.set_title(f"{Path(run.bag).name}: route, sites (red: heard) and fixes\n{run.aiding}", fontsize=10)
     fig.canvas.draw()  # the aspect's limits, where the corners are decided
     free = _free_corners(ax, np.array([*sites.values(), *truth[:, :2], *drawn.points]).reshape(-1, 2))
-    _zoom_on_route(ax, run, truth, drawn.points, free)
-    # below the map, where it hides nothing
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=4, frameon=False)
-    fig.tight_layout()
+    inset = _zoom_on_route(ax, run, truth, drawn.points, free)
+    for axes in (ax, inset):
+        if axes is not None and len(buildings):  # beneath all, and not widening the view
+            axes.add_collection(PolyCollection(list(buildings), facecolor="0.88", edgecolor="0.65", linewidth=0.3,
+                                               zorder=0, label="buildings" if axes is ax else None), autolim=False)
+    # along the figure's foot, where it hides nothing (not even the axis label)
+    fig.legend(*ax.get_legend_handles_labels(), fontsize=8, loc="lower center", ncol=4, frameon=False)
+    fig.tight_layout(rect=(0.0, 0.06, 1.0, 1.0))
     return fig
 
 

@@ -211,6 +211,15 @@ class BagSource:
         return [_truth_fields(TruthSite, site, f"{self.path}: provenance sites[{i}]")
                 for i, site in enumerate(sites)]
 
+    def scenario_path(self) -> Path:
+        """The scenario file the bag was simulated from, as its provenance names it (it may since
+        have moved). Raises a ValueError (:class:`~deepsync.bag.BagError`) naming the bag if it
+        names none."""
+        scenario = self._truth("scenario")
+        if not isinstance(scenario, str) or not scenario:
+            raise BagError(f"{self.path}: provenance scenario {scenario!r} is not a path")
+        return Path(scenario)
+
     def truth_origin(self) -> MapOrigin:
         """The simulated scenario's map-frame origin. Raises a ValueError
         (:class:`~deepsync.bag.BagError`) naming the bag if it holds no such truth."""

@@ -74,3 +74,13 @@ def raytraced_channel(settings: RayTracingSettings, scenario: Scenario, frame: L
     traces = trace_sites(settings, scene, transmitters, points)
     return RayTracedChannel(transmitters, receiver, along, [traces[tx.site, tx.carrier_hz] for tx in transmitters],
                             scenario.seed)
+
+
+def scenario_footprints(settings: RayTracingSettings, frame: LocalFrame) -> list[np.ndarray]:
+    """The outlines of the scene's buildings in the map frame: an (N, 2) east/north ring each."""
+    scene = scenario_scene(settings, frame)
+    rings = []
+    for building in scene.buildings.buildings:
+        x, y = building.footprint.exterior.xy
+        rings.append(scene.to_map(np.column_stack([x, y, np.zeros(len(x))]))[:, :2])
+    return rings
