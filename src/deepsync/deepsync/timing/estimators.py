@@ -674,7 +674,7 @@ def frame_spectrum(frame: np.ndarray) -> np.ndarray:
 
 
 PEAK_WIDTH_LEVEL = 0.3  # of the peak: where the correlation's width is read (below the main lobe's shoulders)
-PEAK_WIDTH_FACTOR = 8  # points per sample at which the width is read
+PEAK_WIDTH_FACTOR = 4  # points per sample at which the width is read (edges interpolated: 0.01 samples from 8)
 PEAK_WIDTH_REACH = 12  # samples either side of the peak searched for the edges (within the CRS comb's period)
 
 
