@@ -371,10 +371,12 @@ def test_full_frame_ml_refuses_bad_input(whole_frame):
     assert kept.offset == pytest.approx(fresh.offset, abs=1e-9) and kept.std == pytest.approx(fresh.std, rel=1e-9)
 
 
-def _clean_cell_stack(templates: SyncTemplates, rng: np.random.Generator, seed: int, clock_ppm: float = 0.0):
-    """A strong 10 MHz cell (-75 dBm per RE) on its direct path alone, through the simulator's
-    front end with the receiver clock ``clock_ppm`` off (and the stacker told so): its first
-    10-frame stack, and where its code truly starts in the stack's first frame (samples)."""
+def _clean_cell_stack(templates: SyncTemplates, rng: np.random.Generator, seed: int, clock_ppm: float = 0.0,
+                     echo: tuple[float, float] | None = None):
+    """A strong 10 MHz cell (-75 dBm per RE) on its direct path alone (or with an ``echo``:
+    (samples later, amplitude relative to the direct path's), at a random phase), through the
+    simulator's front end with the receiver clock ``clock_ppm`` off (and the stacker told so): its
+    first 10-frame stack, and where its code truly starts in the stack's first frame (samples)."""
     from deepsync.frontend.channel import Emitter, FixedChannel, Paths
     from deepsync.frontend.simulator import EnvelopeSimulator
     from deepsync.frontend.templates import sync_code_offset_seconds
@@ -387,7 +389,12 @@ def _clean_cell_stack(templates: SyncTemplates, rng: np.random.Generator, seed: 
     frame = round(rate * FRAME_SECONDS)
     delay = float(rng.uniform(0.2e-6, 3.3e-6))
     cell = Emitter(CellConfig(FRAME_PCI, 10, 1.0), 2.12e9, 2e-3, float(rng.uniform(0, FRAME_SECONDS)), 0.0, "A")
-    path = Paths(np.array([delay]), np.array([np.sqrt(10 ** (-10.5) / 2e-3) + 0j]), np.array([0.0]))
+    gain = np.sqrt(10 ** (-10.5) / 2e-3) + 0j
+    delays, gains = [delay], [gain]
+    if echo is not None:
+        delays.append(delay + echo[0] / rate)
+        gains.append(gain * echo[1] * np.exp(2j * np.pi * rng.uniform()))
+    path = Paths(np.array(delays), np.array(gains), np.zeros(len(delays)))
     simulator = EnvelopeSimulator([cell], FixedChannel([path]), frontend, seed=seed)
     samples = np.concatenate([c.samples for c in simulator.stream(11 * FRAME_SECONDS)]) * frontend.volts_per_code
     stacker = FrameStacker(rate, StackConfig(n_frames=10, clock_ppm=clock_ppm, track_clock=False))
@@ -443,3 +450,45 @@ def test_a_receiver_clock_off_moves_the_mean_frame_not_the_arrival_the_timing_st
         errors.append(timed.cells[0].toa - stack.first_sample_index - arrival)
     # (the rows spread the code over 0.35 samples, which blurs the mean frame a little)
     assert np.max(np.abs(errors)) < 0.07 and math.sqrt(np.mean(np.square(errors))) < 0.04, errors
+
+
+def test_an_echo_within_the_main_lobe_widens_the_peak_and_the_stage_trusts_the_arrival_less(templates):
+    """A single path's full-frame correlation peak is as wide as the template's own (what noise
+    moves stays below the stage's allowance); an echo 1.3 samples behind it at 0.8 of its
+    amplitude merges with it into a peak more than half a sample wider (``peak_excess_width``), the smear that
+    on a city drive came with arrivals locked samples late. The timing stage widens such an
+    arrival's 1-sigma by ``smear_std_per_sample`` per sample beyond the allowance and names the
+    cell (``SMEARED_PEAK``); set to 0 it reports the estimator's sigma, unflagged."""
+    from deepsync.frontend.templates import known_frame
+    from deepsync.timing.stage import Estimator, TimingConfig, TimingStage
+    from deepsync.types import HealthKind, StackWindows, SyncWindow
+
+    config = TimingConfig(Estimator.named("ml_frame"))
+    stages = {"widened": TimingStage(templates.config, config, templates),
+              "as estimated": TimingStage(templates.config, dataclasses.replace(config, smear_std_per_sample=0.0),
+                                          templates)}
+    rng = np.random.default_rng(3)
+    for echo in (None, (1.3, 0.8)):
+        for seed in range(2):
+            stack, arrival = _clean_cell_stack(templates, rng, seed, echo=echo)
+            start = math.floor(arrival) % stack.frame_samples
+            timing = estimate_ml_frame(frame_spectrum(stack.mean), known_frame(templates, FRAME_PCI, 10), start, 10,
+                                       folds=templates.crs_folds(FRAME_PCI, 10))
+            window = SyncWindow(0, FRAME_PCI, stack.first_sample_index + start,
+                                extract_windows(stack, start, templates.length, 10), 10.0, 0.0, bandwidth_mhz=10.0)
+            cells = {name: stage.process(StackWindows(0, stack.first_sample_index, stack.sample_rate, (window,),
+                                                      frame=stack.mean)).cells[0] for name, stage in stages.items()}
+            plain, widened = cells["as estimated"], cells["widened"]
+            assert widened.toa == plain.toa and not plain.flags
+            assert plain.toa_std == pytest.approx(timing.estimate.std)
+            if echo is None:
+                assert abs(timing.peak_excess) < config.peak_width_allowance_samples, timing.peak_excess
+                assert widened.toa_std == plain.toa_std and not widened.flags
+                continue
+            assert timing.peak_excess > 0.5, timing.peak_excess
+            smear = config.smear_std_per_sample * (timing.peak_excess - config.peak_width_allowance_samples)
+            assert widened.toa_std == pytest.approx(math.hypot(plain.toa_std, smear))
+            assert widened.toa_std > 1.0 > 10 * plain.toa_std
+            kinds = [flag.kind for flag in widened.flags]
+            assert HealthKind.SMEARED_PEAK in kinds
+            assert f"PCI {FRAME_PCI}" in next(str(f) for f in widened.flags if f.kind is HealthKind.SMEARED_PEAK)

@@ -51,9 +51,10 @@ class HealthKind(enum.Enum):
     drop are a ``GAP``. Stack flags (a stack was searched,
     but its result deserves less trust, or none): ``CLIPPED``, ``NO_SIGNAL``, ``MISALIGNED``.
     Timing: ``UNTIMEABLE`` (a cell's windows could not be timed at all), ``WEAK_TIMING`` (an
-    arrival whose 1-sigma says it may be far off). Fusion: ``UNANCHORED`` (a heard cell the tower
-    database cannot place: unknown PCI, reused PCI without a carrier, site without position or
-    timing), ``AIDING_REFUSED`` (a GNSS fix or an odometry velocity fusion did not use: not a
+    arrival whose 1-sigma says it may be far off), ``SMEARED_PEAK`` (a cell's correlation peak
+    wider than a single path's, its 1-sigma widened: multipath may hold it late). Fusion:
+    ``UNANCHORED`` (a heard cell the tower database cannot place: unknown PCI, reused PCI
+    without a carrier, site without position or timing), ``AIDING_REFUSED`` (a GNSS fix or an odometry velocity fusion did not use: not a
     number, back in time, stale, or refused by the tracker's innovation test).
     """
 
@@ -70,6 +71,7 @@ class HealthKind(enum.Enum):
     MISALIGNED = "misaligned"  # receiver clock drift smeared the stack's frames
     UNTIMEABLE = "untimeable"  # a detected cell's windows carry nothing to time
     WEAK_TIMING = "weak_timing"  # an arrival beyond the estimator's threshold: its 1-sigma is large
+    SMEARED_PEAK = "smeared_peak"  # a cell's correlation peak wider than one path's: its 1-sigma widened
     UNANCHORED = "unanchored"  # a heard cell fusion cannot use: the database does not place it
     AIDING_REFUSED = "aiding_refused"  # a GNSS fix or odometry velocity fusion could not or would not use
 
@@ -92,6 +94,7 @@ _SEVERITY = {
     HealthKind.MISALIGNED: Severity.WARN,
     HealthKind.UNTIMEABLE: Severity.WARN,
     HealthKind.WEAK_TIMING: Severity.WARN,
+    HealthKind.SMEARED_PEAK: Severity.WARN,
     HealthKind.UNANCHORED: Severity.WARN,
     HealthKind.AIDING_REFUSED: Severity.WARN,
 }

@@ -656,6 +656,7 @@ class FrameTiming:
     amplitude: float  # fitted scale of the template, bias-corrected (>= 0)
     stacked_psd: np.ndarray  # of the frame's residual, rfft bins of the frame
     crlb_std: float  # samples: ``crlb.delay_crlb`` of the template at ``amplitude`` in ``stacked_psd``
+    peak_excess: float  # samples: ``peak_excess_width`` at the estimate
 
 
 def frame_spectrum(frame: np.ndarray) -> np.ndarray:
@@ -670,6 +671,59 @@ def frame_spectrum(frame: np.ndarray) -> np.ndarray:
     if not np.any(f):
         raise ValueError("frame carries nothing: it is constant (a dead or saturated input?)")
     return scipy.fft.rfft(f)
+
+
+PEAK_WIDTH_LEVEL = 0.3  # of the peak: where the correlation's width is read (below the main lobe's shoulders)
+PEAK_WIDTH_FACTOR = 4  # points per sample at which the width is read (edges interpolated: 0.01 samples from 8)
+PEAK_WIDTH_REACH = 12  # samples either side of the peak searched for the edges (within the CRS comb's period)
+
+
+def _width_at(correlation: np.ndarray, peak: int, level: float) -> float:
+    """Width (grid points) of ``correlation`` around index ``peak`` where it stays above
+    ``level``, each edge interpolated between the grid points that bracket it; the whole array
+    where it never falls that low."""
+    below = correlation <= level
+    left = np.flatnonzero(below[:peak])
+    right = np.flatnonzero(below[peak:])
+    edges = []
+    for outside, step in ((left[-1] if left.size else None, 1), (peak + right[0] if right.size else None, -1)):
+        if outside is None:
+            edges.append(0.0 if step == 1 else correlation.size - 1.0)
+            continue
+        inside = outside + step
+        fraction = (level - correlation[outside]) / (correlation[inside] - correlation[outside])
+        edges.append(outside + step * fraction)
+    return edges[1] - edges[0]
+
+
+def _fine_correlation(cross: np.ndarray, n: int, centre: float) -> tuple[np.ndarray, int]:
+    """The circular correlation of a cross-spectrum (rfft bins of an ``n``-sample frame) on a
+    1/``PEAK_WIDTH_FACTOR``-sample grid over +-``PEAK_WIDTH_REACH`` samples of ``centre``
+    (band-limited interpolation), and the grid index of its maximum within a sample of ``centre``."""
+    points = n * PEAK_WIDTH_FACTOR
+    padded = np.zeros(points // 2 + 1, dtype=np.complex128)
+    padded[1: cross.size - 1] = cross[1:-1]  # the bins between DC and Nyquist, as the ML fit reads them
+    steps = round(centre * PEAK_WIDTH_FACTOR) + np.arange(-PEAK_WIDTH_REACH * PEAK_WIDTH_FACTOR,
+                                                          PEAK_WIDTH_REACH * PEAK_WIDTH_FACTOR + 1)
+    correlation = scipy.fft.irfft(padded, points)[steps % points]
+    middle = PEAK_WIDTH_REACH * PEAK_WIDTH_FACTOR
+    near = slice(middle - PEAK_WIDTH_FACTOR, middle + PEAK_WIDTH_FACTOR + 1)
+    return correlation, near.start + int(np.argmax(correlation[near]))
+
+
+def peak_excess_width(spectrum: np.ndarray, template_spectrum: np.ndarray, lag: float, n: int) -> float:
+    """How much wider (samples) the correlation of a frame with a cell's known frame is at
+    ``PEAK_WIDTH_LEVEL`` of its peak near ``lag`` than the template's own autocorrelation: 0 for
+    a single clean path, positive where echoes within a few samples of it (multipath, a blocked
+    first path) smear the peak, whose maximum then need not sit on the first arrival. Noise moves
+    it by a fraction of that (both widths are read on the same grid, edges interpolated).
+    ``spectrum``: ``frame_spectrum`` of the frame; ``template_spectrum``: the rfft of the
+    cell's known frame, ``n`` samples long."""
+    widths = []
+    for cross, centre in ((spectrum * np.conj(template_spectrum), lag), (np.abs(template_spectrum) ** 2, 0.0)):
+        correlation, peak = _fine_correlation(cross, n, centre)
+        widths.append(_width_at(correlation, peak, PEAK_WIDTH_LEVEL * correlation[peak]))
+    return (widths[0] - widths[1]) / PEAK_WIDTH_FACTOR
 
 
 def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, reach: int,
@@ -762,4 +816,5 @@ def estimate_ml_frame(spectrum: np.ndarray, template: np.ndarray, start: int, re
     posterior = _posterior_of(lags, u, float(power @ inverse))
     std = _total_std(lag, fit.sandwich_std, posterior)
     bound = std_from_fisher(fisher_information_bins(fit.amplitude, power, problem.psd[inner], n))
-    return FrameTiming(TimingEstimate(lag - int(start), std, fit.snr_db, "ml_frame"), fit.amplitude, problem.psd, bound)
+    return FrameTiming(TimingEstimate(lag - int(start), std, fit.snr_db, "ml_frame"), fit.amplitude, problem.psd, bound,
+                       peak_excess_width(spectrum, t_spec, lag, n))
