@@ -190,11 +190,14 @@ def test_the_route_map_draws_buildings_beneath_the_route_without_widening_the_vi
         plt.close(plain)
 
 
-def test_a_bag_of_a_statistical_scenario_or_none_has_no_buildings(tmp_path):
+def test_a_bag_of_a_statistical_scenario_has_no_buildings(monkeypatch):
     from deepsync.eval.route import recorded_buildings
     from deepsync.sources import BagSource
 
-    assert recorded_buildings(BagSource(REPO / "bags" / "campus_route")) == []  # statistical
+    monkeypatch.chdir(REPO)  # where the bag's provenance names its scenario from
+    source = BagSource(REPO / "bags" / "campus_route")
+    assert source.scenario_path().is_file()  # read, and found statistical: not an unreadable file
+    assert recorded_buildings(source) == []
 
 
 def test_the_cdf_names_its_bag_and_the_timeline_has_a_title_integer_site_counts_and_says_what_nees_is(walk):

@@ -28,8 +28,10 @@ from __future__ import annotations
 import hashlib
 import math
 import shutil
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
@@ -37,7 +39,8 @@ from tqdm import tqdm
 from deepsync.configio import ConfigError
 from deepsync.eval.bias_map import MappedSite, mapped_sites
 from deepsync.eval.cell_search import timing_error
-from deepsync.frontend.channel import FixedChannel
+from deepsync.frontend.channel import Emitter, FixedChannel, Paths
+from deepsync.frontend.config import FrontendConfig
 from deepsync.frontend.simulator import EnvelopeSimulator
 from deepsync.fusion.bias_map import SurveyConfig, bias_map_from_points, save_bias_map
 from deepsync.jobs import JobRunner
@@ -49,6 +52,9 @@ from deepsync.twin.scenario import RayTracingSettings, Scenario, load_scenario
 from deepsync.twin.seeding import transmit_chain_phase
 from deepsync.twin.world import TwinCells, receiver_trajectory, twin_cells
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S
+
+if TYPE_CHECKING:  # the ray-tracing extra is imported where it is used
+    from deepsync.twin.raytrace.scenes import RayScene
 
 NODES_PER_JOB = 8  # a job takes 15-30 s for six sites on this machine: enough to amortise a worker's start
 
@@ -106,14 +112,11 @@ def ray_traced(scenario: Scenario, where: str) -> RayTracingSettings:
     return scenario.channel
 
 
-def map_nodes(scenario: Scenario, cells: TwinCells, config: TracedMapConfig) -> np.ndarray:
-    """(N, 3) street nodes (map frame) over the receiver's route, or around its position."""
-    from deepsync.twin.raytrace.build import scenario_scene  # noqa: PLC0415 (Sionna's scene files)
-    from deepsync.twin.raytrace.sites import street_grid  # noqa: PLC0415
+def map_nodes(scenario: Scenario, cells: TwinCells, scene: RayScene, config: TracedMapConfig) -> np.ndarray:
+    """(N, 3) street nodes (map frame) of ``scene`` over the receiver's route, or around its position."""
+    from deepsync.twin.raytrace.sites import street_grid  # noqa: PLC0415 (shapely)
 
-    settings = ray_traced(scenario, "scenario.channel")
     waypoints = receiver_trajectory(scenario.receiver, cells.frame).waypoints_enu
-    scene = scenario_scene(settings, cells.frame)
     return street_grid(scene, waypoints.min(axis=0) - config.margin_m, waypoints.max(axis=0) + config.margin_m,
                        scenario.receiver.height_m, config.node_step_m)
 
@@ -135,10 +138,9 @@ def site_biases_at(scenario_path: str, nodes: np.ndarray, indices: tuple[int, ..
     for node in indices:
         for site in cells.sites:
             mine = [k for k, tx in enumerate(cells.transmitters) if tx.site == site.name]
-            paths = [static_paths(traces[cells.transmitters[k].site, cells.transmitters[k].carrier_hz], node,
-                                  cells.transmitters[k].antenna,
-                                  transmit_chain_phase(scenario.seed, site.name, cells.transmitters[k].pci))
-                     for k in mine]
+            paths = [static_paths(traces[tx.site, tx.carrier_hz], node, tx.antenna,
+                                  transmit_chain_phase(scenario.seed, tx.site, tx.pci))
+                     for tx in (cells.transmitters[k] for k in mine)]
             emitters = [cells.emitters[k] for k in mine]
             distance_s = float(np.linalg.norm(nodes[node] - site.position_enu)) / SPEED_OF_LIGHT_M_S
             bias = _lock_bias_m(emitters, paths, distance_s, frontend, pipeline, config.frames, scenario.seed)
@@ -150,8 +152,8 @@ def site_biases_at(scenario_path: str, nodes: np.ndarray, indices: tuple[int, ..
     return len(indices)
 
 
-def _lock_bias_m(emitters, paths, distance_s: float, frontend, pipeline: PipelineConfig, frames: int,
-                 seed: int) -> float:
+def _lock_bias_m(emitters: Sequence[Emitter], paths: Sequence[Paths], distance_s: float, frontend: FrontendConfig,
+                 pipeline: PipelineConfig, frames: int, seed: int) -> float:
     """Median over stacks and sectors of what the chain reports beyond the straight line (m);
     NaN where it reports none of the site's cells."""
     simulator = EnvelopeSimulator(emitters, FixedChannel(paths), frontend, seed, epoch_ns=EPOCH_NS)
@@ -176,16 +178,17 @@ def traced_bias_map(scenario_path: str | Path, out: str | Path, config: TracedMa
     config = config or TracedMapConfig()
     runner = runner or JobRunner()
     scenario_path, out = Path(scenario_path), Path(out)
+    from deepsync.twin.raytrace.build import scenario_scene, trace_sites  # noqa: PLC0415 (Sionna's scene files)
+
     scenario = load_scenario(scenario_path)
-    ray_traced(scenario, str(scenario_path))
+    settings = ray_traced(scenario, str(scenario_path))
     cells = twin_cells(scenario)
-    nodes = map_nodes(scenario, cells, config)
+    scene = scenario_scene(settings, cells.frame)
+    nodes = map_nodes(scenario, cells, scene, config)
     if not len(nodes):
         raise ValueError(f"{scenario_path}: no street node within {config.margin_m:g} m of the receiver: every one "
                          "lies inside a building")
-    from deepsync.twin.raytrace.build import scenario_scene, trace_sites  # noqa: PLC0415
-
-    trace_sites(scenario.channel, scenario_scene(scenario.channel, cells.frame), cells.transmitters, nodes)
+    trace_sites(settings, scene, cells.transmitters, nodes)  # here, with its progress; the jobs load the cache
     digest = hashlib.sha256(scenario_path.read_bytes() + repr(sorted(asdict(config).items())).encode())
     parts = out.parent / f"{out.name}.parts" / digest.hexdigest()[:16]
     parts.mkdir(parents=True, exist_ok=True)
