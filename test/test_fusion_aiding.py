@@ -300,8 +300,11 @@ def test_each_motion_model_sets_the_stacks_and_the_tracker():
         assert config.fusion.tracker.acceleration_std_mps2 == model.acceleration_std_mps2
         assert config.fusion.tracker.initial_speed_std_mps == model.initial_speed_std_mps
         assert config.fusion.tracker.stack_overlap == model.n_frames / model.hop_frames
-        # a command line's explicit stacks win over the model's
-        assert PipelineConfig().with_choices(motion=model.name, n_frames=10).sync.stack.hop == 10
+        assert config.fusion.multipath_std_m == model.multipath_std_m
+        # a command line's explicit stacks and bias sigma win over the model's
+        chosen = PipelineConfig().with_choices(motion=model.name, n_frames=10, multipath_std_m=33.0)
+        assert chosen.sync.stack.hop == 10 and chosen.fusion.multipath_std_m == 33.0
+    assert {model.multipath_std_m for model in MOTION_MODELS.values()} != {PipelineConfig().fusion.multipath_std_m}
     assert PipelineConfig() == PipelineConfig.for_motion("pedestrian")
     with pytest.raises(ValueError, match="'bicycle' is not one of pedestrian, vehicle, static"):
         motion_model("bicycle")

@@ -280,7 +280,10 @@ def test_sliding_stacks_set_the_trackers_overlap_in_one_process_and_through_the_
     # unset on both sides, the split nodes agree through the motion model: its stacks, their overlap
     for motion in MOTION_MODELS.values():
         stack = params.sync_config(values("cell_sync", motion=motion.name)).stack
-        tracker = params.fusion_config(values("tdoa_fusion", motion=motion.name)).tracker
+        fusion = params.fusion_config(values("tdoa_fusion", motion=motion.name))
+        tracker = fusion.tracker
         assert (stack.n_frames, stack.hop) == (motion.n_frames, motion.hop_frames)
         assert tracker.stack_overlap == stack.n_frames / stack.hop
         assert tracker.acceleration_std_mps2 == motion.acceleration_std_mps2
+        assert fusion.multipath_std_m == motion.multipath_std_m  # unset (0): the model's
+        assert params.fusion_config(values("tdoa_fusion", motion=motion.name, multipath_std_m=25.0)).multipath_std_m == 25.0

@@ -1,7 +1,7 @@
 """How the receiver moves, by name: the motion models a user picks with ``motion``.
 
 A motion model sets what the tracker assumes of the receiver (how fast its velocity may
-change, how fast it may be going when a track starts) and how long the sync stage may stack
+change, how fast it may be going when a track starts, how wide a site's bias may be) and how long the sync stage may stack
 frames: a stack is one position, so it may be as long as the receiver stays within a small
 part of a sample (156 m at 1.92 MS/s) and of the bias decorrelation distance, and longer
 stacks hear weaker sites (each doubling gains about 3 dB). Sliding stacks (a new stack every
@@ -29,6 +29,7 @@ class MotionModel:
     initial_speed_std_mps: float  # speed prior (1-sigma per axis) when a track starts
     n_frames: int  # frames (10 ms) per stack
     hop_frames: int  # frames from one stack's start to the next
+    multipath_std_m: float  # the stationary sigma of a site's NLOS bias state (fusion)
 
     @property
     def summary(self) -> str:
@@ -45,16 +46,25 @@ MOTION_MODELS: dict[str, MotionModel] = {
         # 0.5 m/s^2: a walker's stops, starts and turns (1.4 m/s gained or lost in about 2 s)
         # without letting one range's noise pull the track about. One second of stack is 1.4 m
         # walked: nothing next to a sample or to the 40 m over which a site's bias changes.
+        # A walker keeps a site's pull for half a minute, long enough for an anchor to measure
+        # it: an 80 m bias sigma lets it, where 60 m held the pulls of the ray-traced old town
+        # (up to 215 m) as position error (docs/design/fusion.md, the route set).
         MotionModel("pedestrian", "a person walking (or a slow robot): up to ~2 m/s, turns and stops within seconds",
-                    acceleration_std_mps2=0.5, initial_speed_std_mps=2.0, n_frames=100, hop_frames=20),
+                    acceleration_std_mps2=0.5, initial_speed_std_mps=2.0, n_frames=100, hop_frames=20,
+                    multipath_std_m=80.0),
         # 3 m/s^2: town driving (0-50 km/h in 5 s, braking, a corner at 15 m/s on a 75 m
         # radius). Half a second of stack is 7.5 m at 15 m/s: a twentieth of a sample.
+        # A car crosses a site's pull in seconds, so its bias states take fresh variance at
+        # that pace: beyond 60 m the track grows vague and is lost more, and the odometry
+        # aligns later.
         MotionModel("vehicle", "a car or a fast robot: up to ~30 m/s, accelerating, braking and cornering at a few m/s^2",
-                    acceleration_std_mps2=3.0, initial_speed_std_mps=20.0, n_frames=50, hop_frames=10),
+                    acceleration_std_mps2=3.0, initial_speed_std_mps=20.0, n_frames=50, hop_frames=10,
+                    multipath_std_m=60.0),
         # 0.01 m/s^2: an asset that stands (its position wanders by centimetres per minute in
         # the model, enough for the linearisation); stacks of 2 s hear sites 3 dB below 1 s.
         MotionModel("static", "an asset that does not move (a parked container, a fixed sensor)",
-                    acceleration_std_mps2=0.01, initial_speed_std_mps=0.2, n_frames=200, hop_frames=50),
+                    acceleration_std_mps2=0.01, initial_speed_std_mps=0.2, n_frames=200, hop_frames=50,
+                    multipath_std_m=60.0),
     )
 }
 DEFAULT_MOTION = "pedestrian"

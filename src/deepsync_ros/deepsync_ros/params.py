@@ -203,7 +203,7 @@ FUSION = (
     _core("bias_decorrelation_m"),
     _core("gnss_std_m"),
     _core("gnss_min_std_m"),
-    _core("multipath_std_m"),
+    _core("multipath_std_m", unset="the motion model's"),
     _core("min_std_m"),
     _core("receiver_height_m"),
 )

@@ -40,6 +40,7 @@ from deepsync.fusion.calibration import SiteCalibration, calibrated_database
 from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
 from deepsync.geo import LocalFrame
+from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
 from deepsync.schema import check_settings, setting
 from deepsync.towers import TowerDatabase
 from deepsync.types import (
@@ -68,9 +69,9 @@ class FusionConfig:
     measures noise, not where the channel moved the envelope's peak). Measured along the
     simulated routes (docs/design/fusion.md): LOS sites 0-15 m, NLOS 40-90 m in the dense scenario,
     about 200 m (common to both sites heard) in the urban one, 25-230 m and changing along the
-    route on the city walks with a channel that follows the walker; there a 40 m sigma left the
-    tracker overconfident without an anchor (NEES 4.7-9.4 over three draws), 60 m holds it at
-    2.1-3.5 and 80 m loses the track more often than it gains honesty (route_set.py)."""
+    route on the city walks with a channel that follows the walker, 20-215 m for whole streets on
+    the ray-traced old town. The motion model sets it (``deepsync.motion``: 80 m for a walker,
+    60 m for a car or a static asset; docs/design/fusion.md says what the route set measured)."""
 
     snapshot: SnapshotConfig = field(default_factory=SnapshotConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
@@ -78,8 +79,10 @@ class FusionConfig:
                           "tracker's when it has one.")
     min_std_m: float = setting(8.0, help="Floor of each arrival's 1-sigma: the scatter multipath adds from stack to "
                                "stack on the move.", unit="m", bounds=(0.0, 1e4), open_low=True)
-    multipath_std_m: float = setting(60.0, help="Range bias multipath and NLOS add to a site, beyond the timing "
-                                     "sigma.", unit="m", bounds=(0.0, 1e4))
+    multipath_std_m: float = setting(MOTION_MODELS[DEFAULT_MOTION].multipath_std_m,
+                                     help="Range bias multipath and NLOS add to a site, beyond the timing sigma: "
+                                     "the stationary sigma of its bias state.", unit="m", bounds=(0.0, 1e4),
+                                     open_low=True)
     gnss_std_m: float = setting(10.0, help="Horizontal 1-sigma of a GNSS fix that states no covariance (a phone in "
                                 "a street).", unit="m", bounds=(0.0, 1e4), open_low=True)
     gnss_min_std_m: float = setting(3.0, help="No GNSS fix is taken as better than this per axis (urban multipath a "
