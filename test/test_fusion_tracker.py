@@ -666,3 +666,90 @@ def test_a_start_whose_solve_is_numerically_singular_has_no_covariance():
     assert np.all(np.isinf(covariance_from_information(indefinite)))
     assert np.all(np.isinf(covariance_from_information(np.ones((2, 2)))))  # exactly singular
     np.testing.assert_allclose(covariance_from_information(np.diag([2.0, 4.0])), np.diag([0.5, 0.25]))
+
+
+def window_of_biased_sites(rng: np.random.Generator, biases: dict[str, float], bias_std_m: float,
+                           timing_std_m: float = 5.0, seconds: float = 8.0) -> tuple[list[SiteArrival], np.ndarray]:
+    """A receiver standing at a random point, every site of ``biases`` heard every 0.1 s for
+    ``seconds``, each range late by its site's constant bias plus white timing noise; the
+    arrivals in time order and the receiver's position."""
+    position = np.array([*rng.normal(0.0, 50.0, 2), HEIGHT_M])
+    clock, drift = rng.uniform(0, FRAME_RANGE_M), PPM * 1e-6 * C
+    arrivals = []
+    for k in range(int(round(seconds / STACK_S))):
+        for j, name in enumerate(biases):
+            t = k * STACK_S + 0.01 * j
+            rho = np.linalg.norm(position - SITES[name]) + clock + drift * t + biases[name] + rng.normal(0.0, timing_std_m)
+            arrivals.append(SiteArrival(name, SITES[name], t, float(rho % FRAME_RANGE_M), timing_std_m, (1,),
+                                        bias_std_m=bias_std_m))
+    return arrivals, position
+
+
+def test_a_start_counts_each_sites_bias_once_however_often_the_site_is_heard():
+    """Eighty arrivals of a site in the window share its bias: taken as white noise it averaged
+    down ninefold and the start claimed a position it could not have (NEES in the hundreds).
+    With a bias per site the start's 2-D NEES averages 2 over draws of the biases."""
+    from deepsync.fusion.track_start import batch_start
+
+    rng = np.random.default_rng(31)
+    nees_values = []
+    for _ in range(200):
+        biases = {name: float(rng.normal(0.0, 40.0)) for name in "ABCDE"}
+        arrivals, truth = window_of_biased_sites(rng, biases, 40.0)
+        start = batch_start(arrivals, CONFIG, PPM * 1e-6, redundant=True)
+        assert not isinstance(start, str), start
+        error = start.mean[:2] - truth[:2]
+        nees_values.append(float(error @ np.linalg.solve(start.covariance[:2, :2], error)))
+        assert start.biased == start.sites == tuple("ABCDE")
+    low, high = chi2.ppf([0.001, 0.999], 2 * len(nees_values)) / len(nees_values)
+    assert low <= np.mean(nees_values) <= high, np.mean(nees_values)
+
+
+def test_a_start_leaves_out_a_site_whose_bias_lies_beyond_its_prior_and_names_it():
+    from deepsync.fusion.track_start import batch_start
+
+    rng = np.random.default_rng(32)
+    arrivals, truth = window_of_biased_sites(rng, {"A": 1000.0, "B": 10.0, "C": -20.0, "D": 15.0, "E": 0.0}, 40.0)
+    start = batch_start(arrivals, CONFIG, PPM * 1e-6, redundant=True)
+    assert not isinstance(start, str), start
+    assert start.rejected == ("A",) and start.sites == tuple("BCDE")
+    assert np.linalg.norm(start.mean[:2] - truth[:2]) < 3 * math.sqrt(np.trace(start.covariance[:2, :2]))
+
+
+def test_a_track_starts_with_what_the_batch_learned_of_each_sites_bias():
+    """The biases the batch solved come into the tracker's bias states with their covariance to
+    the position: the first fix is the batch's position, and a site's bias states hold the
+    batch's bias (their fading part faded over the seconds from the window's middle to its
+    end), narrower than their prior and correlated with the position."""
+    from deepsync.fusion.track_start import batch_start
+
+    rng = np.random.default_rng(33)
+    arrivals, _ = window_of_biased_sites(rng, {"A": 30.0, "B": -40.0, "C": 60.0, "D": 0.0, "E": -10.0}, 40.0,
+                                         seconds=CONFIG.init_window_s)
+    tracker = Tracker(CONFIG, sites_known=6)
+    fix = tracker.update(arrivals, 1, arrivals[-1].time_s, PPM * 1e-6)
+    assert isinstance(fix, Fix)
+    start = batch_start(arrivals, CONFIG, PPM * 1e-6, redundant=True)
+    np.testing.assert_allclose(fix.position_enu[:2], start.mean[:2], atol=1e-6)
+    learned = tracker.site_biases()
+    dims = CONFIG.dims
+    for j, name in enumerate(start.biased):
+        batch = start.mean[dims + 2 + j]
+        if abs(batch) > 10.0:
+            assert 0.6 * abs(batch) < abs(learned[name].bias_m) <= abs(batch) and learned[name].bias_m * batch > 0
+        assert learned[name].std_m < 40.0  # the batch measured it
+        index = tracker._sites[name].index
+        assert np.any(np.abs(tracker._P[:2, index: index + 2]) > 1.0)  # and knows how it moved the position
+
+
+def test_a_start_from_a_prior_whose_only_site_is_left_out_says_so():
+    # with an initial position one site starts a track; where the sites' biases lie beyond their
+    # priors (two sites 4 km apart in bias), nothing is left to solve with: a reason, not a
+    # solver error
+    from deepsync.fusion.track_start import batch_start
+
+    rng = np.random.default_rng(34)
+    arrivals, truth = window_of_biased_sites(rng, {"A": 2000.0, "B": -2000.0}, 40.0)
+    prior = PositionPrior(tuple(truth), np.diag([25.0, 25.0, UNMEASURED_VARIANCE]))
+    outcome = batch_start(arrivals, CONFIG, PPM * 1e-6, prior, redundant=True)
+    assert isinstance(outcome, str) and "0 site(s) remain" in outcome

@@ -47,11 +47,11 @@ MOTION_MODELS: dict[str, MotionModel] = {
         # without letting one range's noise pull the track about. One second of stack is 1.4 m
         # walked: nothing next to a sample or to the 40 m over which a site's bias changes.
         # A walker keeps a site's pull for half a minute, long enough for an anchor to measure
-        # it: an 80 m bias sigma lets it, where 60 m held the pulls of the ray-traced old town
-        # (up to 215 m) as position error (docs/design/fusion.md, the route set).
+        # it: a 100 m bias sigma lets it, where 60 m held the pulls of the ray-traced old town
+        # (up to 215 m) as position error, overconfident (docs/design/fusion.md, the route set).
         MotionModel("pedestrian", "a person walking (or a slow robot): up to ~2 m/s, turns and stops within seconds",
                     acceleration_std_mps2=0.5, initial_speed_std_mps=2.0, n_frames=100, hop_frames=20,
-                    multipath_std_m=80.0),
+                    multipath_std_m=100.0),
         # 3 m/s^2: town driving (0-50 km/h in 5 s, braking, a corner at 15 m/s on a 75 m
         # radius). Half a second of stack is 7.5 m at 15 m/s: a twentieth of a sample.
         # A car crosses a site's pull in seconds, so its bias states take fresh variance at

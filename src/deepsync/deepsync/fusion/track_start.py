@@ -13,7 +13,14 @@ residual test check them: on a drive, a start from three sites one of which had 
 samples late began 740 m off claiming 130 m, and odometry aligned to it carried the track
 700 m off), and one arrival
 more when the clock rate is unknown (the drift is then solved from the data); it must pass the
-same residual test as a snapshot. Its covariance comes from the Jacobian; the motion the static
+same residual test as a snapshot. What stays the same over the window is one unknown per site,
+not noise: a site's range bias and its clock's error (``bias_std_m``, ``clock_std_m``) are
+the same in each of its arrivals, so each site has a bias in the batch with them as its prior,
+and only the timing noise (``timing_std_m``) is white. Taken as white, a site heard twenty times
+in the window had its 80 m bias averaged down to 18 m, and the start claimed that: on the
+ray-traced walk it began 156 m off claiming 46 m. A site whose bias comes out beyond the gate
+of its prior (a false lock) is left out, named. Its covariance comes from the Jacobian, the
+sites' biases with it (the tracker's bias states start from them); the motion the static
 assumption ignores enters each arrival's sigma, which grows by ``initial_speed_std_mps`` times
 its distance in time from the mid-time. With a :class:`PositionPrior` (an operator's pose, a
 GNSS fix) the batch gets ``D`` whitened rows more and needs one site: it measures the clock,
@@ -41,8 +48,9 @@ if TYPE_CHECKING:  # the tracker's config; the tracker imports this module
 
 @dataclass(frozen=True)
 class Start:
-    """A batch solution: ``mean`` = [position (D), b, d] at ``time_s``, its covariance, the time
-    of the latest arrival it used, and the sites it used and left out."""
+    """A batch solution: ``mean`` = [position (D), b, d, the range bias of each of ``biased``]
+    at ``time_s``, its covariance, the time of the latest arrival it used, and the sites it used
+    (``biased``: those of them with a bias prior) and left out."""
 
     time_s: float
     mean: np.ndarray
@@ -50,6 +58,7 @@ class Start:
     latest_s: float
     sites: tuple[str, ...]
     rejected: tuple[str, ...]
+    biased: tuple[str, ...] = ()
 
 
 def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
@@ -76,10 +85,13 @@ def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_ra
         return start
     keep = np.ones(len(arrivals), dtype=bool)
     theta = problem.fit(start, keep, robust=True)
-    # a false lock or a reflection among them: out (once), and the rest solved without it
-    keep = np.abs(problem.residuals(theta, keep)[: keep.sum()]) ** 2 <= chi_square_limit(config.gate_probability, 1)
+    # a false lock or a reflection among them: out (once), and the rest solved without it; a
+    # site's false lock shows as its bias beyond its prior's gate (its own arrivals agree)
+    gate = chi_square_limit(config.gate_probability, 1)
+    keep = np.abs(problem.residuals(theta, keep)[: keep.sum()]) ** 2 <= gate
+    keep &= ~np.isin(problem.names, problem.locked_off(theta, gate))
     kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
-    if len(kept) < needed - redundant:  # before solving again: fewer would leave the solve underdetermined
+    if len(kept) < needed - (redundant and prior is None):  # before solving again: fewer would leave it underdetermined
         return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {needed} needed"
     if not keep.all():
         theta = problem.fit(theta, keep, robust=False)
@@ -92,20 +104,23 @@ def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_ra
     jacobian = problem.jacobian(theta, keep)
     covariance = covariance_from_information(jacobian.T @ jacobian)
     horizontal = math.sqrt(max(covariance[0, 0] + covariance[1, 1], 0.0))
-    typical = float(np.median(problem.sigma[keep]))
+    typical = float(np.median(np.hypot(problem.sigma, problem.site_sigma[problem.site_of])[keep]))
     if prior is None and not horizontal <= config.snapshot.max_gdop * typical:  # a prior bounds it
         return (f"the geometry of {', '.join(kept)} does not fix the position ({horizontal:.0f} m 1-sigma from "
                 f"{typical:.0f} m ranges)")
-    mean = theta.copy()
+    solved = [*range(dims + 2), *(dims + 2 + j for j, name in enumerate(problem.biased) if name in kept)]
+    mean = theta[solved]
     mean[dims] = (mean[dims] + problem.reference_m) % FRAME_RANGE_M
     rejected = tuple(sorted({a.site for a, k in zip(arrivals, keep) if not k} - set(kept)))
-    return Start(problem.t_ref, mean, covariance, float(problem.t[keep].max()), tuple(kept), rejected)
+    return Start(problem.t_ref, mean, covariance[np.ix_(solved, solved)], float(problem.t[keep].max()), tuple(kept),
+                 rejected, tuple(name for name in problem.biased if name in kept))
 
 
 class _BatchProblem:
-    """Arrivals over a window as one least-squares problem in [position (D), b, d] at the mean
-    arrival time, ``b`` counted from the earliest arrival's range (``reference_m``); a position
-    prior, whitened by its covariance's Cholesky factor, adds ``D`` rows."""
+    """Arrivals over a window as one least-squares problem in [position (D), b, d, m_s] at the
+    mean arrival time, ``b`` counted from the earliest arrival's range (``reference_m``), ``m_s``
+    the range bias (and clock error) of each site that has a prior for it (``biased``), which
+    adds a row each; a position prior, whitened by its covariance's Cholesky factor, adds ``D``."""
 
     def __init__(self, arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_rate: float | None,
                  prior: PositionPrior | None = None) -> None:
@@ -128,19 +143,32 @@ class _BatchProblem:
         predicted = [first.range_mod_m + self.drift_prior * (a.time_s - first.time_s) for a in arrivals]
         self.rho = np.array([unwrap_range(a.range_mod_m, p) for a, p in zip(arrivals, predicted)]) - self.reference_m
         motion = config.initial_speed_std_mps * np.abs(self.t - self.t_ref)  # the static assumption's error
-        self.sigma = np.hypot([a.std_m for a in arrivals], motion)
+        self.sigma = np.hypot([a.timing_std_m for a in arrivals], motion)  # white from arrival to arrival
         self.sites = np.array([a.position_enu for a in arrivals], dtype=np.float64)
         self.names = np.array([a.site for a in arrivals])
+        latest = {a.site: math.hypot(a.bias_std_m, a.clock_std_m) for a in arrivals}  # in time order
+        self.biased = tuple(name for name in sorted(latest) if latest[name] > 0)
+        self.bias_prior = np.array([latest[name] for name in self.biased])
+        # each arrival's site's bias: its index in theta's biases (-1: none), and its prior sigma
+        index = {name: j for j, name in enumerate(self.biased)}
+        self.site_of = np.array([index.get(a.site, -1) for a in arrivals], dtype=np.intp)
+        self.site_sigma = np.append(self.bias_prior, 0.0)  # [-1]: no bias
 
     def position(self, theta: np.ndarray) -> np.ndarray:
         if self.config.dims == 2:
             return np.array([theta[0], theta[1], self.config.snapshot.receiver_height_m])
         return theta[:3]
 
+    def locked_off(self, theta: np.ndarray, gate: float) -> list[str]:
+        """The sites whose bias lies beyond ``gate`` (chi-square, 1 dof) of its prior."""
+        biases = theta[self.config.dims + 2:]
+        return [name for name, m, s in zip(self.biased, biases, self.bias_prior) if (m / s) ** 2 > gate]
+
     def start(self) -> np.ndarray | str:
-        """A first guess: the drift from how repeated sites' ranges move, then one range per
-        site at ``t_ref`` (the median: a single false lock does not move it) solved as a snapshot,
-        or with a prior, its position (the sites may be too few for a snapshot)."""
+        """A first guess (the sites' biases 0): the drift from how repeated sites' ranges move,
+        then one range per site at ``t_ref`` (the median: a single false lock does not move it)
+        solved as a snapshot, or with a prior, its position (the sites may be too few for a
+        snapshot)."""
         dt = self.t - self.t_ref
         dims = self.config.dims
         numerator = denominator = 0.0
@@ -154,49 +182,62 @@ class _BatchProblem:
         weight = float(np.median(self.sigma)) ** 2 / self.drift_std**2
         drift = (numerator + weight * self.drift_prior) / (denominator + weight)
         collapsed = self.rho - drift * dt
+        biases = np.zeros(len(self.biased))
         if self.prior_mean is not None:
             bias = float(np.median(collapsed - np.linalg.norm(self.sites - self.position(self.prior_mean), axis=1)))
-            return np.array([*self.prior_mean, bias, drift])
+            return np.array([*self.prior_mean, bias, drift, *biases])
         stack = []
         for name in sorted(set(self.names)):
             mine = np.flatnonzero(self.names == name)
+            std = math.hypot(float(np.median(self.sigma[mine])), float(self.site_sigma[self.site_of[mine[0]]]))
             stack.append(SiteArrival(str(name), self.sites[mine[0]], self.t_ref,
-                                     float(np.median(collapsed[mine])) % FRAME_RANGE_M,
-                                     float(np.median(self.sigma[mine])), ()))
+                                     float(np.median(collapsed[mine])) % FRAME_RANGE_M, std, ()))
         snapshot = solve_snapshot(stack, self.config.snapshot)
         if isinstance(snapshot, NoFix):
             return f"the sites' ranges do not solve ({snapshot.reason.value}): {snapshot.message}"
         position = np.asarray(snapshot.position_enu)
         distances = np.linalg.norm(self.sites - position, axis=1)
         bias = float(np.median(collapsed - distances))
-        return np.array([*position[:dims], bias, drift])
+        return np.array([*position[:dims], bias, drift, *biases])
+
+    def _site_biases(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """Each kept arrival's site bias (0 for a site without a prior)."""
+        return np.append(theta[self.config.dims + 2:], 0.0)[self.site_of[keep]]
 
     def residuals(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
-        """Arrivals (measured minus modelled, over sigma), then the drift prior (and height prior)."""
+        """Arrivals (measured minus modelled, over sigma), then the drift prior (and height
+        prior, the position prior), then the sites' bias priors."""
         dims = self.config.dims
         distance = np.linalg.norm(self.sites[keep] - self.position(theta), axis=1)
-        model = distance + theta[dims] + theta[dims + 1] * (self.t[keep] - self.t_ref)
+        model = distance + theta[dims] + theta[dims + 1] * (self.t[keep] - self.t_ref) + self._site_biases(theta, keep)
         priors = [(theta[dims + 1] - self.drift_prior) / self.drift_std]
         if dims == 3:
             priors.append((theta[2] - self.config.snapshot.receiver_height_m) / self.config.snapshot.height_prior_std_m)
         if self.prior_root is not None:
             priors.extend(self.prior_root @ (theta[:dims] - self.prior_mean))
+        priors.extend(theta[dims + 2:] / self.bias_prior)
         return np.concatenate([(self.rho[keep] - model) / self.sigma[keep], priors])
 
     def jacobian(self, theta: np.ndarray, keep: np.ndarray) -> np.ndarray:
-        dims = self.config.dims
+        dims, biases = self.config.dims, len(self.biased)
         diff = self.position(theta) - self.sites[keep]
         unit = diff / np.maximum(np.linalg.norm(diff, axis=1, keepdims=True), 1e-9)
-        rows = np.hstack([unit[:, :dims], np.ones((len(unit), 1)), (self.t[keep] - self.t_ref)[:, None]])
-        priors = np.zeros((1 + (dims == 3), dims + 2))
+        by_site = np.zeros((len(unit), biases + 1))
+        by_site[np.arange(len(unit)), self.site_of[keep]] = 1.0  # column -1: no bias, dropped
+        rows = np.hstack([unit[:, :dims], np.ones((len(unit), 1)), (self.t[keep] - self.t_ref)[:, None],
+                          by_site[:, :biases]])
+        n = dims + 2 + biases
+        priors = np.zeros((1 + (dims == 3), n))
         priors[0, dims + 1] = -1 / self.drift_std
         if dims == 3:
             priors[1, 2] = -1 / self.config.snapshot.height_prior_std_m
         if self.prior_root is not None:
-            position = np.zeros((dims, dims + 2))
+            position = np.zeros((dims, n))
             position[:, :dims] = -self.prior_root
             priors = np.vstack([priors, position])
-        return -np.vstack([rows / self.sigma[keep, None], priors])
+        bias_rows = np.zeros((biases, n))
+        bias_rows[:, dims + 2:] = -np.diag(1 / self.bias_prior)
+        return -np.vstack([rows / self.sigma[keep, None], priors, bias_rows])
 
     def fit(self, theta: np.ndarray, keep: np.ndarray, robust: bool) -> np.ndarray:
         """Levenberg-Marquardt; ``robust``: then again with a Huber loss (3 sigma) where a

@@ -928,25 +928,41 @@ class Tracker:
         return PositionPrior(self._prior.position_enu, self._prior.covariance + np.diag([walked, walked, 0.0])), ""
 
     def _begin(self, start: Start, arrivals: Sequence[SiteArrival]) -> None:
-        """The filter from a batch solution: velocity 0 with the speed prior, predicted to the
-        latest arrival used (which widens the position by the distance travelled meanwhile);
-        then the bias states of the sites it used, with the priors of their latest arrivals (the
-        batch took those biases as noise: their correlation with its position is not kept)."""
+        """The filter from a batch solution: velocity 0 with the speed prior; the bias states of
+        the sites it used, with the priors of their latest arrivals, holding what the batch
+        learned of each site's bias (its covariance with the position and clock kept); then
+        predicted to the latest arrival used (which widens the position by the distance
+        travelled meanwhile).
+
+        A site's bias in the batch is the sum of its states' parts (persistent, fading, and
+        with site clock states its clock offset), independent a priori: given the sum ``m``,
+        the parts are ``v / V m`` (``v`` their prior variances, ``V`` the sum's) with ``diag(v)
+        - v v^T / V`` of their own, whatever ``m`` turned out to be."""
         dims = self.config.dims
         n = dims + 4
-        solved = np.array([*range(dims), self._bias, self._bias + 1])
         self._x = np.zeros(n)
-        self._x[solved] = start.mean
         self._P = np.zeros((n, n))
-        self._P[np.ix_(solved, solved)] = start.covariance
+        latest = {a.site: a for a in arrivals if a.site in start.sites}  # in time order: the last stays
+        for name in start.sites:
+            self._add_site(latest[name])
+        # theta = [position, b, d, m_s of start.biased] -> the state, T theta, and each site's split
+        parts = 3 if self.config.site_clocks else 2
+        T = np.zeros((len(self._x), len(start.mean)))
+        T[[*range(dims), self._bias, self._bias + 1], np.arange(dims + 2)] = 1.0
+        split = np.zeros_like(self._P)
+        for j, name in enumerate(start.biased):
+            states = np.arange(parts) + self._sites[name].index
+            v = np.diag(self._P)[states]
+            T[states, dims + 2 + j] = v / v.sum()
+            split[np.ix_(states, states)] = np.diag(v) - np.outer(v, v) / v.sum()
+        touched = np.flatnonzero(T.any(axis=1))
+        self._x[touched] = (T @ start.mean)[touched]
+        self._P[np.ix_(touched, touched)] = (T @ start.covariance @ T.T + split)[np.ix_(touched, touched)]
         velocity = np.arange(dims, dims + 2)
         self._P[velocity, velocity] = self.config.initial_speed_std_mps**2
         self._t = start.time_s
         self._predict(start.latest_s - start.time_s)
         self._t = self._last_accepted = start.latest_s
-        latest = {a.site: a for a in arrivals if a.site in start.sites}  # in time order: the last stays
-        for name in start.sites:
-            self._add_site(latest[name])
         if self._odometry_known is not None:  # the odometry's yaw and scale, as the last track left them
             values, covariance = self._odometry_known
             n = len(self._x)
