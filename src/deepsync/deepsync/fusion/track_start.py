@@ -17,7 +17,7 @@ same residual test as a snapshot. What stays the same over the window is one unk
 not noise: a site's range bias and its clock's error (``bias_std_m``, ``clock_std_m``) are
 the same in each of its arrivals, so each site has a bias in the batch with them as its prior,
 and only the timing noise (``timing_std_m``) is white. Taken as white, a site heard twenty times
-in the window had its 80 m bias averaged down to 18 m, and the start claimed that: on the
+in the window had its bias sigma averaged down 4.5-fold, and the start claimed that: on the
 ray-traced walk it began 156 m off claiming 46 m. A site whose bias comes out beyond the gate
 of its prior (a false lock) is left out, named. Its covariance comes from the Jacobian, the
 sites' biases with it (the tracker's bias states start from them); the motion the static

@@ -118,10 +118,10 @@ enough to gather the sites a city stack rarely holds at once, short enough that 
 prior covers the distance walked), or the current stack alone when it holds enough sites;
 ``D + 2`` sites where the tower database has that many (``sites_known``: a false lock among
 ``D + 1`` fits exactly and cannot be caught), else ``D + 1``; one with an initial position. The velocity starts at 0 with ``initial_speed_std_mps`` as its sigma, so predicting to
-the window's end widens the position by the distance travelled meanwhile. The batch takes each
-arrival's ``std_m`` as white (its bias included); the filter it starts then gets bias states for
-the sites used, at their priors, independent of the position the batch solved with their
-biases in it.
+the window's end widens the position by the distance travelled meanwhile. The batch solves one
+bias per site (its arrivals share it; only their timing noise is white), and the filter it
+starts takes those biases into the sites' bias states, with their covariance to the position
+and clock (:meth:`Tracker._begin`).
 
 **An initial position** (:meth:`Tracker.start_from`: an operator's pose; or a GNSS fix while no
 track runs). Two sites measure one range difference, a hyperbola, and the batch alone does not
