@@ -15,10 +15,14 @@ a kernel's width of where a survey went.
   the survey's own nodes); a stack hearing fewer reads it at the latest such place, widened by
   the speed the receiver may have walked since (the fusion stage does this).
 * **How fusion uses it** (:meth:`BiasMap.correct`): the map's mean comes off each mapped site's
-  range and the map's sigma (averaged over where the receiver may be, its spread there added)
-  replaces the blanket ``multipath_std_m``; the tracker's bias states then carry only what the
-  map got wrong. An unmapped site, or one off the map, is left as it was: a map never stops a
-  site being used.
+  range; the site's bias sigma stays the one it has without a map (``multipath_std_m``), or the
+  map's where that is wider (averaged over where the receiver may be, its spread there added).
+  A map is read where the stack says the receiver is, and that place can be wrong: a correction
+  wrong by as much as the pull then leaves a bias no larger than the one the sigma already
+  covers, where the map's own narrow sigma made such a track overconfident and worse than no
+  map (the route set: NEES 6-11 on the ray-traced walk). The tracker's bias states carry what
+  the map got wrong. An unmapped site, or one off the map, is left as it was: a map never stops
+  a site being used.
 * **Gauge**: TDOA sees a bias common to every site as the receiver clock, so a map holds each
   site's bias against the others; only differences count.
 * **A wrong map** (its sigma floored at ``min_std_m``) pulls by what it claims: build a map
@@ -149,15 +153,15 @@ class BiasMap:
     def correct(self, arrivals: Sequence[SiteArrival], position_enu: Sequence[float],
                 position_std_m: float) -> tuple[SiteArrival, ...]:
         """The arrivals with each mapped site's bias for a receiver at ``position_enu`` (known
-        to ``position_std_m``) taken off its range and its sigma made the arrival's bias sigma;
-        sites the map cannot say there as they were."""
+        to ``position_std_m``) taken off its range, its bias sigma the larger of its own and the
+        map's; sites the map cannot say there as they were."""
         out = []
         for arrival in arrivals:
             value = self.at(arrival.site, float(position_enu[0]), float(position_enu[1]), position_std_m)
             if value is not None:
                 mean, std = value
                 arrival = dataclasses.replace(arrival, range_mod_m=(arrival.range_mod_m - mean) % FRAME_RANGE_M,
-                                              bias_std_m=std)
+                                              bias_std_m=max(std, arrival.bias_std_m))
             out.append(arrival)
         return tuple(out)
 
