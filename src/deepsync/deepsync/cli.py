@@ -546,7 +546,7 @@ def _cmd_trace_map(args: argparse.Namespace) -> int:
     config = TracedMapConfig(margin_m=args.margin_m, node_step_m=args.step_m, smoothing_m=args.smoothing_m)
     runner = JobRunner(args.workers, args.ray)
     print(f"site bias map traced from {args.scenario}: street nodes every {config.node_step_m:g} m within "
-          f"{config.margin_m:g} m of the receiver, each site simulated alone for {config.stacks} stacks of "
+          f"{config.margin_m:g} m of the receiver's route, each site simulated alone for {config.stacks} stacks of "
           f"{config.stack_frames} frames there, on {runner.description}")
     traced = traced_bias_map(args.scenario, args.out, config, runner, progress=not args.quiet)
     print(f"  {traced.nodes} street nodes; whole biases (the simulator knows the receiver clock)")

@@ -187,7 +187,13 @@ def _trace(scene: RayScene, transmitter: np.ndarray, carrier_hz: float, receiver
 
     sionna_scene = _LOADED.get(scene.digest)
     if sionna_scene is None:
-        sionna_scene = _LOADED[scene.digest] = rt.load_scene(str(scene.xml_path))
+        sionna_scene = rt.load_scene(str(scene.xml_path))
+        if scene.removed:
+            absent = [name for name in scene.removed if name not in sionna_scene.objects]
+            if absent:  # Scene.edit passes over a name it does not know
+                raise ValueError(f"scene {scene.name!r}: no object named {', '.join(map(repr, absent))} to remove")
+            sionna_scene.edit(remove=list(scene.removed))
+        _LOADED[scene.digest] = sionna_scene
     sionna_scene.frequency = carrier_hz
     for material in sionna_scene.radio_materials.values():
         material.scattering_coefficient = DIFFUSE_SCATTERING if settings.diffuse else 0.0
