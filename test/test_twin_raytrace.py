@@ -143,14 +143,21 @@ def test_the_cache_returns_the_same_paths_and_any_changed_input_misses(scene, tm
 
 @needs_sionna
 def test_a_building_removed_from_a_mitsuba_scene_no_longer_blocks_and_is_another_trace(scene, tmp_path):
-    """Sionna's Scene.edit takes the named object out: the footprint scene's XML read as a user's
-    Mitsuba scene (its objects: 'buildings', 'ground') without its buildings lets the direct path
-    reach the receiver the block hid; the cache key changes with the removal."""
+    """Sionna's Scene.edit takes the named object out: the footprint scene's meshes as a user's
+    Mitsuba scene (shapes 'buildings' and 'ground', here of one material, which Sionna would merge
+    into one object) without its buildings lets the direct path reach the receiver the block hid;
+    the cache key changes with the removal."""
+    import shutil
+
     from deepsync.twin.raytrace.scenes import open_scene
 
+    shutil.copytree(scene.xml_path.parent / "meshes", tmp_path / "meshes")
+    xml = tmp_path / "user.xml"
+    xml.write_text(scene.xml_path.read_text().replace('ref id="mat-medium_dry_ground"', 'ref id="mat-concrete"'))
+    assert xml.read_text().count('ref id="mat-concrete"') == 2
     origin = (FRAME.latitude_deg, FRAME.longitude_deg)
-    whole = open_scene(str(scene.xml_path), FRAME, tmp_path, scene_origin=origin)
-    bare = open_scene(str(scene.xml_path), FRAME, tmp_path, scene_origin=origin, remove=["buildings"])
+    whole = open_scene(str(xml), FRAME, tmp_path, scene_origin=origin)
+    bare = open_scene(str(xml), FRAME, tmp_path, scene_origin=origin, remove=["buildings"])
     assert [b.name for b in whole.buildings.buildings] == ["buildings"] and bare.buildings.buildings == ()
     assert bare.digest != whole.digest
     assert tracing.cache_key(bare, TX, CARRIER_HZ, np.array([BEHIND]), QUICK) != \
@@ -162,7 +169,7 @@ def test_a_building_removed_from_a_mitsuba_scene_no_longer_blocks_and_is_another
     # the whole scene is still whole: the removal edited its own loaded copy
     assert not tracing.trace_paths(whole, TX, CARRIER_HZ, [BEHIND], QUICK).at(0)["los"].any()
     with pytest.raises(ConfigError, match=r"remove_buildings\[1\]: scene .* has no building 'tower'"):
-        open_scene(str(scene.xml_path), FRAME, tmp_path, scene_origin=origin, remove=["buildings", "tower"])
+        open_scene(str(xml), FRAME, tmp_path, scene_origin=origin, remove=["buildings", "tower"])
 
 
 @needs_sionna
