@@ -6,17 +6,19 @@ receiver's route), each site simulated at every street node 10 m apart within 30
 (``deepsync.eval.traced_map``). It is then used on the route set's bags of that route (seeds
 1-3: other site clocks, chain phases and noise than the map's seed 5), against no map and two
 deliberately wrong maps: one made with site M1 50 m north of where it stands ("site 50 m off"),
-one made from the scene without the building that blocks the most straight lines from the sites
+one made from the scene without the building that cuts the most straight lines from the sites
 to the route, the buildings they stand on aside ("building removed": ``blocking_building``; its
-meshes left out with the scenario's ``remove_buildings``). Per bag, with no anchor
-and with a GNSS fix a minute: the published pose's median, p90 and NEES. Also how well the map
-predicts what each site reads (``prediction_error``: per stack, at the true positions, against
-the stack's other sites), and per route the time to trace its route points to every site, cold
-(an empty cache) and from the cache. Maps are kept in bags/generated/maps, named by a digest of
-the scenario and the map settings (made when missing: minutes to tens of minutes each on two
-cores; delete them after changing the tracing code); writes docs/results/traced_maps.json and
-each route's first bag's route map with GNSS and the traced map over the scene's buildings
-(traced_maps_route.png: the walk; traced_maps_drive.png).
+meshes left out with the scenario's ``remove_buildings``). Per bag, with no anchor and with a
+GNSS fix a minute: the published pose's median, p90 and NEES. Also how well the map predicts
+what each site reads (``prediction_error``: per stack, at the true positions, against the
+stack's other sites), and per route the time to trace its route points to every site, cold (an
+empty cache) and from the cache.
+
+Maps are kept in bags/generated/maps, named by a digest of the scenario and the map settings
+(made when missing: minutes to tens of minutes each on two cores; delete them after changing
+the tracing code). Writes docs/results/traced_maps.json (routes not run this time kept as they
+were) and each route's first bag's route map with GNSS and the traced map over the scene's
+buildings (traced_maps_route.png: the walk; traced_maps_drive.png).
 
     python benchmarks/fusion/traced_maps.py [--routes munich_walk munich_drive] [--seeds 1 2 3] [--workers 2]
 """
@@ -234,7 +236,8 @@ def main() -> None:
         parser.exit(2, f"traced_maps: missing route-set bags {', '.join(missing)}: make them with "
                        f"benchmarks/fusion/route_set.py --bags-only --routes {' '.join(args.routes)} --loads day\n")
     runner = JobRunner(args.workers)
-    results = {}
+    kept = json.loads(OUT.read_text()) if OUT.is_file() else {}
+    results = {route: kept[route] for route in ROUTES if route in kept and route not in args.routes}
     for route in args.routes:
         removed = blocking_building(route)
         print(f"== {route}: building removed for the wrong map: {removed}", flush=True)
@@ -248,6 +251,7 @@ def main() -> None:
             print(f"== {route} seed {seed}", flush=True)
             result["bags"][str(seed)] = measure(route, seed, maps, FIGURES[route] if seed == args.seeds[0] else None)
         results[route] = result
+    results = {route: results[route] for route in ROUTES if route in results}
     print(table(results))
     OUT.write_text(json.dumps(results, indent=1))
     print(f"written: {OUT}")
