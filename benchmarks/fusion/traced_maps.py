@@ -220,6 +220,32 @@ def table(results: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def doc_tables(results: dict[str, dict]) -> str:
+    """docs/raytracing.md's tables: per route and site the median |bias| left without and with
+    the map (the range over the bags), and per bag and configuration each map's median / p90 (NEES)."""
+    sites = sorted({site for result in results.values() for row in result["bags"].values()
+                    for site in row["prediction_error_m"]})
+    lines = ["| site | " + " | ".join(f"{route.split('_')[1]}: no map | traced map" for route in results) + " |",
+             "|---" * (1 + 2 * len(results)) + "|"]
+    for site in sites:
+        cells = []
+        for result in results.values():
+            rows = [row["prediction_error_m"][site] for row in result["bags"].values()
+                    if site in row["prediction_error_m"]]
+            cells += [rs._span([r["no_map_m"] for r in rows]), rs._span([r["map_m"] for r in rows])]
+        lines.append(f"| {site} | " + " | ".join(cells) + " |")
+    labels = ["no map", *MAP_LABELS]
+    lines += ["", "| route | anchors | " + " | ".join(labels) + " |", "|---" * (2 + len(labels)) + "|"]
+    for route, result in results.items():
+        for seed, row in result["bags"].items():
+            for name, variants in row["configurations"].items():
+                cells = [f"{_m(v['median_m'])} / {_m(v['p90_m'])} ({_m(v['nees_mean'], '{:.1f}')})"
+                         for v in variants.values()]
+                anchors = "none" if name == "no anchor" else name
+                lines.append(f"| {route.split('_')[1]}, seed {seed} | {anchors} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def _m(value: float | None, style: str = "{:.0f}") -> str:
     return "-" if value is None else style.format(value)
 
@@ -253,6 +279,7 @@ def main() -> None:
         results[route] = result
     results = {route: results[route] for route in ROUTES if route in results}
     print(table(results))
+    print("\n" + doc_tables(results))
     OUT.write_text(json.dumps(results, indent=1))
     print(f"written: {OUT}")
 
