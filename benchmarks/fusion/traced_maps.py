@@ -132,7 +132,7 @@ def traced(scenario: Path, runner: JobRunner) -> tuple[BiasMap, dict]:
     digest = hashlib.sha256(scenario.read_bytes() + repr(sorted(asdict(config).items())).encode()).hexdigest()[:12]
     path = MAPS / f"{scenario.stem}-{digest}.npz"
     made = path.with_suffix(".json")
-    if not path.is_file():
+    if not (path.is_file() and made.is_file()):  # the record written last: a map without one is made again
         started = time.monotonic()
         result = traced_bias_map(scenario, path, config, runner)
         made.write_text(json.dumps({"nodes": result.nodes, "heard": result.heard,
