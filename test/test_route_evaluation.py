@@ -131,6 +131,28 @@ def test_route_commands_refuse_a_database_that_places_no_site(tmp_path, capsys) 
     assert "places no site" in capsys.readouterr().err and not out.exists()
 
 
+def test_true_clocks_place_a_database_without_timing_offsets(tmp_path, capsys) -> None:
+    """A simulated bag's sites take their clocks from its truth: a database holding positions
+    alone (as config/towers/munich_walk.yaml) places no site without it and fixes with it."""
+    data = yaml.safe_load(TOWERS.read_text())
+    for site in data["sites"]:
+        site.pop("timing_offset_us", None)  # D and E, not simulated, have none either
+    towers = tmp_path / "positions_only.yaml"
+    towers.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    assert main(["evaluate-route", "--bag", str(BAG), "--towers", str(towers), "--out", str(out), "--quiet"]) == 2
+    assert "places no site" in capsys.readouterr().err
+    assert main(["evaluate-route", "--bag", str(BAG), "--towers", str(towers), "--out", str(out), "--quiet",
+                 "--true-clocks"]) == 0
+    assert "true site clocks" in capsys.readouterr().out
+    summary = json.loads((out / "route.json").read_text())["summary"]
+    assert summary["sites_heard"] == ["A", "B", "C"] and summary["methods"]["snapshot"]["fix_rate"] > 0.5
+    no_truth = envelope_only_bag(tmp_path / "no_truth")
+    assert main(["evaluate-route", "--bag", str(no_truth), "--towers", str(towers), "--out", str(tmp_path / "o2"),
+                 "--quiet", "--true-clocks"]) == 2
+    assert "no true sites (a real recording?)" in capsys.readouterr().err
+
+
 def test_replay_writes_what_the_nodes_publish_into_a_bag_ros_can_play(tmp_path) -> None:
     """``deepsync replay``: per stack the arrivals, and per fix a PoseWithCovarianceStamped in map
     (orientation unmeasured) and a NavSatFix at the same place in WGS84, next to the truth."""

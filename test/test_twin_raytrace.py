@@ -142,6 +142,62 @@ def test_the_cache_returns_the_same_paths_and_any_changed_input_misses(scene, tm
 
 
 @needs_sionna
+def test_a_building_removed_from_a_mitsuba_scene_no_longer_blocks_and_is_another_trace(scene, tmp_path):
+    """Sionna's Scene.edit takes the named object out: the footprint scene's meshes as a user's
+    Mitsuba scene (shapes 'buildings' and 'ground', here of one material, which Sionna would merge
+    into one object) without its buildings lets the direct path reach the receiver the block hid;
+    the cache key changes with the removal."""
+    import shutil
+
+    from deepsync.twin.raytrace.scenes import open_scene
+
+    shutil.copytree(scene.xml_path.parent / "meshes", tmp_path / "meshes")
+    xml = tmp_path / "user.xml"
+    xml.write_text(scene.xml_path.read_text().replace('ref id="mat-medium_dry_ground"', 'ref id="mat-concrete"'))
+    assert xml.read_text().count('ref id="mat-concrete"') == 2
+    origin = (FRAME.latitude_deg, FRAME.longitude_deg)
+    whole = open_scene(str(xml), FRAME, tmp_path, scene_origin=origin)
+    bare = open_scene(str(xml), FRAME, tmp_path, scene_origin=origin, remove=["buildings"])
+    assert [b.name for b in whole.buildings.buildings] == ["buildings"] and bare.buildings.buildings == ()
+    assert bare.digest != whole.digest
+    assert tracing.cache_key(bare, TX, CARRIER_HZ, np.array([BEHIND]), QUICK) != \
+        tracing.cache_key(whole, TX, CARRIER_HZ, np.array([BEHIND]), QUICK)
+    hidden = tracing.trace_paths(whole, TX, CARRIER_HZ, [BEHIND], QUICK, tmp_path).at(0)
+    opened = tracing.trace_paths(bare, TX, CARRIER_HZ, [BEHIND], QUICK, tmp_path).at(0)
+    assert not hidden["los"].any()
+    assert opened["los"][0] and opened["delays_s"][0] * SPEED_OF_LIGHT_M_S == pytest.approx(_distance(TX, BEHIND), abs=1e-3)
+    # the whole scene is still whole: the removal edited its own loaded copy
+    assert not tracing.trace_paths(whole, TX, CARRIER_HZ, [BEHIND], QUICK).at(0)["los"].any()
+    with pytest.raises(ConfigError, match=r"remove_buildings\[1\]: scene .* has no building 'tower'"):
+        open_scene(str(xml), FRAME, tmp_path, scene_origin=origin, remove=["buildings", "tower"])
+
+
+@needs_sionna
+def test_a_footprint_removed_by_name_is_left_out_of_the_extruded_scene(tmp_path):
+    from deepsync.twin.raytrace.scenes import open_scene
+
+    def feature(name, corners, height):
+        ring = [[_lat_lon(*c)["longitude_deg"], _lat_lon(*c)["latitude_deg"]] for c in corners + corners[:1]]
+        return {"type": "Feature", "properties": {"name": name, "height": height},
+                "geometry": {"type": "Polygon", "coordinates": [ring]}}
+
+    path = tmp_path / "two.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        feature("block", BLOCK, BLOCK_HEIGHT_M), feature("shed", [(40, 0), (45, 0), (45, 10), (40, 10)], 6.0)]}))
+    whole = open_scene(str(path), FRAME, tmp_path / "cache")
+    less = open_scene(str(path), FRAME, tmp_path / "cache", remove=["shed"])
+    assert sorted(b.name for b in whole.buildings.buildings) == ["block", "shed"]
+    assert [b.name for b in less.buildings.buildings] == ["block"]
+    assert less.xml_path != whole.xml_path and less.digest != whole.digest
+    with pytest.raises(ConfigError, match="removes every building"):
+        open_scene(str(path), FRAME, tmp_path / "cache", remove=["shed", "block"])
+    # a scenario names the key in its error
+    scenario = _scenario(path, [(-10, -5), (-10, 40)], cache_dir=tmp_path / "cache", remove_buildings=["barn"])
+    with pytest.raises(ConfigError, match=r"scenario.channel.remove_buildings\[0\]: scene .* has no building 'barn'"):
+        build_twin(scenario)
+
+
+@needs_sionna
 def test_a_cache_that_cannot_be_written_is_a_warning_not_a_lost_trace(scene, tmp_path):
     blocked = tmp_path / "file"
     blocked.write_text("not a directory")
@@ -272,6 +328,8 @@ def test_the_sector_pattern_and_chain_phase_weight_the_traced_gains(footprints, 
      "scenario.channel.scene_origin.latitude_deg: 95.0 is outside"),
     ({"model": "raytraced", "scene": "munich", "cache_dir": " "}, "scenario.channel.cache_dir: must not be empty"),
     ({"model": "statistical", "scene": "munich"}, "scenario.channel: unknown key scene"),
+    ({"model": "raytraced", "scene": "munich", "remove_buildings": "St__Peter-itu_marble"},
+     "scenario.channel.remove_buildings: expected a list"),
 ])
 def test_scenario_errors_name_the_channel_field(channel, named):
     data = {"name": "x", "seed": 1, "origin": ORIGIN, "channel": channel,
@@ -336,16 +394,64 @@ def test_the_munich_example_scenario_parses_as_a_ray_traced_walk():
 
 
 @needs_sionna
-def test_a_street_grid_leaves_out_what_lies_inside_a_building(scene):
+def test_the_munich_drive_is_a_drive_among_the_walks_sites_that_stays_in_the_streets():
+    from pathlib import Path
+
+    from deepsync.twin import load_scenario
+    from deepsync.twin.raytrace.build import scenario_scene
+    from deepsync.twin.raytrace.channel import route_samples
+    from deepsync.twin.raytrace.sites import check_route
+    from deepsync.twin.world import receiver_trajectory, twin_cells
+
+    scenarios = Path(__file__).resolve().parents[1] / "config" / "scenarios"
+    walk, drive = (load_scenario(scenarios / f"munich_{name}.yaml") for name in ("walk", "drive"))
+    assert drive.sites == walk.sites and drive.origin == walk.origin  # one tower database serves both
+    cells = twin_cells(drive)
+    route = receiver_trajectory(drive.receiver, cells.frame)
+    assert 12.0 <= route.speed_mps <= 15.0 and route.duration_s >= 60.0
+    assert len(route_samples(route, drive.channel.route_step_m)[1]) >= 200
+    check_route(scenario_scene(drive.channel, cells.frame), route.waypoints_enu, "munich_drive")  # raises inside a building
+
+
+@needs_sionna
+def test_a_static_receivers_street_grid_is_a_disc_less_the_building(scene):
     from deepsync.twin.raytrace.sites import street_grid
 
-    nodes = street_grid(scene, (-10.0, -10.0), (30.0, 40.0), 1.5, 5.0)
+    centre = np.array([10.0, 15.0, 1.5])  # the block's middle
+    nodes = street_grid(scene, [centre], 30.0, 1.5, 5.0)
+    # the lattice (10 + 5i, 15 + 5j) with i^2 + j^2 <= 36 (Gauss's circle: 113 points), less the
+    # 3 x 5 strictly inside the block (a point on a wall is outside)
+    assert len(nodes) == 113 - 15
+    assert np.all(np.hypot(*(nodes[:, :2] - centre[:2]).T) <= 30.0 + 1e-6)
     inside = (nodes[:, 0] > 0) & (nodes[:, 0] < 20) & (nodes[:, 1] > 0) & (nodes[:, 1] < 30)
-    assert not inside.any()
-    assert len(nodes) == 9 * 11 - 3 * 5  # the box's nodes less the block's (a point on a wall is outside)
-    assert np.all(nodes[:, 2] == 1.5)
-    with pytest.raises(ValueError, match="positive step"):
-        street_grid(scene, (0.0, 0.0), (10.0, 10.0), 1.5, 0.0)
+    assert not inside.any() and np.all(nodes[:, 2] == 1.5)
+    for bad in ({"step_m": 0.0}, {"margin_m": -1.0}):
+        with pytest.raises(ValueError, match="positive step, a margin >= 0"):
+            street_grid(scene, [centre], **{"margin_m": 5.0, "height_m": 1.5, "step_m": 1.0, **bad})
+
+
+def _segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    along = np.clip((points - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
+    return np.linalg.norm(points - (a + along[:, None] * (b - a)), axis=1)
+
+
+@needs_sionna
+def test_a_traced_maps_nodes_follow_an_l_shaped_route_not_its_box(footprints, tmp_path):
+    from deepsync.eval.traced_map import TracedMapConfig, map_nodes
+    from deepsync.twin.raytrace.build import scenario_scene
+    from deepsync.twin.world import twin_cells
+
+    corners = [(-10.0, -5.0), (-10.0, 40.0), (35.0, 40.0)]  # north past the block's west wall, then east
+    scenario = _scenario(footprints, corners, cache_dir=tmp_path)
+    cells = twin_cells(scenario)
+    nodes = map_nodes(scenario, cells, scenario_scene(scenario.channel, cells.frame),
+                      TracedMapConfig(margin_m=8.0, node_step_m=2.0))[:, :2]
+    legs = [(np.array(a), np.array(b)) for a, b in zip(corners, corners[1:])]
+    nearest = np.min([_segment_distance(nodes, a, b) for a, b in legs], axis=0)
+    assert np.all(nearest <= 8.0 + 1e-3)  # the waypoints went through latitude and longitude
+    assert np.any(nodes[:, 1] < 20.0) and np.any(nodes[:, 0] > 20.0)  # along the first leg and the second
+    # the box's south-east, inside the L's bend, is more than 8 m from both legs
+    assert not np.any((nodes[:, 0] > -2.0 + 1e-3) & (nodes[:, 1] < 32.0 - 1e-3))
 
 
 @needs_sionna
@@ -374,8 +480,9 @@ def test_a_traced_map_reads_the_straight_line_where_the_site_is_in_view(footprin
     out = tmp_path / "map.npz"
     traced = traced_bias_map(path, out, config, progress=False)
     assert traced.path == out and not (tmp_path / "map.npz.parts").exists()  # the jobs' parts go
-    assert traced.nodes == 10  # x -20, -5; y -15, 0 ... 45: all in view of the antenna
-    assert set(traced.heard) == {"W"} and traced.heard["W"] >= 8  # 4-frame stacks may miss a node
+    # x -20 (10 m off the route): y 0, 15, 30; x -5: y 0 ... 45 (y -15 lies 11 m from its start)
+    assert traced.nodes == 7  # all in view of the antenna
+    assert set(traced.heard) == {"W"} and traced.heard["W"] >= 5  # 4-frame stacks may miss a node
     bias_map = load_bias_map(out)
     assert set(bias_map.sites) == {"W"}
     for east, north in ((-20.0, 0.0), (-5.0, 30.0)):

@@ -13,6 +13,7 @@ synchronised network or a calibrated database gives them, so what is measured is
     city_static  config/scenarios/route_city_static.yaml   120 s  static
     munich_walk  config/scenarios/munich_walk.yaml         180 s  pedestrian  (ray-traced)
     munich_statistical  the same sites and route, the statistical channel (38.901 UMa, LOS by distance)
+    munich_drive config/scenarios/munich_drive.yaml         64 s  vehicle     (ray-traced; the walk's sites)
 
 Loads: ``day`` sets every cell's load within 0.35-0.6, ``evening`` within 0.1-0.2 (each cell
 its own, fixed by its place in the file). The bags are made when missing, into
@@ -72,6 +73,7 @@ ROUTES = {  # name: (scenario, towers, seconds, motion)
     "city_drive": ("route_city_drive", "route_city", 150.0, "vehicle"),
     "city_static": ("route_city_static", "route_city", 120.0, "static"),
     "munich_walk": ("munich_walk", "munich_walk", 180.0, "pedestrian"),
+    "munich_drive": ("munich_drive", "munich_walk", 64.0, "vehicle"),
     "munich_statistical": ("munich_walk", "munich_walk", 180.0, "pedestrian"),
 }
 # the ray-traced walk's sites and route with the statistical channel instead: 38.901 UMa, its

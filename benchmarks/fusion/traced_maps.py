@@ -1,24 +1,38 @@
-"""Site bias maps traced from the scene (``deepsync trace-map``) on the ray-traced Munich walk.
+"""Site bias maps traced from the scene (``deepsync trace-map``) on the ray-traced Munich walk
+and drive.
 
-No survey: the map comes from the scenario alone (the scene's buildings, the sites, the
-receiver's route widened by 30 m), each site simulated at every street node 10 m apart
-(``deepsync.eval.traced_map``). It is then used on the route set's Munich walks (seeds 1-3:
-other site clocks, chain phases and noise than the map's seed 5), against no map and against a
-wrong map: one made with site M1 50 m north of where it stands. Per walk, with no anchor and with
-a GNSS fix a minute: the published pose's median, p90 and NEES. Also how well the map predicts
+No survey: each map comes from the scenario alone (the scene's buildings, the sites, the
+receiver's route), each site simulated at every street node 10 m apart within 30 m of the route
+(``deepsync.eval.traced_map``). It is then used on the route set's bags of that route (seeds
+1-3: other site clocks, chain phases and noise than the map's seed 5), against no map and two
+deliberately wrong maps: one made with site M1 50 m north of where it stands ("site 50 m off"),
+one made from the scene without the building that cuts the most straight lines from the sites
+to the route, the buildings they stand on aside ("building removed": ``blocking_building``; its
+meshes left out with the scenario's ``remove_buildings``). Per bag, with no anchor and with a
+GNSS fix a minute: the published pose's median, p90 and NEES. Also how well the map predicts
 what each site reads (``prediction_error``: per stack, at the true positions, against the
-stack's other sites). Maps are kept in bags/generated/maps (made when missing: about
-10 minutes each on two cores); writes docs/results/traced_maps.json and the first walk's route
-map with GNSS and the traced map over the scene's buildings (traced_maps_route.png).
+stack's other sites), and per route the time to trace its route points to every site, cold (an
+empty cache) and from the cache.
 
-    python benchmarks/fusion/traced_maps.py [--seeds 1 2 3] [--workers 2]
+Maps are kept in bags/generated/maps, named by a digest of the scenario and the map settings
+(made when missing: minutes to tens of minutes each on two cores; delete them after changing
+the tracing code). Writes docs/results/traced_maps.json (routes not run this time kept as they
+were) and each route's first bag's route map with GNSS and the traced map over the scene's
+buildings (traced_maps_route.png: the walk; traced_maps_drive.png).
+
+    python benchmarks/fusion/traced_maps.py [--routes munich_walk munich_drive] [--seeds 1 2 3] [--workers 2]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
+import tempfile
+import time
+from collections import Counter
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -33,34 +47,112 @@ from deepsync.eval.traced_map import TracedMapConfig, traced_bias_map  # noqa: E
 from deepsync.fusion.anchors import Anchors, unwrap_range  # noqa: E402
 from deepsync.fusion.bias_map import BiasMap, load_bias_map  # noqa: E402
 from deepsync.jobs import JobRunner  # noqa: E402
+from deepsync.twin import build_twin, load_scenario  # noqa: E402
+from deepsync.twin.raytrace.build import scenario_scene  # noqa: E402
+from deepsync.twin.raytrace.buildings import scene_shapes  # noqa: E402
+from deepsync.twin.raytrace.channel import route_samples  # noqa: E402
+from deepsync.twin.world import receiver_trajectory, twin_cells  # noqa: E402
 
-ROUTE = "munich_walk"
-SCENARIO = rs.REPO / "config" / "scenarios" / "munich_walk.yaml"
+ROUTES = ("munich_walk", "munich_drive")  # the route set's ray-traced routes
 MAPS = rs.BAGS.parent / "maps"  # bags/generated/maps
 WRONG_SITE, WRONG_BY_M = "M1", 50.0
 METRES_PER_DEGREE_LATITUDE = 111_320.0
+MATERIAL_SEPARATOR = "-itu_"  # Sionna's Munich names a building's meshes <building>-itu_<material>
 CONFIGURATIONS = ("no anchor", "GNSS 60 s")
+MAP_LABELS = ("traced map", f"site {WRONG_BY_M:g} m off", "building removed")
+MIN_STACKS = 30  # fewer stacks with a site say little (the drive's M5 in its 5-8 is a false lock)
 OUT = rs.RESULTS / "traced_maps.json"
-FIGURE = rs.RESULTS / "traced_maps_route.png"  # the first walk's, GNSS 60 s with the traced map
+FIGURES = {"munich_walk": rs.RESULTS / "traced_maps_route.png", "munich_drive": rs.RESULTS / "traced_maps_drive.png"}
 
 
-def wrong_scenario() -> Path:
-    """The Munich walk with site M1 50 m north (written beside the maps)."""
-    data = yaml.safe_load(SCENARIO.read_text())
-    for site in data["sites"]:
-        if site["name"] == WRONG_SITE:
-            site["latitude_deg"] += WRONG_BY_M / METRES_PER_DEGREE_LATITUDE
-    path = MAPS / f"munich_walk_{WRONG_SITE}_{WRONG_BY_M:g}m_north.yaml"
+def scenario_file(route: str) -> Path:
+    return rs.REPO / "config" / "scenarios" / f"{rs.ROUTES[route][0]}.yaml"
+
+
+def variant(route: str, suffix: str, change) -> Path:
+    """The route's scenario changed by ``change`` (a function of its YAML mapping), written beside the maps."""
+    data = yaml.safe_load(scenario_file(route).read_text())
+    change(data)
+    path = MAPS / f"{rs.ROUTES[route][0]}_{suffix}.yaml"
     MAPS.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 
 
-def traced(scenario: Path, runner: JobRunner) -> BiasMap:
-    path = MAPS / f"{scenario.stem}.npz"
-    if not path.is_file():
-        traced_bias_map(scenario, path, TracedMapConfig(), runner)
-    return load_bias_map(path)
+def site_off(route: str) -> Path:
+    """The route's scenario with site M1 50 m north."""
+    def move(data: dict) -> None:
+        for site in data["sites"]:
+            if site["name"] == WRONG_SITE:
+                site["latitude_deg"] += WRONG_BY_M / METRES_PER_DEGREE_LATITUDE
+    return variant(route, f"{WRONG_SITE}_{WRONG_BY_M:g}m_north", move)
+
+
+def blocking_building(route: str) -> dict:
+    """The building that cuts the most straight lines from the sites' antennas to the route's
+    traced points (a line below its roof inside its footprint, sampled every metre), the
+    buildings the sites stand on aside: its name, its meshes and, per site, the share of the
+    points whose line it cuts."""
+    import shapely  # noqa: PLC0415 (the ray-tracing extra)
+
+    scenario = load_scenario(scenario_file(route))
+    cells = twin_cells(scenario)
+    scene = scenario_scene(scenario.channel, cells.frame)
+    _, points = route_samples(receiver_trajectory(scenario.receiver, cells.frame), scenario.channel.route_step_m)
+    buildings = scene.buildings.buildings
+    building_of = [b.name.split(MATERIAL_SEPARATOR)[0] for b in buildings]
+    tree, roofs = shapely.STRtree([b.footprint for b in buildings]), np.array([b.height_m for b in buildings])
+    receivers = scene.to_scene(points)
+    hosts, cut = set(), {}
+    for site in cells.sites:
+        antenna = scene.to_scene(site.position_enu)
+        host = scene.buildings.at(antenna[0], antenna[1])
+        hosts.add(host.name.split(MATERIAL_SEPARATOR)[0] if host else None)
+        blocked = Counter()
+        for receiver in receivers:
+            steps = np.linspace(0.0, 1.0, max(int(np.linalg.norm(receiver - antenna)), 2))[1:-1, None]
+            line = antenna + steps * (receiver - antenna)
+            point, building = tree.query(shapely.points(line[:, :2]), predicate="intersects")
+            blocked.update({building_of[b] for b in building[line[point, 2] < roofs[building]]})
+        for name, count in blocked.items():
+            cut.setdefault(name, {})[site.name] = count / len(receivers)
+    name = max((n for n in cut if n not in hosts), key=lambda n: sum(cut[n].values()))
+    meshes = sorted(n for n in scene_shapes(scene.xml_path) if n.split(MATERIAL_SEPARATOR)[0] == name)
+    return {"building": name, "meshes": meshes, "share_blocked": dict(sorted(cut[name].items()))}
+
+
+def building_removed(route: str, meshes: list[str]) -> Path:
+    """The route's scenario traced without ``meshes``."""
+    return variant(route, "building_removed", lambda data: data["channel"].update(remove_buildings=meshes))
+
+
+def traced(scenario: Path, runner: JobRunner) -> tuple[BiasMap, dict]:
+    """The scenario's traced map (made when missing) and how it was made (nodes, sites heard, seconds)."""
+    config = TracedMapConfig()
+    digest = hashlib.sha256(scenario.read_bytes() + repr(sorted(asdict(config).items())).encode()).hexdigest()[:12]
+    path = MAPS / f"{scenario.stem}-{digest}.npz"
+    made = path.with_suffix(".json")
+    if not (path.is_file() and made.is_file()):  # the record written last: a map without one is made again
+        started = time.monotonic()
+        result = traced_bias_map(scenario, path, config, runner)
+        made.write_text(json.dumps({"nodes": result.nodes, "heard": result.heard,
+                                    "seconds": time.monotonic() - started}, indent=1))
+    return load_bias_map(path), json.loads(made.read_text())
+
+
+def trace_seconds(route: str) -> dict[str, float]:
+    """Seconds to build the route's twin with its traces: cold (an empty cache) and from the cache."""
+    data = yaml.safe_load(scenario_file(route).read_text())
+    times = {}
+    with tempfile.TemporaryDirectory() as cache:
+        data["channel"]["cache_dir"] = cache
+        path = Path(cache) / "scenario.yaml"
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
+        for run in ("first", "cached"):
+            started = time.monotonic()
+            build_twin(load_scenario(path))
+            times[run] = time.monotonic() - started
+    return times
 
 
 def prediction_error(run: RouteRun, predicted: BiasMap) -> dict[str, dict[str, float]]:
@@ -88,11 +180,11 @@ def prediction_error(run: RouteRun, predicted: BiasMap) -> dict[str, dict[str, f
                    "map_m": float(np.median(left[site]))} for site in sorted(left)}
 
 
-def measure(seed: int, maps: dict[str, BiasMap], figure: Path | None = None) -> dict:
-    """One walk's numbers; ``figure``: its route map with a GNSS fix a minute and the traced
-    map, over the scene's buildings."""
-    bag = f"{ROUTE}_day_s{seed}"
-    replay, towers, pipeline = rs.replayed(ROUTE, rs.BAGS / bag)
+def measure(route: str, seed: int, maps: dict[str, BiasMap], figure: Path | None = None) -> dict:
+    """One bag's numbers; ``figure``: its route map with a GNSS fix a minute and the traced map,
+    over the scene's buildings."""
+    bag = f"{route}_day_s{seed}"
+    replay, towers, pipeline = rs.replayed(route, rs.BAGS / bag)
     config = pipeline.fusion
     row = {"bag": bag, "configurations": {},
            "prediction_error_m": prediction_error(fuse_route(replay, towers, config), maps["traced map"])}
@@ -106,16 +198,54 @@ def measure(seed: int, maps: dict[str, BiasMap], figure: Path | None = None) -> 
     return row
 
 
-def table(rows: dict[str, dict]) -> str:
-    labels = list(next(iter(rows.values()))["configurations"][CONFIGURATIONS[0]])
-    lines = [f"{'walk':20s} {'configuration':12s} " + " ".join(f"{label:>18s}" for label in labels)
-             + "   (median / p90 m, NEES)"]
-    for row in rows.values():
-        for name, variants in row["configurations"].items():
-            cells = [f"{_m(v['median_m'])}/{_m(v['p90_m'])} {_m(v['nees_mean'], '{:.1f}')}" for v in variants.values()]
-            lines.append(f"{row['bag']:20s} {name:12s} " + " ".join(f"{c:>18s}" for c in cells))
-        errors = ", ".join(f"{site} {v['no_map_m']:.0f} -> {v['map_m']:.0f}" for site, v in row["prediction_error_m"].items())
-        lines.append(f"{'':20s} per stack, median |bias| left without -> with the map (m): {errors}")
+def table(results: dict[str, dict]) -> str:
+    lines = []
+    for route, result in results.items():
+        removed = result["building_removed"]
+        lines.append(f"{route}: maps of {result['maps']['traced map']['nodes']} street nodes; trace "
+                     f"{result['trace_s']['first']:.0f} s cold, {result['trace_s']['cached']:.1f} s cached; building "
+                     f"removed: {removed['building']} (cuts the direct line at "
+                     + ", ".join(f"{site} {share:.0%}" for site, share in removed["share_blocked"].items())
+                     + " of the route's points)")
+        labels = ["no map", *MAP_LABELS]
+        lines.append(f"{'bag':22s} {'configuration':12s} " + " ".join(f"{label:>18s}" for label in labels)
+                     + "   (median / p90 m, NEES)")
+        for row in result["bags"].values():
+            for name, variants in row["configurations"].items():
+                cells = [f"{_m(v['median_m'])}/{_m(v['p90_m'])} {_m(v['nees_mean'], '{:.1f}')}"
+                         for v in variants.values()]
+                lines.append(f"{row['bag']:22s} {name:12s} " + " ".join(f"{c:>18s}" for c in cells))
+            errors = ", ".join(f"{site} {v['no_map_m']:.0f} -> {v['map_m']:.0f}"
+                               for site, v in row["prediction_error_m"].items())
+            lines.append(f"{'':22s} per stack, median |bias| left without -> with the map (m): {errors}")
+    return "\n".join(lines)
+
+
+def doc_tables(results: dict[str, dict]) -> str:
+    """docs/raytracing.md's tables: per route and site the median |bias| left without and with
+    the map (the range over the bags where the site is in MIN_STACKS stacks or more), and per bag
+    and configuration each map's median / p90 (NEES)."""
+    sites = sorted({site for result in results.values() for row in result["bags"].values()
+                    for site in row["prediction_error_m"]})
+    lines = ["| site | " + " | ".join(f"{route.split('_')[1]}: no map | traced map" for route in results) + " |",
+             "|---" * (1 + 2 * len(results)) + "|"]
+    for site in sites:
+        cells = []
+        for result in results.values():
+            rows = [row["prediction_error_m"][site] for row in result["bags"].values()
+                    if row["prediction_error_m"].get(site, {}).get("stacks", 0) >= MIN_STACKS]
+            cells += [rs._span([r["no_map_m"] for r in rows]), rs._span([r["map_m"] for r in rows])]
+        if any(cell != "-" for cell in cells):
+            lines.append(f"| {site} | " + " | ".join(cells) + " |")
+    labels = ["no map", *MAP_LABELS]
+    lines += ["", "| route | anchors | " + " | ".join(labels) + " |", "|---" * (2 + len(labels)) + "|"]
+    for route, result in results.items():
+        for seed, row in result["bags"].items():
+            for name, variants in row["configurations"].items():
+                cells = [f"{_m(v['median_m'])} / {_m(v['p90_m'])} ({_m(v['nees_mean'], '{:.1f}')})"
+                         for v in variants.values()]
+                anchors = "none" if name == "no anchor" else name
+                lines.append(f"| {route.split('_')[1]}, seed {seed} | {anchors} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -125,22 +255,35 @@ def _m(value: float | None, style: str = "{:.0f}") -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--routes", nargs="+", choices=ROUTES, default=list(ROUTES))
     parser.add_argument("--seeds", nargs="+", type=int, choices=(1, 2, 3), default=[1, 2, 3])
     parser.add_argument("--workers", type=int, default=2, help="processes for making a map (default 2)")
     args = parser.parse_args()
-    missing = [f"{ROUTE}_day_s{seed}" for seed in args.seeds if not (rs.BAGS / f"{ROUTE}_day_s{seed}").exists()]
+    missing = [f"{route}_day_s{seed}" for route in args.routes for seed in args.seeds
+               if not (rs.BAGS / f"{route}_day_s{seed}").exists()]
     if missing:
         parser.exit(2, f"traced_maps: missing route-set bags {', '.join(missing)}: make them with "
-                       "benchmarks/fusion/route_set.py --bags-only --routes munich_walk --loads day\n")
+                       f"benchmarks/fusion/route_set.py --bags-only --routes {' '.join(args.routes)} --loads day\n")
     runner = JobRunner(args.workers)
-    maps = {"traced map": traced(SCENARIO, runner),
-            f"wrong map ({WRONG_SITE} {WRONG_BY_M:g} m off)": traced(wrong_scenario(), runner)}
-    rows = {}
-    for seed in args.seeds:
-        print(f"== {ROUTE} seed {seed}", flush=True)
-        rows[str(seed)] = measure(seed, maps, FIGURE if seed == args.seeds[0] else None)
-    print(table(rows))
-    OUT.write_text(json.dumps(rows, indent=1))
+    kept = json.loads(OUT.read_text()) if OUT.is_file() else {}
+    results = {route: kept[route] for route in ROUTES if route in kept and route not in args.routes}
+    for route in args.routes:
+        removed = blocking_building(route)
+        print(f"== {route}: building removed for the wrong map: {removed}", flush=True)
+        scenarios = dict(zip(MAP_LABELS, (scenario_file(route), site_off(route),
+                                          building_removed(route, removed["meshes"]))))
+        made = {label: traced(path, runner) for label, path in scenarios.items()}
+        maps = {label: bias_map for label, (bias_map, _) in made.items()}
+        result = {"building_removed": removed, "maps": {label: info for label, (_, info) in made.items()},
+                  "trace_s": trace_seconds(route), "bags": {}}
+        for seed in args.seeds:
+            print(f"== {route} seed {seed}", flush=True)
+            result["bags"][str(seed)] = measure(route, seed, maps, FIGURES[route] if seed == args.seeds[0] else None)
+        results[route] = result
+    results = {route: results[route] for route in ROUTES if route in results}
+    print(table(results))
+    print("\n" + doc_tables(results))
+    OUT.write_text(json.dumps(results, indent=1))
     print(f"written: {OUT}")
 
 

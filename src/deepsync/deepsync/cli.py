@@ -474,14 +474,18 @@ def _stacks_text(config: PipelineConfig, motion: str) -> str:
 
 
 def _cmd_evaluate_route(args: argparse.Namespace) -> int:
+    from deepsync.eval.calibrate import oracle_database
     from deepsync.eval.route import InitialPose, evaluate_route
 
     source = BagSource(args.bag)
     towers = load_tower_database(args.towers)
+    if args.true_clocks:
+        towers = oracle_database(towers, source)
     bias_map = _bias_map(args)
     config = _pipeline_config(args)
     aiding = _aiding_plan(args)
-    print(f"route evaluation of {source.description}\n  tower database {args.towers}, "
+    clocks = " with the recording's true site clocks" if args.true_clocks else ""
+    print(f"route evaluation of {source.description}\n  tower database {args.towers}{clocks}, "
           f"{_stacks_text(config, args.motion)}; {aiding.describes}{_bias_map_text(bias_map)}")
     initial_pose = None if args.initial_pose_std is None else InitialPose(args.initial_pose_std)
     if initial_pose is not None:
@@ -546,7 +550,7 @@ def _cmd_trace_map(args: argparse.Namespace) -> int:
     config = TracedMapConfig(margin_m=args.margin_m, node_step_m=args.step_m, smoothing_m=args.smoothing_m)
     runner = JobRunner(args.workers, args.ray)
     print(f"site bias map traced from {args.scenario}: street nodes every {config.node_step_m:g} m within "
-          f"{config.margin_m:g} m of the receiver, each site simulated alone for {config.stacks} stacks of "
+          f"{config.margin_m:g} m of the receiver's route, each site simulated alone for {config.stacks} stacks of "
           f"{config.stack_frames} frames there, on {runner.description}")
     traced = traced_bias_map(args.scenario, args.out, config, runner, progress=not args.quiet)
     print(f"  {traced.nodes} street nodes; whole biases (the simulator knows the receiver clock)")
@@ -809,6 +813,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="start the tracker from an initial position: the true start, off by a draw of "
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
                        "sites are heard to start)")
+    route.add_argument("--true-clocks", action="store_true",
+                       help="a simulated bag: each site's timing offset and drift from the recording's truth, as a "
+                       "synchronised network or a calibrated database gives them (a database without timing "
+                       "offsets, like config/towers/munich_walk.yaml, places no site otherwise)")
     _aiding_arguments(route)
     _bias_map_argument(route)
     route.set_defaults(run=_cmd_evaluate_route)

@@ -3,8 +3,8 @@
 A map must hold what the timing stage reads late at each place, which is seldom the first
 traced path's excess delay: behind a building the envelope's peak often lands on the strongest
 path, a street or two later (100-500 m on the Munich walk where the first path is 1-100 m
-late). So at every node of a street grid around the scenario's receiver (``street_grid``: the
-route's box widened by ``margin_m``, outside buildings), each site is simulated alone, its
+late). So at every node of a street grid along the scenario's receiver (``street_grid``: within
+``margin_m`` of its route or position, outside buildings), each site is simulated alone, its
 traced channel to that node through the same front end, cell search and timing stage as a
 recording, for a few stacks; its reported arrivals against the straight line's give its bias
 there (the median over its sectors and stacks). One site at a time: the lock its own channel
@@ -64,7 +64,8 @@ class TracedMapConfig:
     """Where a traced map's nodes lie, how long each site is listened to there, and how the
     nodes become the map."""
 
-    margin_m: float = setting(30.0, help="How far beyond the receiver's route (or position) the map reaches.",
+    margin_m: float = setting(30.0, help="How far from the receiver's route (or position) the map reaches: its nodes "
+                              "lie within this distance of the route's polyline.",
                               unit="m", bounds=(0.0, 5000.0))
     node_step_m: float = setting(10.0, help="Spacing of the nodes at which each site is simulated; also the "
                                  "map's grid.", unit="m", bounds=(1.0, 1000.0))
@@ -113,12 +114,12 @@ def ray_traced(scenario: Scenario, where: str) -> RayTracingSettings:
 
 
 def map_nodes(scenario: Scenario, cells: TwinCells, scene: RayScene, config: TracedMapConfig) -> np.ndarray:
-    """(N, 3) street nodes (map frame) of ``scene`` over the receiver's route, or around its position."""
+    """(N, 3) street nodes (map frame) of ``scene`` within ``config.margin_m`` of the receiver's
+    route (a looping one's closing leg included), or of its position."""
     from deepsync.twin.raytrace.sites import street_grid  # noqa: PLC0415 (shapely)
 
     waypoints = receiver_trajectory(scenario.receiver, cells.frame).waypoints_enu
-    return street_grid(scene, waypoints.min(axis=0) - config.margin_m, waypoints.max(axis=0) + config.margin_m,
-                       scenario.receiver.height_m, config.node_step_m)
+    return street_grid(scene, waypoints, config.margin_m, scenario.receiver.height_m, config.node_step_m)
 
 
 def site_biases_at(scenario_path: str, nodes: np.ndarray, indices: tuple[int, ...], config: TracedMapConfig,

@@ -14,6 +14,7 @@ The schema, with defaults for the optional keys::
     # channel: {model: raytraced, scene: munich | florence | etoile | footprints.geojson | scene.xml,
     #           scene_origin: {latitude_deg, longitude_deg},   # a scene.xml's x = y = 0 only
     #           default_building_height_m: null,   # for footprints without height or levels
+    #           remove_buildings: [],      # buildings of the scene left out, by name
     #           max_depth: 3, diffraction: true, diffuse: false, refraction: true,
     #           samples_per_source: 1000000, route_step_m: 1.0, cache_dir: null}
     sites:
@@ -172,11 +173,14 @@ class RayTracingSettings:
     """A ray-traced channel (``model: raytraced``): the ``scene`` (a bundled city's name, a
     GeoJSON of footprints or a Mitsuba XML, paths relative to the working directory), Sionna's
     solver settings, the spacing of the traced points along the route (m) and where traces are
-    cached (``None``: ``$XDG_CACHE_HOME/deepsync/raytrace``, else ``~/.cache/...``)."""
+    cached (``None``: ``$XDG_CACHE_HOME/deepsync/raytrace``, else ``~/.cache/...``).
+    ``remove_buildings``: the scene's buildings to leave out, by name (checked when the scene is
+    opened: ``deepsync.twin.raytrace.scenes.open_scene``)."""
 
     scene: str
     scene_origin: LatLon | None = None
     default_building_height_m: float | None = None
+    remove_buildings: tuple[str, ...] = ()
     max_depth: int = TraceSettings.max_depth
     diffraction: bool = TraceSettings.diffraction
     diffuse: bool = TraceSettings.diffuse

@@ -29,7 +29,8 @@ def scenario_scene(settings: RayTracingSettings, frame: LocalFrame) -> RayScene:
     origin = settings.scene_origin
     return open_scene(settings.scene, frame, cache_dir(settings), where="scenario.channel.scene",
                       scene_origin=None if origin is None else (origin.latitude_deg, origin.longitude_deg),
-                      default_building_height_m=settings.default_building_height_m)
+                      default_building_height_m=settings.default_building_height_m,
+                      remove=settings.remove_buildings, where_remove="scenario.channel.remove_buildings")
 
 
 def cache_dir(settings: RayTracingSettings) -> Path:

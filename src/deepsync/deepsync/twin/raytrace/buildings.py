@@ -98,15 +98,16 @@ def _feature_height(properties: dict, default_height_m: float | None, at: str) -
 
 
 def buildings_from_scene(xml_path: str | Path) -> tuple[Building, ...]:
-    """Buildings of a Mitsuba scene: one per PLY mesh that is not the ground, its footprint the
-    union of its non-vertical faces projected on the ground, its height its highest vertex."""
+    """Buildings of a Mitsuba scene: one per PLY mesh that is not the ground, named as Sionna
+    names the mesh's object (``scene_shapes``), its footprint the union of its non-vertical faces
+    projected on the ground, its height its highest vertex."""
     import shapely  # noqa: PLC0415
     import trimesh  # noqa: PLC0415
 
     xml_path = Path(xml_path)
     buildings = []
-    for mesh_path in scene_mesh_files(xml_path):
-        if any(word in mesh_path.stem.lower() for word in GROUND_MESH_NAMES):
+    for name, mesh_path in scene_shapes(xml_path).items():
+        if any(word in name.lower() for word in GROUND_MESH_NAMES):
             continue
         mesh = trimesh.load(mesh_path, process=False, force="mesh")
         if len(mesh.faces) == 0:
@@ -116,8 +117,21 @@ def buildings_from_scene(xml_path: str | Path) -> tuple[Building, ...]:
         footprint = shapely.union_all([t for t in triangles if t.area > 1e-6])
         for piece in getattr(footprint, "geoms", [footprint]):
             if piece.geom_type == "Polygon" and piece.area > 1.0:
-                buildings.append(Building(piece, float(mesh.vertices[:, 2].max()), mesh_path.stem))
+                buildings.append(Building(piece, float(mesh.vertices[:, 2].max()), name))
     return tuple(buildings)
+
+
+def scene_shapes(xml_path: Path) -> dict[str, Path]:
+    """The mesh shapes of a Mitsuba scene XML: the name Sionna RT gives each one's object (the
+    shape's id less a leading ``mesh-``, as ``sionna.rt.SceneObject.shape_id_to_name``; its
+    file's stem where it has no id) -> its mesh file."""
+    shapes = {}
+    for shape in ElementTree.parse(xml_path).getroot().iter("shape"):
+        files = [node.get("value") for node in shape.iter("string") if node.get("name") == "filename"]
+        if files:
+            name = shape.get("id") or Path(files[0]).stem
+            shapes[name.removeprefix("mesh-")] = xml_path.parent / files[0]
+    return shapes
 
 
 def scene_mesh_files(xml_path: Path) -> list[Path]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.metadata
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -31,6 +32,7 @@ from deepsync.twin.raytrace.buildings import (
     buildings_from_scene,
     read_footprints,
     scene_mesh_files,
+    scene_shapes,
 )
 from deepsync.twin.raytrace.city import write_city_scene
 
@@ -58,23 +60,27 @@ GEOJSON_SUFFIXES = (".geojson", ".json")
 @dataclass(frozen=True)
 class RayScene:
     """A scene file and where it lies: ``frame`` is the ENU frame of its x/y/z, ``map_frame``
-    the twin's. ``digest`` hashes the XML and every mesh it loads (the trace cache's key).
-    ``footprints``: the buildings it was made from, where known (else derived from its meshes)."""
+    the twin's. ``removed``: objects of the XML taken out before tracing (Sionna's
+    ``Scene.edit``). ``digest`` hashes the XML, every mesh it loads and what is removed (the
+    trace cache's key). ``footprints``: the buildings it was made from, where known (else
+    derived from its meshes)."""
 
     xml_path: Path
     frame: LocalFrame
     map_frame: LocalFrame
     name: str
     footprints: tuple[Building, ...] | None = field(default=None, repr=False, compare=False)
+    removed: tuple[str, ...] = ()
     digest: str = field(init=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "digest", scene_digest(self.xml_path))
+        object.__setattr__(self, "digest", scene_digest(self.xml_path, self.removed))
 
     @cached_property
     def buildings(self) -> BuildingIndex:
-        """The scene's buildings (footprints, roof heights), in *scene* x/y."""
-        return BuildingIndex(self.footprints if self.footprints is not None else buildings_from_scene(self.xml_path))
+        """The scene's buildings (footprints, roof heights), in *scene* x/y; none that is removed."""
+        buildings = self.footprints if self.footprints is not None else buildings_from_scene(self.xml_path)
+        return BuildingIndex([b for b in buildings if b.name not in self.removed])
 
     def to_scene(self, points_enu: ArrayLike) -> np.ndarray:
         """Map-frame ENU points (trailing axis of 3) in scene x/y/z."""
@@ -97,11 +103,14 @@ def bundled_origin(name: str, ground_height_m: float) -> LocalFrame:
     return LocalFrame(float(lat), float(lon), ground_height_m)
 
 
-def scene_digest(xml_path: Path) -> str:
-    """SHA-256 over the scene XML, every mesh file it names and the Sionna RT version."""
+def scene_digest(xml_path: Path, removed: tuple[str, ...] = ()) -> str:
+    """SHA-256 over the scene XML, every mesh file it names, the objects ``removed`` from it and
+    the Sionna RT version."""
     digest = hashlib.sha256(importlib.metadata.version("sionna-rt").encode())
     for path in (xml_path, *scene_mesh_files(xml_path)):
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    for name in sorted(removed):
+        digest.update(b"removed\0" + name.encode() + b"\0")
     return digest.hexdigest()
 
 
@@ -123,27 +132,46 @@ def check_scene_spec(spec: str, has_origin: bool) -> None:
 
 def open_scene(spec: str, map_frame: LocalFrame, cache_dir: str | Path, *,
                scene_origin: tuple[float, float] | None = None,
-               default_building_height_m: float | None = None, where: str = "scene") -> RayScene:
+               default_building_height_m: float | None = None, remove: Sequence[str] = (),
+               where: str = "scene", where_remove: str = "remove_buildings") -> RayScene:
     """The scene ``spec`` names (``check_scene_spec``): a bundled city (its buildings from its
     meshes), a GeoJSON of footprints (extruded once into ``cache_dir``, in the map frame; its
     buildings as given) or a Mitsuba XML whose x = y = 0 is ``scene_origin`` (latitude,
-    longitude). ConfigError naming ``where`` for a spec that is none of these."""
+    longitude). ``remove``: buildings to leave out, by name (a mesh's object name in a Mitsuba
+    scene, e.g. ``Neues_Rathaus-itu_marble``; a footprint's ``name`` or ``feature <index>``).
+    ConfigError naming ``where`` for a spec that is none of these, ``where_remove[k]`` for a
+    name the scene does not hold."""
     try:
         check_scene_spec(spec, scene_origin is not None)
     except ValueError as error:
         raise ConfigError(f"{where}: {error}") from None
-    if spec in BUNDLED_SCENES:
-        xml = Path(getattr(sionna_rt().scene, spec))
-        return RayScene(xml, bundled_origin(spec, map_frame.height_m), map_frame, spec)
+    remove = tuple(remove)
+    if spec in BUNDLED_SCENES or Path(spec).suffix.lower() == ".xml":
+        if spec in BUNDLED_SCENES:
+            xml, frame = Path(getattr(sionna_rt().scene, spec)), bundled_origin(spec, map_frame.height_m)
+        else:
+            xml, frame = Path(spec), LocalFrame(scene_origin[0], scene_origin[1], map_frame.height_m)
+        _check_removable(remove, set(scene_shapes(xml)), where_remove, spec)
+        return RayScene(xml, frame, map_frame, spec if spec in BUNDLED_SCENES else xml.stem, removed=remove)
     path = Path(spec)
-    if path.suffix.lower() == ".xml":
-        frame = LocalFrame(scene_origin[0], scene_origin[1], map_frame.height_m)
-        return RayScene(path, frame, map_frame, path.stem)
     buildings = read_footprints(path, map_frame, default_building_height_m)
-    inputs = repr((map_frame.latitude_deg, map_frame.longitude_deg, map_frame.height_m, default_building_height_m))
+    _check_removable(remove, {b.name for b in buildings}, where_remove, spec)
+    buildings = tuple(b for b in buildings if b.name not in remove)
+    if not buildings:
+        raise ConfigError(f"{where_remove}: removes every building of {spec!r}")
+    inputs = repr((map_frame.latitude_deg, map_frame.longitude_deg, map_frame.height_m, default_building_height_m,
+                   sorted(remove)))
     digest = hashlib.sha256(path.read_bytes() + inputs.encode()).hexdigest()[:16]
     directory = Path(cache_dir) / "scenes" / f"{path.stem}-{digest}"
     xml = directory / "scene.xml"
     if not xml.is_file():  # written last: a scene cut short is written again
         write_city_scene(buildings, directory)
     return RayScene(xml, map_frame, map_frame, path.stem, buildings)
+
+
+def _check_removable(remove: tuple[str, ...], names: set[str], where: str, spec: str) -> None:
+    for k, name in enumerate(remove):
+        if name not in names:
+            close = sorted(n for n in names if n.lower().startswith(name.lower()[:6]))[:4]
+            raise ConfigError(f"{where}[{k}]: scene {spec!r} has no building {name!r}"
+                              + (f" (similar: {', '.join(close)})" if close else ""))

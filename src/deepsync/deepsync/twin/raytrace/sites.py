@@ -88,18 +88,28 @@ def check_antennas(scene: RayScene, antennas: Sequence[tuple[str, np.ndarray]]) 
                               f"raise it above the roof or move it")
 
 
-def street_grid(scene: RayScene, lower_enu: ArrayLike, upper_enu: ArrayLike, height_m: float,
+def street_grid(scene: RayScene, route_enu: ArrayLike, margin_m: float, height_m: float,
                 step_m: float) -> np.ndarray:
-    """(N, 3) map-frame points every ``step_m`` over the east/north box from ``lower_enu`` to
-    ``upper_enu`` (both ends included where the step lands on them), ``height_m`` up, outside
-    every building: where a receiver can stand (a street, a square, a yard)."""
-    lower, upper = np.asarray(lower_enu, dtype=np.float64)[:2], np.asarray(upper_enu, dtype=np.float64)[:2]
-    if not (step_m > 0 and np.all(np.isfinite(lower)) and np.all(np.isfinite(upper)) and np.all(upper >= lower)):
-        raise ValueError(f"a street grid needs a positive step and a box with lower <= upper, got step {step_m!r}, "
-                         f"box {lower.tolist()} .. {upper.tolist()}")
+    """(N, 3) map-frame points every ``step_m`` within ``margin_m`` of a route (the polyline
+    through ``route_enu``'s (K, 2 or 3) east/north points; one point: a disc around it),
+    ``height_m`` up, outside every building: where a receiver near it can stand (a street, a
+    square, a yard). The grid starts at the route's south-west corner less the margin."""
+    import shapely  # noqa: PLC0415 (optional extra)
+
+    route = np.asarray(route_enu, dtype=np.float64)
+    if not (step_m > 0 and margin_m >= 0 and route.ndim == 2 and route.shape[1] in (2, 3) and len(route)
+            and np.all(np.isfinite(route))):
+        raise ValueError(f"a street grid needs a positive step, a margin >= 0 and a route of finite east/north "
+                         f"points, got step {step_m!r}, margin {margin_m!r}, route of shape {route.shape}")
+    route = route[:, :2]
+    lower, upper = route.min(axis=0) - margin_m, route.max(axis=0) + margin_m
     east = lower[0] + step_m * np.arange(int(np.floor((upper[0] - lower[0]) / step_m + 1e-9)) + 1)
     north = lower[1] + step_m * np.arange(int(np.floor((upper[1] - lower[1]) / step_m + 1e-9)) + 1)
     grid = np.stack(np.meshgrid(east, north), axis=-1).reshape(-1, 2)
+    path = shapely.Point(route[0]) if len(route) == 1 else shapely.LineString(route)
+    # + 1 um: the grid's first column and row lie on the margin, and a waypoint's round trip
+    # through latitude and longitude must not drop them
+    grid = grid[shapely.distance(path, shapely.points(grid)) <= margin_m + 1e-6]
     points = np.column_stack([grid, np.full(len(grid), float(height_m))])
     inside = [scene.buildings.at(x, y, z) is not None for x, y, z in scene.to_scene(points).tolist()]
     return points[~np.asarray(inside, dtype=bool)]

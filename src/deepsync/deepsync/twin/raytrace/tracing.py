@@ -17,6 +17,7 @@ from __future__ import annotations
 import enum
 import hashlib
 import os
+import re
 import tempfile
 import warnings
 import zipfile
@@ -187,7 +188,15 @@ def _trace(scene: RayScene, transmitter: np.ndarray, carrier_hz: float, receiver
 
     sionna_scene = _LOADED.get(scene.digest)
     if sionna_scene is None:
-        sionna_scene = _LOADED[scene.digest] = rt.load_scene(str(scene.xml_path))
+        # Sionna merges the shapes of one material into one object: those to remove are kept apart
+        keep_apart = f"^(mesh-)?({'|'.join(map(re.escape, scene.removed))})$" if scene.removed else None
+        sionna_scene = rt.load_scene(str(scene.xml_path), merge_shapes_exclude_regex=keep_apart)
+        if scene.removed:
+            absent = [name for name in scene.removed if name not in sionna_scene.objects]
+            if absent:  # Scene.edit passes over a name it does not know
+                raise ValueError(f"scene {scene.name!r}: no object named {', '.join(map(repr, absent))} to remove")
+            sionna_scene.edit(remove=list(scene.removed))
+        _LOADED[scene.digest] = sionna_scene
     sionna_scene.frequency = carrier_hz
     for material in sionna_scene.radio_materials.values():
         material.scattering_coefficient = DIFFUSE_SCATTERING if settings.diffuse else 0.0
