@@ -285,6 +285,17 @@ def test_a_site_not_calibrated_is_moved_to_the_new_epoch():
     assert new.timing_offset_std_us is None and new.timing_drift_std_ns_per_s is None
 
 
+def test_a_drift_no_oscillator_has_is_not_written_and_the_site_keeps_its_own():
+    # a site heard for half a second: its fitted drift (2e5 ns/s, sigma 1e5) says nothing, and
+    # written it would make a database that does not load
+    result = calibrate_sites(recording(4, seconds=10.0))
+    wild = [replace(site, drift_correction=2e-4, drift_std=1e-4) if site.site == "S1" else site for site in result.sites]
+    calibrated = calibrated_database(TOWERS, wild, REFERENCE_NS)
+    assert calibrated.site("S1").timing_drift_ns_per_s == TOWERS.site("S1").timing_drift_ns_per_s
+    assert calibrated.site("S1").timing_offset_std_us == pytest.approx(wild[1].offset_std_s * 1e6)
+    assert calibrated.site("S2").timing_drift_std_ns_per_s == pytest.approx(result.sites[2].drift_std * 1e9)
+
+
 def test_calibrated_database_refuses_what_it_cannot_apply():
     result = calibrate_sites(recording(4, seconds=10.0))
     with pytest.raises(ValueError, match="whole number of 10 ms frames"):

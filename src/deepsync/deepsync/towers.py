@@ -158,11 +158,12 @@ class TowerDatabase:
         return sorted(pairs)
 
 
+MAX_DRIFT_NS_PER_S = 1000.0  # a +-1000 ppb oscillator, as the twin allows
 _TIMING_KEYS = {  # key: (low, high), physical ranges
     "timing_offset_us": (0.0, 10_000.0),  # within one 10 ms frame
     "timing_offset_std_us": (0.0, 10_000.0),
-    "timing_drift_ns_per_s": (-1000.0, 1000.0),  # a +-1000 ppb oscillator, as the twin allows
-    "timing_drift_std_ns_per_s": (0.0, 1000.0),
+    "timing_drift_ns_per_s": (-MAX_DRIFT_NS_PER_S, MAX_DRIFT_NS_PER_S),
+    "timing_drift_std_ns_per_s": (0.0, MAX_DRIFT_NS_PER_S),
 }
 _SITE_KEYS = {"name", "latitude_deg", "longitude_deg", "height_m", "cells", *_TIMING_KEYS}
 _TOP_KEYS = {"name", "origin", "timing_epoch_utc", "sites"}

@@ -57,7 +57,7 @@ from scipy.optimize import least_squares
 from deepsync.fusion.anchors import FRAME_NS, FRAME_RANGE_M, SiteArrival, unwrap_range
 from deepsync.fusion.snapshot import HUBER_KNEE
 from deepsync.numeric import mad_spread
-from deepsync.towers import TowerDatabase, parse_tower_database, tower_database_to_dict
+from deepsync.towers import MAX_DRIFT_NS_PER_S, TowerDatabase, parse_tower_database, tower_database_to_dict
 from deepsync.types import FRAME_SECONDS, SPEED_OF_LIGHT_M_S
 
 C = SPEED_OF_LIGHT_M_S
@@ -367,7 +367,9 @@ def calibrated_database(towers: TowerDatabase, corrections: Sequence[SiteCalibra
     """``towers`` with the corrected sites' timing corrected and their sigmas replaced, all
     timing moved to the new epoch ``reference_ns`` (the arrivals' time origin, a whole frame).
     A correction without a drift (its ``drift_std`` NaN: a tracker without site clock states)
-    keeps the site's drift and its sigma.
+    keeps the site's drift and its sigma, and so does one whose drift or drift sigma lies beyond
+    any oscillator's (``towers.MAX_DRIFT_NS_PER_S``): a site heard for a moment, whose drift the
+    fit could not tell.
 
     A site not calibrated keeps its timing, moved to the new epoch by its drift (its offset sigma
     grows by its drift sigma times the time moved); note that the calibrated sites now follow
@@ -393,9 +395,9 @@ def calibrated_database(towers: TowerDatabase, corrections: Sequence[SiteCalibra
         if site.name in calibrated:
             fitted = calibrated[site.name]
             site = replace(site, timing_offset_std_us=fitted.offset_std_s * 1e6)
-            if math.isfinite(fitted.drift_std):
-                site = replace(site, timing_drift_ns_per_s=drift_ns_per_s + fitted.drift_correction * 1e9,
-                               timing_drift_std_ns_per_s=fitted.drift_std * 1e9)
+            drift, drift_std = drift_ns_per_s + fitted.drift_correction * 1e9, fitted.drift_std * 1e9
+            if abs(drift) <= MAX_DRIFT_NS_PER_S and drift_std <= MAX_DRIFT_NS_PER_S:  # NaN: no drift fitted
+                site = replace(site, timing_drift_ns_per_s=drift, timing_drift_std_ns_per_s=drift_std)
             offset_us += fitted.offset_correction_s * 1e6
         elif site.timing_drift_std_ns_per_s is not None:
             grown = site.timing_drift_std_ns_per_s * abs(moved_s) * 1e-3
