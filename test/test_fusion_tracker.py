@@ -742,14 +742,15 @@ def test_a_track_starts_with_what_the_batch_learned_of_each_sites_bias():
         assert np.any(np.abs(tracker._P[:2, index: index + 2]) > 1.0)  # and knows how it moved the position
 
 
-def test_a_start_from_a_prior_whose_only_site_is_left_out_says_so():
-    # with an initial position one site starts a track; where the sites' biases lie beyond their
-    # priors (two sites 4 km apart in bias), nothing is left to solve with: a reason, not a
-    # solver error
-    from deepsync.fusion.track_start import batch_start
+def test_sites_whose_biases_disagree_beyond_their_priors_leave_the_start_one_at_a_time():
+    # with an initial position one site starts a track; two whose biases disagree by 4 km share
+    # the disagreement in one solve, both beyond their priors: the worst goes, the other's bias
+    # then fits, and the start is made from it (left out all at once, none remained)
+    from deepsync.fusion.track_start import Start, batch_start
 
     rng = np.random.default_rng(34)
     arrivals, truth = window_of_biased_sites(rng, {"A": 2000.0, "B": -2000.0}, 40.0)
     prior = PositionPrior(tuple(truth), np.diag([25.0, 25.0, UNMEASURED_VARIANCE]))
     outcome = batch_start(arrivals, CONFIG, PPM * 1e-6, prior, redundant=True)
-    assert isinstance(outcome, str) and "0 site(s) remain" in outcome
+    assert isinstance(outcome, Start), outcome
+    assert len(outcome.sites) == 1 and outcome.rejected == tuple(sorted({"A", "B"} - set(outcome.sites)))

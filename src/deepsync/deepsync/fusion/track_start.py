@@ -22,7 +22,7 @@ ray-traced walk it began 156 m off claiming 46 m. A site whose bias comes out be
 of its prior (a false lock) is left out, named. Its covariance comes from the Jacobian, the
 sites' biases with it (the tracker's bias states start from them); the motion the static
 assumption ignores enters each arrival's sigma, which grows by ``initial_speed_std_mps`` times
-its distance in time from the mid-time. With a :class:`PositionPrior` (an operator's pose, a
+its distance in time from the mid-time, and so does its site clock's drift (``clock_drift_std_mps``). With a :class:`PositionPrior` (an operator's pose, a
 GNSS fix) the batch gets ``D`` whitened rows more and needs one site: it measures the clock,
 and along its range the position, by as much as the prior leaves open.
 """
@@ -85,16 +85,24 @@ def batch_start(arrivals: Sequence[SiteArrival], config: TrackerConfig, clock_ra
         return start
     keep = np.ones(len(arrivals), dtype=bool)
     theta = problem.fit(start, keep, robust=True)
-    # a false lock or a reflection among them: out (once), and the rest solved without it; a
-    # site's false lock shows as its bias beyond its prior's gate (its own arrivals agree)
+    # a false lock or a reflection among them: out (once), and the rest solved without it
     gate = chi_square_limit(config.gate_probability, 1)
     keep = np.abs(problem.residuals(theta, keep)[: keep.sum()]) ** 2 <= gate
-    keep &= ~np.isin(problem.names, problem.locked_off(theta, gate))
-    kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
-    if len(kept) < needed - (redundant and prior is None):  # before solving again: fewer would leave it underdetermined
-        return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {needed} needed"
-    if not keep.all():
-        theta = problem.fit(theta, keep, robust=False)
+    least = needed - (redundant and prior is None)  # fewer would leave the solve underdetermined
+    refit = not keep.all()
+    while True:
+        kept = sorted({a.site for a, k in zip(arrivals, keep) if k})
+        if len(kept) < least:
+            return f"after leaving out arrivals beyond the gate, {len(kept)} site(s) remain; {needed} needed"
+        if refit:
+            theta = problem.fit(theta, keep, robust=False)
+        # a site's false lock shows as its bias beyond its prior's gate (its own arrivals agree
+        # with each other): the worst out, one at a time, as the others' biases took up a share
+        worst = problem.locked_off(theta, gate, kept)
+        if worst is None:
+            break
+        keep &= problem.names != worst
+        refit = True
     residuals = problem.residuals(theta, keep)
     chi_square = float(residuals @ residuals)
     dof = len(residuals) - len(theta)
@@ -142,8 +150,13 @@ class _BatchProblem:
         # a 20 ppm clock moves the ranges 18 km in 3 s: well within the half frame unwrapping allows
         predicted = [first.range_mod_m + self.drift_prior * (a.time_s - first.time_s) for a in arrivals]
         self.rho = np.array([unwrap_range(a.range_mod_m, p) for a, p in zip(arrivals, predicted)]) - self.reference_m
-        motion = config.initial_speed_std_mps * np.abs(self.t - self.t_ref)  # the static assumption's error
-        self.sigma = np.hypot([a.timing_std_m for a in arrivals], motion)  # white from arrival to arrival
+        # white from arrival to arrival: the timing noise, and what the window's seconds away from
+        # its middle add: the motion the static assumption ignores, and the site clock's drift
+        # (a database without drifts: 6 m/s a site)
+        away = np.abs(self.t - self.t_ref)
+        drift = np.array([a.clock_drift_std_mps for a in arrivals]) * away
+        self.sigma = np.sqrt(np.array([a.timing_std_m for a in arrivals]) ** 2
+                             + (config.initial_speed_std_mps * away) ** 2 + drift**2)
         self.sites = np.array([a.position_enu for a in arrivals], dtype=np.float64)
         self.names = np.array([a.site for a in arrivals])
         latest = {a.site: math.hypot(a.bias_std_m, a.clock_std_m) for a in arrivals}  # in time order
@@ -159,10 +172,13 @@ class _BatchProblem:
             return np.array([theta[0], theta[1], self.config.snapshot.receiver_height_m])
         return theta[:3]
 
-    def locked_off(self, theta: np.ndarray, gate: float) -> list[str]:
-        """The sites whose bias lies beyond ``gate`` (chi-square, 1 dof) of its prior."""
-        biases = theta[self.config.dims + 2:]
-        return [name for name, m, s in zip(self.biased, biases, self.bias_prior) if (m / s) ** 2 > gate]
+    def locked_off(self, theta: np.ndarray, gate: float, among: Sequence[str]) -> str | None:
+        """The site of ``among`` whose bias lies furthest beyond ``gate`` (chi-square, 1 dof) of
+        its prior, None where none does."""
+        scores = {name: (m / s) ** 2 for name, m, s in zip(self.biased, theta[self.config.dims + 2:], self.bias_prior)
+                  if name in among}
+        worst = max(scores, key=scores.get, default=None)
+        return worst if worst is not None and scores[worst] > gate else None
 
     def start(self) -> np.ndarray | str:
         """A first guess (the sites' biases 0): the drift from how repeated sites' ranges move,
