@@ -70,8 +70,8 @@ class FusionConfig:
     simulated routes (docs/design/fusion.md): LOS sites 0-15 m, NLOS 40-90 m in the dense scenario,
     about 200 m (common to both sites heard) in the urban one, 25-230 m and changing along the
     route on the city walks with a channel that follows the walker, 20-215 m for whole streets on
-    the ray-traced old town. The motion model sets it (``deepsync.motion``: 100 m for a walker or
-    a car, 60 m for a static asset; docs/design/fusion.md says what the route set measured)."""
+    the ray-traced old town. The motion model sets it (``deepsync.motion``: 100 m for a walker,
+    60 m for a car or a static asset; docs/design/fusion.md says what the route set measured)."""
 
     snapshot: SnapshotConfig = field(default_factory=SnapshotConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
