@@ -17,7 +17,7 @@ import pytest
 from deepsync.fusion.aiding import PositionAid, VelocityAid, heading_offset, odometry_velocity, rotation
 from deepsync.fusion.stage import FusionConfig, FusionStage
 from deepsync.fusion.tracker import Tracker, TrackerConfig
-from deepsync.motion import MOTION_MODELS, motion_model
+from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS, motion_model
 from deepsync.pipeline import PipelineConfig
 from deepsync.types import (
     UNMEASURED_VARIANCE,
@@ -304,7 +304,8 @@ def test_each_motion_model_sets_the_stacks_and_the_tracker():
         # a command line's explicit stacks and bias sigma win over the model's
         chosen = PipelineConfig().with_choices(motion=model.name, n_frames=10, multipath_std_m=33.0)
         assert chosen.sync.stack.hop == 10 and chosen.fusion.multipath_std_m == 33.0
-    assert {model.multipath_std_m for model in MOTION_MODELS.values()} != {PipelineConfig().fusion.multipath_std_m}
+    # one source: the fusion config's own default is the default motion model's
+    assert FusionConfig().multipath_std_m == motion_model(DEFAULT_MOTION).multipath_std_m
     assert PipelineConfig() == PipelineConfig.for_motion("pedestrian")
     with pytest.raises(ValueError, match="'bicycle' is not one of pedestrian, vehicle, static"):
         motion_model("bicycle")

@@ -18,12 +18,13 @@ not noise: a site's range bias and its clock's error (``bias_std_m``, ``clock_st
 the same in each of its arrivals, so each site has a bias in the batch with them as its prior,
 and only the timing noise (``timing_std_m``) is white. Taken as white, a site heard twenty times
 in the window had its bias sigma averaged down 4.5-fold, and the start claimed that: on the
-ray-traced walk it began 156 m off claiming 46 m. A site whose bias comes out beyond the gate
-of its prior (a false lock) is left out, named. Its covariance comes from the Jacobian, the
-sites' biases with it (the tracker's bias states start from them); the motion the static
-assumption ignores enters each arrival's sigma, which grows by ``initial_speed_std_mps`` times
-its distance in time from the mid-time, and so does its site clock's drift (``clock_drift_std_mps``). With a :class:`PositionPrior` (an operator's pose, a
-GNSS fix) the batch gets ``D`` whitened rows more and needs one site: it measures the clock,
+ray-traced walk it began 156 m off claiming 46 m. Sites whose bias comes out beyond the gate
+of its prior (false locks) are left out, named, the worst first and one at a time (the others
+took up a share of its error). Its covariance comes from the Jacobian, the sites' biases with it
+(the tracker's bias states start from them); the motion the static assumption ignores enters
+each arrival's sigma, which grows by ``initial_speed_std_mps`` times its distance in time from
+the mid-time, and so does its site clock's drift (``clock_drift_std_mps``). With a
+:class:`PositionPrior` (an operator's pose, a GNSS fix) the batch gets ``D`` whitened rows more and needs one site: it measures the clock,
 and along its range the position, by as much as the prior leaves open.
 """
 

@@ -358,7 +358,7 @@ class Tracker:
         """Every site with states: what the tracker has learned of its bias (and clock)."""
         out = {}
         for name, site in self._sites.items():
-            parts = slice(site.index, site.index + (3 if self.config.site_clocks else 2))  # the bias (, offset)
+            parts = slice(site.index, site.index + self._range_parts)
             bias = float(np.sum(self._x[parts]))
             std = math.sqrt(max(float(np.sum(self._P[parts, parts])), 0.0))
             if self.config.site_clocks:
@@ -390,6 +390,7 @@ class Tracker:
         self._stretch = _Stretch()
         self._faded = 0.0  # the site biases' Gauss-Markov exponent summed since the start
         self._width = 4 if c.site_clocks else 2  # states per site: bias, persistent and fading (, clock offset, drift)
+        self._range_parts = 3 if c.site_clocks else 2  # of them, those a range adds up: the bias (, clock offset)
         self._bias = dims + 2  # after the position and the horizontal velocity
         self._model()
 
@@ -574,7 +575,7 @@ class Tracker:
         h = np.zeros(len(x))
         h[:dims] = diff[:dims] / distance
         h[bias] = 1.0
-        h[site.index: site.index + (3 if self.config.site_clocks else 2)] = 1.0  # the site's bias (, clock offset)
+        h[site.index: site.index + self._range_parts] = 1.0
         predicted = distance + float(h[bias:] @ x[bias:])
         innovation = unwrap_range(arrival.range_mod_m, predicted) - predicted
         # what stays from stack to stack is in the site's states; a sliding stack's noise also
@@ -946,12 +947,11 @@ class Tracker:
         for name in start.sites:
             self._add_site(latest[name])
         # theta = [position, b, d, m_s of start.biased] -> the state, T theta, and each site's split
-        parts = 3 if self.config.site_clocks else 2
         T = np.zeros((len(self._x), len(start.mean)))
         T[[*range(dims), self._bias, self._bias + 1], np.arange(dims + 2)] = 1.0
         split = np.zeros_like(self._P)
         for j, name in enumerate(start.biased):
-            states = np.arange(parts) + self._sites[name].index
+            states = np.arange(self._range_parts) + self._sites[name].index
             v = np.diag(self._P)[states]
             T[states, dims + 2 + j] = v / v.sum()
             split[np.ix_(states, states)] = np.diag(v) - np.outer(v, v) / v.sum()
