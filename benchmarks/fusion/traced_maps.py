@@ -11,7 +11,9 @@ to the route, the buildings they stand on aside ("building removed": ``blocking_
 meshes left out with the scenario's ``remove_buildings``). Per bag, with no anchor and with a
 GNSS fix a minute: the published pose's median, p90 and NEES. Also how well the map predicts
 what each site reads (``prediction_error``: per stack, at the true positions, against the
-stack's other sites), and per route the time to trace its route points to every site, cold (an
+stack's other sites); errors split by line of sight (``los_split``: each arrival's lag, and the
+published pose without a map, by whether the heard sites' earliest path is the straight line
+there); and per route the time to trace its route points to every site, cold (an
 empty cache) and from the cache.
 
 Maps are kept in bags/generated/maps, named by a digest of the scenario and the map settings
@@ -28,6 +30,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import sys
 import tempfile
 import time
@@ -41,16 +44,20 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the route set's bags, configurations and summaries
 import route_set as rs  # noqa: E402
 
+from deepsync.eval.channel_stats import direct_first  # noqa: E402
 from deepsync.eval.route import RouteRun, fuse_route, recorded_buildings  # noqa: E402
 from deepsync.eval.route_figures import plot_map  # noqa: E402
 from deepsync.eval.traced_map import TracedMapConfig, traced_bias_map  # noqa: E402
 from deepsync.fusion.anchors import Anchors, unwrap_range  # noqa: E402
 from deepsync.fusion.bias_map import BiasMap, load_bias_map  # noqa: E402
 from deepsync.jobs import JobRunner  # noqa: E402
-from deepsync.twin import build_twin, load_scenario  # noqa: E402
+from deepsync.recording import EPOCH_NS  # noqa: E402
+from deepsync.twin import Twin, build_twin, load_scenario  # noqa: E402
 from deepsync.twin.raytrace.build import scenario_scene  # noqa: E402
 from deepsync.twin.raytrace.buildings import scene_shapes  # noqa: E402
 from deepsync.twin.raytrace.channel import route_samples  # noqa: E402
+from deepsync.twin.scenario import parse_scenario  # noqa: E402
+from deepsync.types import SPEED_OF_LIGHT_M_S, Fix  # noqa: E402
 from deepsync.twin.world import receiver_trajectory, twin_cells  # noqa: E402
 
 ROUTES = ("munich_walk", "munich_drive")  # the route set's ray-traced routes
@@ -180,14 +187,44 @@ def prediction_error(run: RouteRun, predicted: BiasMap) -> dict[str, dict[str, f
                    "map_m": float(np.median(left[site]))} for site in sorted(left)}
 
 
+def los_split(run: RouteRun, twin: Twin, max_std_m: float) -> dict:
+    """Errors by line of sight, no map: each arrival's lag beyond the straight line (m; the
+    timing stage against the recording's truth) by whether its site's earliest path is the
+    straight line there (the strongest sector's, ``direct_first``), and the published pose's
+    error by whether every heard site, some or none has one."""
+    metres_per_sample = SPEED_OF_LIGHT_M_S / twin.frontend.adc_rate_hz
+    lags: dict[str, list[float]] = {"los": [], "nlos": []}
+    poses: dict[str, list[float]] = {"all_los": [], "some_los": [], "no_los": []}
+    for epoch, answer in zip(run.epochs, rs.published(run, max_std_m)):
+        seen = []
+        for arrival in epoch.sites:
+            t = (run.reference_ns + arrival.time_s * 1e9 - EPOCH_NS) * 1e-9
+            seen.append(direct_first(twin.channel, twin.emitters, arrival.site, t))
+            lag = epoch.timing_errors.get(arrival.site, (math.nan,))[0]
+            if math.isfinite(lag):
+                lags["los" if seen[-1] else "nlos"].append(lag * metres_per_sample)
+        if seen and isinstance(answer, Fix):
+            kind = "all_los" if all(seen) else "some_los" if any(seen) else "no_los"
+            poses[kind].append(float(np.hypot(*(answer.position_enu[:2] - epoch.truth_enu[:2]))))
+    return {"arrivals": {kind: {"count": len(v), "median_m": _median(v), "median_abs_m": _median(np.abs(v))}
+                         for kind, v in lags.items()},
+            "published": {kind: {"count": len(v), "median_m": _median(v)} for kind, v in poses.items()}}
+
+
+def _median(values) -> float | None:
+    return float(np.median(values)) if len(values) else None
+
+
 def measure(route: str, seed: int, maps: dict[str, BiasMap], figure: Path | None = None) -> dict:
     """One bag's numbers; ``figure``: its route map with a GNSS fix a minute and the traced map,
     over the scene's buildings."""
     bag = f"{route}_day_s{seed}"
     replay, towers, pipeline = rs.replayed(route, rs.BAGS / bag)
     config = pipeline.fusion
-    row = {"bag": bag, "configurations": {},
-           "prediction_error_m": prediction_error(fuse_route(replay, towers, config), maps["traced map"])}
+    plain = fuse_route(replay, towers, config)
+    twin = build_twin(parse_scenario(rs.scenario_for(route, "day", seed)))
+    row = {"bag": bag, "configurations": {}, "prediction_error_m": prediction_error(plain, maps["traced map"]),
+           "los_split": los_split(plain, twin, config.tracker.max_std_m)}
     for name in CONFIGURATIONS:
         runs = {label: fuse_route(replay, towers, config, aiding=rs.CONFIGURATIONS[name], bias_map=bias_map)
                 for label, bias_map in {"no map": None, **maps}.items()}
@@ -218,6 +255,11 @@ def table(results: dict[str, dict]) -> str:
             errors = ", ".join(f"{site} {v['no_map_m']:.0f} -> {v['map_m']:.0f}"
                                for site, v in row["prediction_error_m"].items())
             lines.append(f"{'':22s} per stack, median |bias| left without -> with the map (m): {errors}")
+            split = row["los_split"]
+            lines.append(f"{'':22s} no map, by line of sight: arrivals' lag (median m) "
+                         + ", ".join(f"{kind} {_m(v['median_m'])} ({v['count']})" for kind, v in split["arrivals"].items())
+                         + "; published error, no anchor (median m) "
+                         + ", ".join(f"{kind} {_m(v['median_m'])} ({v['count']})" for kind, v in split["published"].items()))
     return "\n".join(lines)
 
 
@@ -246,6 +288,18 @@ def doc_tables(results: dict[str, dict]) -> str:
                          for v in variants.values()]
                 anchors = "none" if name == "no anchor" else name
                 lines.append(f"| {route.split('_')[1]}, seed {seed} | {anchors} | " + " | ".join(cells) + " |")
+    lines += ["", "| route | arrivals with a direct path (%) | their lag (m) | the others' lag (m) | published "
+              "error (m; stacks), every heard site direct | some | none |", "|---" * 7 + "|"]
+    for route, result in results.items():
+        splits = [row["los_split"] for row in result["bags"].values()]
+        share = [s["arrivals"]["los"]["count"] / max(s["arrivals"]["los"]["count"] + s["arrivals"]["nlos"]["count"], 1)
+                 for s in splits]
+        cells = [rs._span([100 * v for v in share])]
+        cells += [rs._span([s["arrivals"][kind]["median_m"] for s in splits]) for kind in ("los", "nlos")]
+        cells += [rs._span([s["published"][kind]["median_m"] for s in splits])
+                  + f" ({sum(s['published'][kind]['count'] for s in splits)})"
+                  for kind in ("all_los", "some_los", "no_los")]
+        lines.append(f"| {route.split('_')[1]} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

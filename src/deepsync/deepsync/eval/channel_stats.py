@@ -52,18 +52,32 @@ def channel_statistics(channel, emitters: Sequence[Emitter], times_s: Sequence[f
     """Per site (by name): the median over ``times_s`` of its strongest sector's path statistics
     (``direct_first_share``: the mean of its flag), and how many instants it was evaluated at.
     ``channel`` needs ``paths(emitter_index, t)`` and ``geometric_delay_s(emitter_index, t)``."""
-    by_site: dict[str, list[int]] = {}
-    for index, emitter in enumerate(emitters):
-        by_site.setdefault(emitter.site, []).append(index)
     table = {}
-    for site, indices in sorted(by_site.items()):
-        rows = []
-        for t in times_s:
-            stats = [(path_statistics(channel.paths(i, t), channel.geometric_delay_s(i, t)), i) for i in indices]
-            best, index = max(stats, key=lambda pair: pair[0]["power"])
-            best["received_dbm"] = 10 * np.log10(max(best.pop("power") * emitters[index].re_power_w, 1e-30)) + 30
-            rows.append(best)
+    for site, indices in _sectors(emitters).items():
+        rows = [_strongest_sector(channel, emitters, indices, t) for t in times_s]
         table[site] = {key: float(np.median([row[key] for row in rows])) for key in rows[0] if key != "direct_first"}
         table[site]["direct_first_share"] = float(np.mean([row["direct_first"] for row in rows]))
         table[site]["instants"] = len(rows)
     return table
+
+
+def direct_first(channel, emitters: Sequence[Emitter], site: str, t: float) -> bool:
+    """Whether ``site``'s strongest sector's earliest path at ``t`` is the straight line (LOS)."""
+    return bool(_strongest_sector(channel, emitters, _sectors(emitters)[site], t)["direct_first"])
+
+
+def _sectors(emitters: Sequence[Emitter]) -> dict[str, list[int]]:
+    """Each site's emitter indices, sites by name in order."""
+    by_site: dict[str, list[int]] = {}
+    for index, emitter in enumerate(emitters):
+        by_site.setdefault(emitter.site, []).append(index)
+    return dict(sorted(by_site.items()))
+
+
+def _strongest_sector(channel, emitters: Sequence[Emitter], indices: Sequence[int], t: float) -> dict[str, float]:
+    """The path statistics at ``t`` of the sector among ``indices`` that arrives strongest, its
+    power turned into ``received_dbm`` per resource element."""
+    stats = [(path_statistics(channel.paths(i, t), channel.geometric_delay_s(i, t)), i) for i in indices]
+    best, index = max(stats, key=lambda pair: pair[0]["power"])
+    best["received_dbm"] = 10 * np.log10(max(best.pop("power") * emitters[index].re_power_w, 1e-30)) + 30
+    return best
