@@ -6,7 +6,7 @@ The scenario's seed draws each site's LOS state, shadowing and delay spread once
 receiver's distance along the walk (38.901's 30-50 m correlation distances, ``docs/design/simulator.md``).
 For each seed, with and without it, this makes the bag (kept in bags/generated/ for the next
 run; seed 1 without it is ``route_dense`` itself, made by scripts/route_bags.sh), replays it
-through the pipeline (10-frame stacks, the dense walk's tower database) and prints the sites
+through the pipeline (the walker's stacks, the dense walk's tower database) and prints the sites
 heard per stack (whole walk and halves) and, on the second half, the tracked and snapshot fixes
 with the true site clocks and with the clocks calibrated on the whole walk (where at least two
 sites are heard). The sites, their clocks and the walk are the same in every run.
