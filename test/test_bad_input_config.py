@@ -553,9 +553,10 @@ def test_a_network_config_counts_its_weights_without_building_them():
     (SyncConfig, {"search_every": 10**400}, "search_every must be within [1, 100000] stacks"),  # past a float
     (StackConfig, {"clip_fraction": 2.0}, "clip_fraction must be within [0, 1], got 2.0"),
     (TimingConfig, {"weak_std_samples": 1e300}, "weak_std_samples must be within (0, 1e+06] samples"),
+    (TimingConfig, {"min_snr_db": -100.0}, "min_snr_db must be within [-60, 60] dB"),
 ], ids=["refine-lags-1e9", "max-examined-0", "confirm-tolerance-nan", "search-every-1e30", "search-every-1e400",
         "clip-fraction-2",
-        "weak-std-1e300"])
+        "weak-std-1e300", "min-snr-minus-100"])
 def test_a_stage_config_number_outside_its_range_names_it(cls, values, message):
     """On main these were taken (a billion lags sized the search's arrays; NaN compared false)."""
     with pytest.raises(ValueError, match=re.escape(message)):

@@ -22,6 +22,7 @@ from scipy.stats import chi2
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival
 from deepsync.fusion.snapshot import SnapshotConfig, solve_snapshot
 from deepsync.fusion.tracker import Tracker, TrackerConfig
+from deepsync.pipeline import PipelineConfig
 from deepsync.types import SPEED_OF_LIGHT_M_S, UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason, PositionPrior
 
 C = SPEED_OF_LIGHT_M_S
@@ -309,6 +310,23 @@ def test_widening_a_prior_raises_only_its_tight_directions_along_its_own_axes():
     for bad in (-1.0, math.nan, math.inf):
         with pytest.raises(ValueError, match="min_std_m"):
             prior.widened(bad)
+
+
+def test_a_static_asset_keeps_its_initial_position_where_a_walker_gives_it_up():
+    # two sites and a 20 m prior for two minutes: an asset that stands keeps the prior's word
+    # (its position cannot go stale), a walker's hold ends after prior_hold_s
+    static = PipelineConfig.for_motion("static").fusion.tracker
+    rng = np.random.default_rng(23)
+    route = Route(rng, 120.0, random_sites(1, 2, "AB"), config=static, moving=False, velocity=(0.0, 0.0))
+    prior = prior_near(route.truth[0], rng, 20.0, 20.0)
+    for config, kept in ((static, True), (TrackerConfig(), False)):
+        tracker = Tracker(config)
+        tracker.start_from(prior)
+        outcomes = route.track(tracker=tracker)
+        assert all(isinstance(fix, Fix) for fix in outcomes[10:300])
+        assert all(isinstance(fix, Fix) for fix in outcomes[-100:]) is kept
+        if kept:
+            assert horizontal_error(outcomes[-1], route.truth[-1]) < 3 * outcomes[-1].horizontal_std_m
 
 
 def test_an_initial_position_is_forgotten_once_the_sites_fix_the_position():

@@ -185,6 +185,23 @@ def test_windows_that_cannot_be_timed_are_reported_not_raised(campus):
         TimingConfig(estimator="ML")
 
 
+def test_a_cell_whose_code_is_not_at_the_lock_is_dropped_as_a_false_detection(campus):
+    """A lock 7000 samples from where the cell's frame is: its known frame fits at the SNR floor,
+    so the stage says it found nothing there instead of reporting an arrival kilometres vague."""
+    source, results = campus
+    stack = results[-1].sync.stack_windows
+    good = stack.windows[0]
+    moved = dataclasses.replace(good, coarse_index=good.coarse_index + 7000)
+    elsewhere = dataclasses.replace(stack, windows=(moved, *stack.windows[1:]))
+    result = TimingStage(source.frontend).process(elsewhere)
+    assert good.pci not in [t.pci for t in result.cells] and len(result.cells) == len(stack.windows) - 1
+    assert [e.kind for e in result.events] == [HealthKind.UNTIMEABLE]
+    assert "below min_snr_db -30 dB" in result.events[0].message and f"PCI {good.pci}" in result.events[0].message
+    kept = TimingStage(source.frontend, TimingConfig(min_snr_db=-60.0)).process(elsewhere)
+    (vague,) = [t for t in kept.cells if t.pci == good.pci]
+    assert vague.toa_std > 10 and vague.snr_db < -30  # what the floor keeps out
+
+
 def test_a_chunk_at_another_rate_mid_stream_is_an_event_and_never_stacked():
     """Frames 45-46 of the bag arrive labelled 3.84 MHz: the stack that would have held them is
     not searched, the event says why, and stacking resumes after them."""

@@ -114,6 +114,7 @@ def test_the_estimator_choices_are_the_cores_estimators() -> None:
     ("cell_sync", "track_clock", "yes", "expected true or false"),
     ("cell_timing", "estimator", "neural", "must be one of"),
     ("cell_timing", "weak_std_samples", 0.0, "weak_std_samples must be within (0, 1e+06] samples"),
+    ("cell_timing", "min_snr_db", 70.0, "min_snr_db must be within [-60, 60] dB"),
     ("tdoa_fusion", "min_std_m", 0.0, "min_std_m must be within (0, 10000] m"),
     ("tdoa_fusion", "multipath_std_m", -1.0, "must be within"),
     ("tdoa_fusion", "receiver_height_m", 2e4, "must be within"),

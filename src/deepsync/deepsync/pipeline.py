@@ -37,10 +37,11 @@ from deepsync.types import EnvelopeChunk, Health, StackArrivals, StackWindows
 
 
 def moving(model: MotionModel, sync: SyncConfig, fusion: FusionConfig) -> tuple[SyncConfig, FusionConfig]:
-    """``sync`` and ``fusion`` with a motion model's stacks, tracker process model and bias sigma."""
+    """``sync`` and ``fusion`` with a motion model's stacks, tracker process model, prior hold and
+    bias sigma."""
     stack = replace(sync.stack, n_frames=model.n_frames, hop_frames=model.hop_frames)
     tracker = replace(fusion.tracker, acceleration_std_mps2=model.acceleration_std_mps2,
-                      initial_speed_std_mps=model.initial_speed_std_mps)
+                      initial_speed_std_mps=model.initial_speed_std_mps, prior_hold_s=model.prior_hold_s)
     return replace(sync, stack=stack), replace(fusion, tracker=tracker, multipath_std_m=model.multipath_std_m)
 
 

@@ -193,6 +193,7 @@ SYNC = (
 TIMING = (
     _core("estimator", read_only=False),
     _core("weak_std_samples", read_only=False),
+    _core("min_snr_db", read_only=False),
     _core("peak_width_allowance_samples", read_only=False),
     _core("smear_std_per_sample", read_only=False),
     _core("checkpoint", unset="the one shipped with deepsync", read_only=False),
