@@ -57,8 +57,8 @@ from deepsync.twin.raytrace.build import scenario_scene  # noqa: E402
 from deepsync.twin.raytrace.buildings import scene_shapes  # noqa: E402
 from deepsync.twin.raytrace.channel import route_samples  # noqa: E402
 from deepsync.twin.scenario import parse_scenario  # noqa: E402
-from deepsync.types import SPEED_OF_LIGHT_M_S, Fix  # noqa: E402
 from deepsync.twin.world import receiver_trajectory, twin_cells  # noqa: E402
+from deepsync.types import SPEED_OF_LIGHT_M_S, Fix  # noqa: E402
 
 ROUTES = ("munich_walk", "munich_drive")  # the route set's ray-traced routes
 MAPS = rs.BAGS.parent / "maps"  # bags/generated/maps

@@ -3,9 +3,9 @@
 Subscribes ``sync_windows`` (SyncWindowArray) and runs the core's
 :class:`~deepsync.timing.stage.TimingStage`; the arrivals go out on ``cell_timing``
 (CellTimingArray, reliable) on the stack's time base, stamped and framed as the windows came.
-``estimator``, ``checkpoint``, ``weak_std_samples``, ``min_snr_db`` and how a smeared peak widens an arrival's
-1-sigma (``peak_width_allowance_samples``, ``smear_std_per_sample``) may change while the node
-runs (an A/B comparison on live data).
+``estimator``, ``checkpoint``, ``weak_std_samples``, ``min_snr_db`` and how a smeared peak
+widens an arrival's 1-sigma (``peak_width_allowance_samples``, ``smear_std_per_sample``) may
+change while the node runs (an A/B comparison on live data).
 """
 
 from __future__ import annotations

@@ -207,7 +207,8 @@ class TrackerConfig:
     site_clocks: bool = False  # estimate per-site clock offset and drift errors as states
     site_clock_wander_mps_per_sqrt_s: float = 0.01  # site frequency random walk (disciplined eNB)
     stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (PipelineConfig sets it)
-    prior_hold_s: float = _WALKER.prior_hold_s  # how long an initial position is used, from when it is given, while D + 1 sites are not heard
+    # how long an initial position is used, from when it is given, while D + 1 sites are not heard
+    prior_hold_s: float = _WALKER.prior_hold_s
     max_std_m: float = setting(150.0, help="Horizontal 1-sigma (DRMS) beyond which the track is reported lost and "
                                "no pose is published for it.", unit="m", bounds=(0.0, 1e6), open_low=True)
     max_position_rejections: int = 2  # refused positions in a row, agreeing, that say the track is wrong
