@@ -302,12 +302,14 @@ def test_each_motion_model_sets_the_stacks_and_the_tracker():
         assert config.fusion.tracker.stack_overlap == model.n_frames / model.hop_frames
         assert config.fusion.multipath_std_m == model.multipath_std_m
         assert config.fusion.tracker.prior_hold_s == model.prior_hold_s
+        assert config.fusion.tracker.spare_site_at_start is model.spare_site_at_start
         # a command line's explicit stacks and bias sigma win over the model's
         chosen = PipelineConfig().with_choices(motion=model.name, n_frames=10, multipath_std_m=33.0)
         assert chosen.sync.stack.hop == 10 and chosen.fusion.multipath_std_m == 33.0
     # one source: the fusion config's own default is the default motion model's
     assert FusionConfig().multipath_std_m == motion_model(DEFAULT_MOTION).multipath_std_m
     assert TrackerConfig().prior_hold_s == motion_model(DEFAULT_MOTION).prior_hold_s
+    assert TrackerConfig().spare_site_at_start is motion_model(DEFAULT_MOTION).spare_site_at_start
     assert PipelineConfig() == PipelineConfig.for_motion("pedestrian")
     with pytest.raises(ValueError, match="'bicycle' is not one of pedestrian, vehicle, static"):
         motion_model("bicycle")

@@ -624,7 +624,7 @@ def test_an_arrival_older_than_the_filter_is_skipped_and_counted():
 
 @pytest.mark.parametrize("field, value", [("gate_probability", 0.0), ("max_coast_s", -1.0), ("init_window_s", math.nan),
                                           ("acceleration_std_mps2", 0.0), ("max_rejections", 1), ("site_clocks", "yes"),
-                                          ("bias_correlation_s", 0.0), ("snapshot", None)])
+                                          ("spare_site_at_start", 1), ("bias_correlation_s", 0.0), ("snapshot", None)])
 def test_config_refuses_what_is_out_of_range_by_name(field, value):
     with pytest.raises(ValueError, match=field):
         TrackerConfig(**{field: value})
@@ -653,6 +653,20 @@ def test_with_a_site_to_spare_a_start_catches_a_false_lock_three_sites_cannot():
     assert all(horizontal_error(fix, truth) < 3 * fix.horizontal_std_m for fix, truth in fixes)
     known_three = route.track(clock_rate=rate, tracker=Tracker(CONFIG, sites_known=3))[45]
     assert known_three.position_enu == fooled[45].position_enu  # three sites known: started as before
+
+
+def test_a_static_asset_starts_from_three_sites_where_a_walker_waits_for_a_fourth():
+    # the database places six sites; the asset hears three of them, as where it stands it may
+    # for good: its motion model starts from them, a walker's waits for a fourth
+    static = PipelineConfig.for_motion("static").fusion.tracker
+    rng = np.random.default_rng(24)
+    route = Route(rng, 30.0, lambda k, rng: list("ABC"), config=static, moving=False, velocity=(0.0, 0.0))
+    for config, starts in ((static, True), (TrackerConfig(), False)):
+        outcomes = route.track(clock_rate=PPM * 1e-6, tracker=Tracker(config, sites_known=6))
+        assert all(isinstance(fix, Fix) for fix in outcomes[20:]) is starts
+        assert any(isinstance(fix, Fix) for fix in outcomes) is starts
+        if starts:
+            assert horizontal_error(outcomes[-1], route.truth[-1]) < 3 * outcomes[-1].horizontal_std_m
 
 
 def test_a_lost_track_starts_again_and_no_single_site_steers_it():

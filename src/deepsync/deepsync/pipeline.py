@@ -37,11 +37,12 @@ from deepsync.types import EnvelopeChunk, Health, StackArrivals, StackWindows
 
 
 def moving(model: MotionModel, sync: SyncConfig, fusion: FusionConfig) -> tuple[SyncConfig, FusionConfig]:
-    """``sync`` and ``fusion`` with a motion model's stacks, tracker process model, prior hold and
-    bias sigma."""
+    """``sync`` and ``fusion`` with a motion model's stacks, tracker process model, prior hold,
+    start rule and bias sigma."""
     stack = replace(sync.stack, n_frames=model.n_frames, hop_frames=model.hop_frames)
     tracker = replace(fusion.tracker, acceleration_std_mps2=model.acceleration_std_mps2,
-                      initial_speed_std_mps=model.initial_speed_std_mps, prior_hold_s=model.prior_hold_s)
+                      initial_speed_std_mps=model.initial_speed_std_mps, prior_hold_s=model.prior_hold_s,
+                      spare_site_at_start=model.spare_site_at_start)
     return replace(sync, stack=stack), replace(fusion, tracker=tracker, multipath_std_m=model.multipath_std_m)
 
 

@@ -117,7 +117,8 @@ NEES of 30.
 enough to gather the sites a city stack rarely holds at once, short enough that the speed
 prior covers the distance walked), or the current stack alone when it holds enough sites;
 ``D + 2`` sites where the tower database has that many (``sites_known``: a false lock among
-``D + 1`` fits exactly and cannot be caught), else ``D + 1``; one with an initial position. The velocity starts at 0 with ``initial_speed_std_mps`` as its sigma, so predicting to
+``D + 1`` fits exactly and cannot be caught), else ``D + 1`` (and for a motion model without
+``spare_site_at_start``: a static asset, which rarely hears a fourth site where it stands); one with an initial position. The velocity starts at 0 with ``initial_speed_std_mps`` as its sigma, so predicting to
 the window's end widens the position by the distance travelled meanwhile. The batch solves one
 bias per site (its arrivals share it; only their timing noise is white), and the filter it
 starts takes those biases into the sites' bias states, with their covariance to the position
@@ -209,6 +210,7 @@ class TrackerConfig:
     stack_overlap: float = 1.0  # stacks each frame is in: n_frames / hop_frames (PipelineConfig sets it)
     # how long an initial position is used, from when it is given, while D + 1 sites are not heard
     prior_hold_s: float = _WALKER.prior_hold_s
+    spare_site_at_start: bool = _WALKER.spare_site_at_start  # D + 2 sites for a start where the database has them
     max_std_m: float = setting(150.0, help="Horizontal 1-sigma (DRMS) beyond which the track is reported lost and "
                                "no pose is published for it.", unit="m", bounds=(0.0, 1e6), open_low=True)
     max_position_rejections: int = 2  # refused positions in a row, agreeing, that say the track is wrong
@@ -219,8 +221,9 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.snapshot, SnapshotConfig):
             raise ValueError(f"snapshot: {self.snapshot!r} is not a SnapshotConfig")
-        if not isinstance(self.site_clocks, bool):
-            raise ValueError(f"site_clocks: {self.site_clocks!r} is not a bool")
+        for name in ("site_clocks", "spare_site_at_start"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: {getattr(self, name)!r} is not a bool")
         check_settings(self)
         for name, low, high in (("max_rejections", 2, 10_000), ("max_position_rejections", 1, 1000)):
             value = getattr(self, name)
@@ -303,7 +306,7 @@ class Tracker:
         least ``D + 2``, a start without an initial position needs that many heard."""
         self.config = config or TrackerConfig()
         c = self.config
-        self._redundant_start = sites_known is not None and sites_known >= c.dims + 2
+        self._redundant_start = c.spare_site_at_start and sites_known is not None and sites_known >= c.dims + 2
         self._gate = chi_square_limit(c.gate_probability, 1)
         self._gate2 = chi_square_limit(c.gate_probability, 2)
         self._gate_position = chi_square_limit(c.gate_probability, c.dims)
