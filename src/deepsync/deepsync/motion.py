@@ -68,7 +68,7 @@ MOTION_MODELS: dict[str, MotionModel] = {
         # 0.01 m/s^2: an asset that stands (its position wanders by centimetres per minute in
         # the model, enough for the linearisation); stacks of 2 s hear sites 3 dB below 1 s.
         # It never moves to tell its sites' pulls from its position, so a 100 m sigma leaves
-        # its track too vague to publish; 60 m is already cautious (NEES 0.1-0.3 without GNSS). Where it stands
+        # its track too vague to publish; 60 m is already cautious (NEES 0.2-0.3 without GNSS). Where it stands
         # stays where it was put: an initial position or a GNSS fix holds its track for an hour
         # on the one or two sites a city gives it (the route set's static asset with a start pose:
         # a pose in 24 % of the stacks at 30 s, as a walker's, 99 % at 5 / 5 m). It starts from
