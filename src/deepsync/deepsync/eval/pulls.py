@@ -10,10 +10,9 @@ Whether a route's pulls look like that shows in their semivariogram along the pa
 
 which such a process makes ``sigma^2 (1 - exp(-d / L))``, rising over ``L`` to the process's
 variance (the timing noise, metres, is left out: the pulls change by 15 m over the first 2 m
-walked). Fitted per route
-(:func:`fit_pull_model`), it says what sigma and decorrelation the route's own pulls have, to
-set against the ones the tracker assumes; the spread of the sites' mean pulls, less the mean
-every site shares (the receiver clock takes that), is the level's part.
+walked). Fitted per route (:func:`fit_pull_model`), it says what sigma and decorrelation the
+route's own pulls have, to set against the ones the tracker assumes; the spread of the sites'
+mean pulls about the mean every site shares (the receiver clock takes that) is the level's part.
 """
 
 from __future__ import annotations

@@ -118,8 +118,9 @@ enough to gather the sites a city stack rarely holds at once, short enough that 
 prior covers the distance walked), or the current stack alone when it holds enough sites;
 ``D + 2`` sites where the tower database has that many (``sites_known``: a false lock among
 ``D + 1`` fits exactly and cannot be caught), else ``D + 1`` (and for a motion model without
-``spare_site_at_start``: a static asset, which rarely hears a fourth site where it stands); one with an initial position. The velocity starts at 0 with ``initial_speed_std_mps`` as its sigma, so predicting to
-the window's end widens the position by the distance travelled meanwhile. The batch solves one
+``spare_site_at_start``: a static asset, which rarely hears a fourth site where it stands); one
+with an initial position. The velocity starts at 0 with ``initial_speed_std_mps`` as its sigma,
+so predicting to the window's end widens the position by the distance travelled meanwhile. The batch solves one
 bias per site (its arrivals share it; only their timing noise is white), and the filter it
 starts takes those biases into the sites' bias states, with their covariance to the position
 and clock (:meth:`Tracker._begin`).
