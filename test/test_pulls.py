@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from deepsync.eval.pulls import SitePulls, fit_pull_model, semivariogram, site_pulls
+from deepsync.eval.pulls import SitePulls, describe_pulls, fit_pull_model, semivariogram, site_pulls
 from deepsync.eval.route import RouteEpoch, RouteRun
 from deepsync.types import SPEED_OF_LIGHT_M_S, NoFix, NoFixReason
 
@@ -56,6 +56,15 @@ def test_a_receiver_that_stands_has_no_path_to_fit_over():
     standing = [SitePulls("S", np.zeros(50), np.random.default_rng(1).normal(40.0, 3.0, 50))]
     with pytest.raises(ValueError, match="three are needed"):
         fit_pull_model(standing)
+
+
+def test_a_report_gives_the_semivariogram_and_the_fit_or_why_there_is_none():
+    walked = describe_pulls(simulated_sites(60.0, 40.0, [0.0, 50.0]))
+    assert [row["pairs"] > 0 for row in walked["semivariogram"]] == [True] * 7
+    assert walked["fit"]["sigma_m"] == pytest.approx(60.0, rel=0.35) and walked["fit"]["sites"] == 2
+    stood = describe_pulls([SitePulls("S", np.zeros(5), np.full(5, 40.0))])
+    assert stood["fit"] is None and "0 lag bins" in stood["why_no_fit"]
+    assert all(row["lag_m"] is None and row["root_m"] is None for row in stood["semivariogram"])
 
 
 def test_site_pulls_reads_the_timing_errors_in_metres_along_the_true_path():

@@ -54,6 +54,10 @@ def test_campus_route_report_files(campus) -> None:
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     document = json.loads(paths[0].read_text())  # strict JSON: NaN would not parse in other readers
     assert document["summary"]["stacks"] == len(document["stacks"]) == summary["stacks"]
+    # the receiver stands: its sites' pulls have no path to change over, and the report says so
+    pulls = document["summary"]["pulls"]
+    assert pulls["fit"] is None and "three are needed" in pulls["why_no_fit"]
+    assert pulls["assumed"]["multipath_std_m"] == FusionConfig().multipath_std_m
     fixed = [s for s in document["stacks"] if s["snapshot"]["fix"]]
     assert fixed and all(abs(s["snapshot"]["error_m"] - np.linalg.norm(
         np.array(s["snapshot"]["enu"][:2]) - s["truth_enu"][:2])) < 1e-6 for s in fixed)

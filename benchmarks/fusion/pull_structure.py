@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the route set's bags, configurations and summaries
 import route_set as rs  # noqa: E402
 
-from deepsync.eval.pulls import LAG_EDGES_M, SitePulls, fit_pull_model, semivariogram, site_pulls  # noqa: E402
+from deepsync.eval.pulls import LAG_EDGES_M, SitePulls, describe_pulls, site_pulls  # noqa: E402
 from deepsync.eval.route import fuse_route  # noqa: E402
 from deepsync.fusion.tracker import TrackerConfig  # noqa: E402
 from deepsync.motion import MOTION_MODELS  # noqa: E402
@@ -56,19 +56,13 @@ def measure(route: str, seeds: list[int]) -> dict:
         if route in COMPARED:
             replays.append((bag.name, recorded, towers, config))
         print(f"  {bag.name}: {sum(len(p.pull_m) for p in pulls)} arrivals so far", flush=True)
-    lag, gamma, count = semivariogram(pulls)
-    row: dict = {"semivariogram": [{"lag_m": _finite(a), "root_m": _finite(math.sqrt(g)) if g == g else None,
-                                    "pairs": int(n)} for a, g, n in zip(lag, gamma, count)]}
-    try:
-        model = fit_pull_model(pulls)
-    except ValueError as error:  # a receiver that stands: no path for its pulls to change over
-        row["fit"] = None
-        row["why_no_fit"] = str(error)
+    row = describe_pulls(pulls)
+    if row["fit"] is None:  # a receiver that stands: no path for its pulls to change over
         row["static_std_m"] = float(np.median([p.pull_m.std() for p in pulls])) if pulls else None
         return row
-    row["fit"] = dataclasses.asdict(model)
     if replays:
-        fitted = 5.0 * round(math.hypot(model.sigma_m, model.level_std_m) / 5.0)
+        fit = row["fit"]
+        fitted = 5.0 * round(math.hypot(fit["sigma_m"], fit["level_std_m"] or 0.0) / 5.0)
         row["fitted_multipath_std_m"] = fitted
         row["published"] = {name: _compare(recorded, towers, config, fitted)
                             for name, recorded, towers, config in replays}
@@ -83,10 +77,6 @@ def _compare(recorded, towers, config: PipelineConfig, fitted: float) -> dict:
             run = fuse_route(recorded, towers, fusion, aiding=rs.CONFIGURATIONS[name])
             out[f"{name}, {sigma:g} m"] = rs.published_summary(run, fusion.tracker.max_std_m)
     return out
-
-
-def _finite(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None
 
 
 def table(rows: dict[str, dict]) -> str:

@@ -739,6 +739,13 @@ def _print_route(summary: dict) -> None:
         print(f"  {summary['anchors']} GNSS fixes given; tracked median by time since the last: {since}")
     if summary["aiding_refused"]:
         print(f"  aiding refused {summary['aiding_refused']} times (route.json: aiding_refused per stack)")
+    pulls = summary.get("pulls")
+    if pulls and pulls["fit"]:
+        fit, assumed = pulls["fit"], pulls["assumed"]
+        levels = "" if fit["level_std_m"] is None else f", their levels {fit['level_std_m']:.0f} m apart"
+        print(f"  the sites' pulls along the path: {fit['sigma_m']:.0f} m changing over {fit['decorrelation_m']:.0f} m"
+              f"{levels}; the tracker assumes {assumed['multipath_std_m']:g} m (multipath_std_m) over "
+              f"{assumed['bias_decorrelation_m']:g} m (docs/design/fusion.md)")
 
 
 def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_help: str, *,

@@ -17,15 +17,19 @@ mean pulls about the mean every site shares (the receiver clock takes that) is t
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from deepsync.eval.route import RouteRun
 from deepsync.types import SPEED_OF_LIGHT_M_S
+
+if TYPE_CHECKING:  # a route's stacks; deepsync.eval.route imports this module
+    from deepsync.eval.route import RouteRun
 
 MAX_PULL_M = 1000.0  # beyond any NLOS pull: a false lock, not a pull
 # path lags (m) the semivariogram is read in, doubling; from 1.5 m, where a walker's 1 s stacks
@@ -52,7 +56,7 @@ class PullModel:
 
     sigma_m: float  # stationary 1-sigma of the changing part
     decorrelation_m: float  # path over which it keeps 1/e of itself
-    level_std_m: float  # spread of the sites' mean pulls, less their common mean
+    level_std_m: float | None  # spread of the sites' mean pulls about their common mean (None: one site)
     sites: int
     arrivals: int
 
@@ -70,6 +74,19 @@ def site_pulls(run: RouteRun, sample_rate: float) -> list[SitePulls]:
                 rows.setdefault(site, []).append((walked, error * metres))
     return [SitePulls(site, np.array([r[0] for r in rows[site]]), np.array([r[1] for r in rows[site]]))
             for site in sorted(rows)]
+
+
+def describe_pulls(pulls: Sequence[SitePulls]) -> dict:
+    """What a report says of the pulls: the semivariogram per lag bin (``lag_m``, ``root_m``:
+    its root, ``pairs``) and the fitted model (``fit``: :class:`PullModel`'s fields), or
+    ``fit`` None and ``why_no_fit``."""
+    lag, gamma, count = semivariogram(pulls)
+    rows = [{"lag_m": float(a) if n else None, "root_m": math.sqrt(g) if n else None, "pairs": int(n)}
+            for a, g, n in zip(lag, gamma, count)]
+    try:
+        return {"semivariogram": rows, "fit": dataclasses.asdict(fit_pull_model(pulls))}
+    except ValueError as error:
+        return {"semivariogram": rows, "fit": None, "why_no_fit": str(error)}
 
 
 def semivariogram(pulls: Sequence[SitePulls], edges_m: Sequence[float] = LAG_EDGES_M
@@ -115,6 +132,5 @@ def fit_pull_model(pulls: Sequence[SitePulls], edges_m: Sequence[float] = LAG_ED
     bounds = ([0.0, FIT_DECORRELATION_M[0]], [MAX_PULL_M, FIT_DECORRELATION_M[1]])
     sigma, decorrelation = least_squares(residuals, start, bounds=bounds).x
     means = np.array([site.pull_m.mean() for site in pulls])
-    return PullModel(float(sigma), float(decorrelation),
-                     float(means.std()) if len(means) > 1 else math.nan, len(pulls),
+    return PullModel(float(sigma), float(decorrelation), float(means.std()) if len(means) > 1 else None, len(pulls),
                      int(sum(len(site.pull_m) for site in pulls)))

@@ -26,6 +26,7 @@ from deepsync.bag import TRUTH_POSE_TOPIC, BagReader, position_from_pose_msg
 from deepsync.bag.convert import stamp_to_ns
 from deepsync.eval.aiding import AidingPlan
 from deepsync.eval.cell_search import timing_error
+from deepsync.eval.pulls import describe_pulls, site_pulls
 from deepsync.eval.route_scores import CHI2_2DOF_95, METHODS, horizontal_error, nees
 from deepsync.fusion.anchors import Anchors, SiteArrival
 from deepsync.fusion.calibration import CalibrationObservation
@@ -457,8 +458,12 @@ def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, conf
     run = replay_route(source, towers, config, progress, initial_pose, aiding, bias_map)
     if not run.epochs:
         raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
-    model = add_rssi_fixes(run, RssiConfig(receiver_height_m=(config or PipelineConfig()).fusion.snapshot.receiver_height_m))
-    summary = {**summarize_route(run), "rssi_model": model}
+    fusion = (config or PipelineConfig()).fusion
+    model = add_rssi_fixes(run, RssiConfig(receiver_height_m=fusion.snapshot.receiver_height_m))
+    pulls = describe_pulls(site_pulls(run, source.frontend.adc_rate_hz))
+    pulls["assumed"] = {"multipath_std_m": fusion.multipath_std_m,
+                        "bias_decorrelation_m": fusion.tracker.bias_decorrelation_m}
+    summary = {**summarize_route(run), "rssi_model": model, "pulls": pulls}
     return summary, write_route_report(run, summary, Anchors(towers), out_dir, recorded_buildings(source))
 
 
