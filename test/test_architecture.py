@@ -168,4 +168,4 @@ def test_no_command_line_flag_of_a_core_setting_is_written_by_hand():
                 continue
             assert described is core[named[0]], f"deepsync {command} {action.option_strings}: written by hand"
             seen.add(named[0])
-    assert {"n_frames", "hop_frames", "search_every", "estimator", "motion"} <= seen
+    assert {"n_frames", "hop_frames", "search_every", "estimator", "motion", "multipath_std_m"} <= seen

@@ -381,8 +381,10 @@ def test_compare_poses_of_a_topic_without_covariance_says_so(capsys):
     (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--initial-pose-std", "1e308"],
      "argument --initial-pose-std: '1e308' m: give 0.01...10000 m"),
     (["detect", "--bag", str(BAG), "--scale", "9" * 400], "argument --scale: '9999999999"),
+    (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--multipath-std-m", "0"],
+     "argument --multipath-std-m: multipath_std_m must be within (0, 10000] m, got 0"),
 ], ids=["demo_simulate_1e308", "evaluate_timing_frames_word", "evaluate_timing_frames_0", "initial_std_1e-320",
-        "initial_std_1e308", "scale_400_digits"])
+        "initial_std_1e308", "scale_400_digits", "multipath_std_0"])
 def test_flags_out_of_range_are_refused_naming_the_flag(capsys, args, message):
     fails(args, capsys, message)
 

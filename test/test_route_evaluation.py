@@ -89,9 +89,10 @@ def test_an_initial_pose_fixes_a_route_where_two_sites_alone_cannot(tmp_path, ca
     towers.write_text(yaml.safe_dump(database))
     out = tmp_path / "out"
     assert main(["evaluate-route", "--bag", str(BAG), "--towers", str(towers), "--out", str(out), "--quiet",
-                 "--initial-pose-std", "10", "--frames", "10"]) == 0
+                 "--initial-pose-std", "10", "--frames", "10", "--multipath-std-m", "40"]) == 0
     assert "starts from the true start position" in capsys.readouterr().out
     summary = json.loads((out / "route.json").read_text())["summary"]
+    assert summary["pulls"]["assumed"]["multipath_std_m"] == 40.0  # the flag's, over the motion model's
     assert summary["sites_heard"] == ["A", "B"]
     assert summary["methods"]["snapshot"]["fix_rate"] == 0.0
     tracked = summary["methods"]["tracked"]

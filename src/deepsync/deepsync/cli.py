@@ -459,7 +459,8 @@ def _print_health(health: dict[str, int]) -> None:
 def _pipeline_config(args: argparse.Namespace) -> PipelineConfig:
     """The pipeline a replaying command asked for (``_replay_arguments``)."""
     return PipelineConfig().with_choices(n_frames=args.frames, hop_frames=args.hop, motion=args.motion,
-                                         search_every=args.search_every, estimator=args.estimator)
+                                         search_every=args.search_every, estimator=args.estimator,
+                                         multipath_std_m=args.multipath_std_m)
 
 
 def _setting(name: str) -> Setting:
@@ -762,6 +763,8 @@ def _replay_arguments(command: argparse.ArgumentParser, bag_help: str, towers_he
              "e.g. --frames 50 --hop 10 for 50-frame stacks at 10 Hz")
     add_flag(command, _setting("search_every"), "--search-every", default=defaults.sync.search_every)
     add_flag(command, _setting("estimator"), "--estimator", default=defaults.timing.estimator)
+    add_flag(command, _setting("multipath_std_m"), "--multipath-std-m", metavar="M",
+             unset="the motion model's; evaluate-route measures a simulated route's pulls against it")
     command.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
