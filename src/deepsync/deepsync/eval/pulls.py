@@ -106,9 +106,10 @@ def semivariogram(pulls: Sequence[SitePulls], edges_m: Sequence[float] = LAG_EDG
                 break
             which = np.searchsorted(edges, apart, side="right") - 1
             inside = (which >= 0) & (which < bins)
-            np.add.at(total, which[inside], 0.5 * (pull[k:] - pull[:-k])[inside] ** 2)
-            np.add.at(lags, which[inside], apart[inside])
-            np.add.at(count, which[inside], 1)
+            which = which[inside]
+            total += np.bincount(which, weights=0.5 * (pull[k:] - pull[:-k])[inside] ** 2, minlength=bins)
+            lags += np.bincount(which, weights=apart[inside], minlength=bins)
+            count += np.bincount(which, minlength=bins)
     with np.errstate(invalid="ignore", divide="ignore"):
         return lags / count, total / count, count
 
