@@ -213,6 +213,30 @@ def test_odometry_in_a_turned_frame_is_aligned_and_carries_the_track():
     assert np.mean([nees(fix, truth) for fix, truth in zip(outcomes[span], route.truth[span])]) < 6.0
 
 
+def test_odometry_in_map_has_its_scale_learned_and_the_track_stays_within_its_claim():
+    """A velocity already in map (a robot whose odometry is turned into map) knows its yaw but
+    not its wheels' scale: 6 % long, with a GNSS fix every 15 s on a drive, the scale is learned
+    (3-10 % on other draws, 1-sigma 1.2-1.3 %) and the track between fixes stays within its claim
+    (NEES 1.6-3.1 on four draws). Taken as the truth
+    with white noise only, the scale error piled up between fixes as position error the track
+    did not claim (route set's drives with GNSS every 60 s: NEES 12-15)."""
+    rng = np.random.default_rng(4)
+    route = biased_route(4, 60.0, velocity=(10.0, 3.0))
+    aids = {k: [VelocityAid(v.time_s, v.velocity, v.covariance, in_map_frame=True) for v in velocity]
+            for k, velocity in odometry(route, 0.0, 0.06, rng).items()}
+    for k in range(5, len(route.ends), 150):
+        aids.setdefault(k, []).append(fix_at(route, k, 3.0, rng))
+    tracker = Tracker(PipelineConfig.for_motion("vehicle").fusion.tracker)
+    outcomes = run(route, tracker, aids)
+    assert tracker._odometry is not None, "map-frame odometry has no scale state"
+    s = tracker._odometry + 1
+    scale, scale_std = tracker._x[s], math.sqrt(tracker._P[s, s])
+    assert 0.03 < scale < 0.12 and scale_std < 0.03
+    assert abs(tracker._x[tracker._odometry]) < 0.05  # its yaw stays the map's
+    later = [nees(fix, truth) for fix, truth in zip(outcomes[160:], route.truth[160:]) if isinstance(fix, Fix)]
+    assert len(later) > 300 and np.mean(later) < 4.0
+
+
 def test_the_odometry_frame_found_outlives_a_restart_of_the_track():
     """Two fixes that agree far off the track restart it (and the sites, which disagree with
     them, restart it again): the yaw and scale already found are kept through every restart,

@@ -85,6 +85,8 @@ s)]``, ``D`` = 2 or 3:
   covariance to every state, and the clone goes. The track's velocity alone would rarely do: NLOS
   biases that change over tens of metres make a site's range rate a poor measure of speed. The
   yaw and scale outlive a restart of the track (they describe the odometry, not the track).
+  Odometry in ``map`` joins them from its first velocity, the yaw at 0 exactly: its scale error
+  is still unknown, and taken as white noise it piles up between anchors as position error.
 
 **Aiding** (:meth:`Tracker.add_position`, :meth:`Tracker.add_velocity`): measurements of where
 the receiver is (a GNSS fix, with its covariance) and how it moves (odometry), queued and used
@@ -651,18 +653,22 @@ class Tracker:
         return None
 
     def _use_velocity(self, aid: VelocityAid) -> None:
-        """An odometry velocity: in ``map``, a direct measurement; in an odometry frame, with the
-        frame's yaw and scale once aligned, only a standstill before (and a step of the stretch
-        that aligns it); refused and said beyond the gate."""
+        """An odometry velocity: in an odometry frame, with the frame's yaw and scale once
+        aligned, only a standstill before (and a step of the stretch that aligns it); in ``map``,
+        with its scale from the first on (its yaw is 0); refused and said beyond the gate."""
         dims = self.config.dims
         velocity = np.arange(dims, dims + 2)
         v = self._x[velocity]
         z, R = aid.velocity, aid.covariance
         speed = float(np.hypot(*z))
-        if not aid.in_map_frame and self._odometry is None:
-            self._stretch_to(aid)  # may grow the state: size H after
+        standstill = speed <= STANDSTILL_SIGMAS * math.sqrt(float(np.linalg.eigvalsh(R)[-1]))
+        if self._odometry is None:  # may grow the state: size H after
+            if not aid.in_map_frame:
+                self._stretch_to(aid)
+            elif not standstill:
+                self._add_odometry_frame(np.zeros(2), np.diag([0.0, self.config.odometry_scale_std**2]))
         H = np.zeros((2, len(self._x)))
-        if aid.in_map_frame or speed <= STANDSTILL_SIGMAS * math.sqrt(float(np.linalg.eigvalsh(R)[-1])):
+        if standstill:
             # a standstill reads 0 in any frame: what it read is folded into the noise
             H[:, velocity] = np.eye(2)
             if not aid.in_map_frame:
@@ -969,12 +975,15 @@ class Tracker:
         self._predict(start.latest_s - start.time_s)
         self._t = self._last_accepted = start.latest_s
         if self._odometry_known is not None:  # the odometry's yaw and scale, as the last track left them
-            values, covariance = self._odometry_known
-            n = len(self._x)
-            P = np.zeros((n + 2, n + 2))
-            P[:n, :n], P[n:, n:] = self._P, covariance
-            self._x, self._P, self._odometry = np.append(self._x, values), P, n
-            self._model()
+            self._add_odometry_frame(*self._odometry_known)
+
+    def _add_odometry_frame(self, values: np.ndarray, covariance: np.ndarray) -> None:
+        """The odometry frame's yaw and scale join the state, independent of the rest."""
+        n = len(self._x)
+        P = np.zeros((n + 2, n + 2))
+        P[:n, :n], P[n:, n:] = self._P, covariance
+        self._x, self._P, self._odometry = np.append(self._x, values), P, n
+        self._model()
 
 
 def _prior_of(aid: PositionAid) -> PositionPrior:
