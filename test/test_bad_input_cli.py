@@ -383,8 +383,10 @@ def test_compare_poses_of_a_topic_without_covariance_says_so(capsys):
     (["detect", "--bag", str(BAG), "--scale", "9" * 400], "argument --scale: '9999999999"),
     (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--multipath-std-m", "0"],
      "argument --multipath-std-m: multipath_std_m must be within (0, 10000] m, got 0"),
+    (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--odometry-in-map"],
+     "--odometry-in-map turns the odometry --odometry-std gives: give --odometry-std F too"),
 ], ids=["demo_simulate_1e308", "evaluate_timing_frames_word", "evaluate_timing_frames_0", "initial_std_1e-320",
-        "initial_std_1e308", "scale_400_digits", "multipath_std_0"])
+        "initial_std_1e308", "scale_400_digits", "multipath_std_0", "odometry_in_map_alone"])
 def test_flags_out_of_range_are_refused_naming_the_flag(capsys, args, message):
     fails(args, capsys, message)
 

@@ -469,8 +469,16 @@ def test_a_plan_draws_the_same_fixes_for_the_same_seed_and_one_at_the_start_for_
     velocities = AidingPlan(odometry_std=0.05).odometry(0, 60_000_000_000, stamps, positions)
     speeds = [math.hypot(*v.velocity) for v in velocities]
     assert len(velocities) == 600 and abs(np.median(speeds) - 1.4) < 0.15  # 1.4 m/s, a 5 % scale at most ~2 sigma
+    # turned into map, the same velocities point east (the truth's way) within the yaw's wander
+    in_map = AidingPlan(odometry_std=0.05, odometry_in_map=True).odometry(0, 60_000_000_000, stamps, positions)
+    assert all(v.in_map_frame for v in in_map) and not any(v.in_map_frame for v in velocities)
+    assert np.median([math.hypot(*v.velocity) for v in in_map]) == pytest.approx(np.median(speeds), abs=0.02)
+    assert abs(np.median([math.atan2(v.velocity[1], v.velocity[0]) for v in in_map])) < 0.05
+    assert abs(np.median([math.atan2(v.velocity[1], v.velocity[0]) for v in velocities])) > 0.1
     with pytest.raises(ValueError, match="gnss_interval_s"):
         AidingPlan(-1.0)
+    with pytest.raises(ValueError, match="odometry_in_map"):
+        AidingPlan(odometry_std=0.05, odometry_in_map=1)
     with pytest.raises(ValueError, match="odometry_std"):
         AidingPlan(odometry_std=2.0)
 

@@ -1,6 +1,7 @@
 """The city route set: positions along walks, a drive and a static asset, with the channel changing
 along each route, at daytime and evening loads, over three seeds; each with no anchor, a start
-pose only, GNSS fixes every 30 / 60 / 120 s, odometry, and GNSS with odometry.
+pose only, GNSS fixes every 30 / 60 / 120 s, odometry, and GNSS with odometry; odometry in its own
+frame (yaw unknown) and turned into map (heading known).
 
 Routes (scenario files, ``channel: spatial_consistency: true`` forced on; each route runs with
 its motion model's defaults, the tower database holding the sites' true clocks, as a
@@ -93,6 +94,8 @@ CONFIGURATIONS = {
     "GNSS 120 s": AidingPlan(120.0, GNSS_STD_M),
     "odometry": AidingPlan(odometry_std=ODOMETRY_STD),
     "GNSS 60 s + odometry": AidingPlan(60.0, GNSS_STD_M, ODOMETRY_STD),
+    "odometry in map": AidingPlan(odometry_std=ODOMETRY_STD, odometry_in_map=True),
+    "GNSS 60 s + odometry in map": AidingPlan(60.0, GNSS_STD_M, ODOMETRY_STD, odometry_in_map=True),
 }
 INTERVALS_S = (10.0, 30.0, 60.0, 120.0, 300.0)
 

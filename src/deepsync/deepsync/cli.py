@@ -102,12 +102,17 @@ def _aiding_arguments(command: argparse.ArgumentParser) -> None:
     command.add_argument("--odometry-std", type=_positive_float, metavar="F",
                          help="give the tracker odometry at 10 Hz: the true velocity in an odometry frame of unknown "
                          "yaw, with a fractional error F (a scale error and noise) and a slow yaw drift")
+    command.add_argument("--odometry-in-map", action="store_true",
+                         help="give that odometry turned into map by its frame's first yaw (a heading known from the "
+                         "start; the yaw's drift and the scale error stay): only its scale is left to estimate")
 
 
 def _aiding_plan(args: argparse.Namespace):
     from deepsync.eval.aiding import AidingPlan
 
-    return AidingPlan(args.gnss_interval, args.gnss_std, args.odometry_std)
+    if args.odometry_in_map and args.odometry_std is None:
+        raise ValueError("--odometry-in-map turns the odometry --odometry-std gives: give --odometry-std F too")
+    return AidingPlan(args.gnss_interval, args.gnss_std, args.odometry_std, odometry_in_map=args.odometry_in_map)
 
 
 def _bias_map_argument(command: argparse.ArgumentParser) -> None:

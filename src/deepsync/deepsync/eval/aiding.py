@@ -10,7 +10,9 @@ What ``evaluate-route --gnss-interval S --gnss-std M --odometry-std F`` gives th
   scale error (drawn with sigma ``F``, then wandering slowly), plus white noise of ``F`` times
   the speed and a 2 cm/s floor; the message claims ``(F |v|)^2 + 0.02^2`` per axis, the white
   noise alone: the scale and the yaw are the slow bias a wheel's odometry carries, for the
-  tracker to estimate.
+  tracker to estimate. With ``odometry_in_map``, the same velocities turned back into ``map`` by
+  the frame's first yaw (a robot that turns its wheel odometry into map by a compass): the
+  yaw's wander and the scale error stay in them.
 
 Everything is drawn from ``seed``: the same plan gives the same fixes for the same route.
 """
@@ -35,13 +37,15 @@ ODOMETRY_SCALE_WANDER_PER_SQRT_S = 1e-4
 class AidingPlan:
     """Which aiding a route evaluation simulates: GNSS fixes every ``gnss_interval_s`` (None:
     none; 0: only at the start) with ``gnss_std_m`` per horizontal axis, and odometry with a
-    fractional error ``odometry_std`` (None: none) at ``odometry_rate_hz``."""
+    fractional error ``odometry_std`` (None: none) at ``odometry_rate_hz``, in its own frame or
+    (``odometry_in_map``) in ``map``."""
 
     gnss_interval_s: float | None = None
     gnss_std_m: float = 5.0
     odometry_std: float | None = None
     odometry_rate_hz: float = 10.0
     seed: int = 0
+    odometry_in_map: bool = False
 
     def __post_init__(self) -> None:
         checks = {
@@ -51,6 +55,7 @@ class AidingPlan:
             "odometry_std": self.odometry_std is None or (_number(self.odometry_std) and 0 < self.odometry_std <= 1),
             "odometry_rate_hz": _number(self.odometry_rate_hz) and 0.1 <= self.odometry_rate_hz <= 1000,
             "seed": isinstance(self.seed, int) and not isinstance(self.seed, bool) and 0 <= self.seed < 2**63,
+            "odometry_in_map": isinstance(self.odometry_in_map, bool),
         }
         for name, ok in checks.items():
             if not ok:
@@ -64,7 +69,7 @@ class AidingPlan:
             when = "at the start" if self.gnss_interval_s == 0 else f"every {self.gnss_interval_s:g} s"
             parts.append(f"GNSS {when} ({self.gnss_std_m:g} m)")
         if self.odometry_std is not None:
-            parts.append(f"odometry ({self.odometry_std:.0%} error)")
+            parts.append(f"odometry{' in map' if self.odometry_in_map else ''} ({self.odometry_std:.0%} error)")
         return ", ".join(parts) or "no aiding"
 
     def gnss_fixes(self, start_ns: int, end_ns: int, position_at: Callable[[int], np.ndarray],
@@ -97,12 +102,14 @@ class AidingPlan:
         scale = self.odometry_std * rng.standard_normal() + np.cumsum(
             rng.normal(0.0, ODOMETRY_SCALE_WANDER_PER_SQRT_S * math.sqrt(period), n))
         velocities = _velocities(stamps_ns, positions, times)
+        into_map = yaw[0] if self.odometry_in_map else 0.0
         out = []
         for stamp, v, turn, s in zip(times, velocities, yaw, scale):
             sigma = math.hypot(self.odometry_std * float(np.hypot(*v)), ODOMETRY_NOISE_FLOOR_MPS)
-            c, si = math.cos(turn), math.sin(turn)
+            c, si = math.cos(turn - into_map), math.sin(turn - into_map)
             seen = (1 + s) * np.array([c * v[0] + si * v[1], -si * v[0] + c * v[1]]) + rng.normal(0.0, sigma, 2)
-            out.append(OdometryVelocity(int(stamp), (float(seen[0]), float(seen[1])), np.eye(2) * sigma**2))
+            out.append(OdometryVelocity(int(stamp), (float(seen[0]), float(seen[1])), np.eye(2) * sigma**2,
+                                        self.odometry_in_map))
         return out
 
 
