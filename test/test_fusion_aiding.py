@@ -217,9 +217,9 @@ def test_odometry_in_map_has_its_scale_learned_and_the_track_stays_within_its_cl
     """A velocity already in map (a robot whose odometry is turned into map) knows its yaw but
     not its wheels' scale: 6 % long, with a GNSS fix every 15 s on a drive, the scale is learned
     (3-10 % on other draws, 1-sigma 1.2-1.3 %) and the track between fixes stays within its claim
-    (NEES 1.6-3.1 on four draws). Taken as the truth
-    with white noise only, the scale error piled up between fixes as position error the track
-    did not claim (route set's drives with GNSS every 60 s: NEES 12-15)."""
+    (NEES 1.6-3.1 on four draws). Taken as the truth with white noise only, the scale error piled
+    up between fixes as position error the track did not claim (NEES 36-58 here; the route set's
+    drives with GNSS every 60 s, 12-15)."""
     rng = np.random.default_rng(4)
     route = biased_route(4, 60.0, velocity=(10.0, 3.0))
     aids = {k: [VelocityAid(v.time_s, v.velocity, v.covariance, in_map_frame=True) for v in velocity]
