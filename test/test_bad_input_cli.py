@@ -385,8 +385,13 @@ def test_compare_poses_of_a_topic_without_covariance_says_so(capsys):
      "argument --multipath-std-m: multipath_std_m must be within (0, 10000] m, got 0"),
     (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--odometry-in-map"],
      "--odometry-in-map turns the odometry --odometry-std gives: give --odometry-std F too"),
+    (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--initial-heading-std", "0.1"],
+     "--initial-heading-std goes with the initial pose: give --initial-pose-std M too"),
+    (["evaluate-route", "--bag", str(BAG), "--towers", str(TOWERS), "--initial-heading-std", "4"],
+     "argument --initial-heading-std: '4' rad: give more than 0, at most pi"),
 ], ids=["demo_simulate_1e308", "evaluate_timing_frames_word", "evaluate_timing_frames_0", "initial_std_1e-320",
-        "initial_std_1e308", "scale_400_digits", "multipath_std_0", "odometry_in_map_alone"])
+        "initial_std_1e308", "scale_400_digits", "multipath_std_0", "odometry_in_map_alone",
+        "heading_without_pose", "heading_std_4"])
 def test_flags_out_of_range_are_refused_naming_the_flag(capsys, args, message):
     fails(args, capsys, message)
 

@@ -237,6 +237,43 @@ def test_odometry_in_map_has_its_scale_learned_and_the_track_stays_within_its_cl
     assert len(later) > 300 and np.mean(later) < 4.0
 
 
+def with_headings(route: Route, aids: dict[int, list[VelocityAid]], yaw: float) -> dict[int, list[VelocityAid]]:
+    """The same velocities, each with the body's heading in the odometry frame (facing the way
+    it moves), as a robot's odometry pose gives it."""
+    velocities = np.diff(route.truth[:, :2], axis=0) / np.diff(route.ends)[:, None]
+    return {k: [VelocityAid(a.time_s, a.velocity, a.covariance, False,
+                            math.atan2(velocities[k][1], velocities[k][0]) - yaw) for a in v] for k, v in aids.items()}
+
+
+def test_an_initial_pose_with_a_heading_aligns_the_odometry_at_once():
+    """An operator's pose that faces the way the receiver moves (0.05 rad off) and the
+    odometry's own heading give the frame's yaw (2 rad) from the first velocity, within its
+    sigma; without the heading the frame is still unknown seconds later (it waits for a
+    stretch). A heading the odometry's comes more than 2 s after is dropped, and said."""
+    rng = np.random.default_rng(15)
+    route = biased_route(15, 20.0, velocity=(1.4, 0.3))
+    aids = with_headings(route, odometry(route, 2.0, -0.03, rng), 2.0)
+    facing = math.atan2(0.3, 1.4)
+    here = route.truth[0]
+    prior = PositionPrior(tuple(here + [3.0, -2.0, 0.0]), np.diag([25.0, 25.0, UNMEASURED_VARIANCE]), facing + 0.05,
+                          0.05)
+    outcomes = {}
+    for heading in (True, False):
+        tracker = Tracker()
+        tracker.start_from(prior if heading else PositionPrior(prior.position_enu, prior.covariance))
+        run(route, tracker, {k: v for k, v in aids.items() if k <= 20})
+        outcomes[heading] = tracker
+    aligned = outcomes[True]
+    assert aligned._odometry is not None and outcomes[False]._odometry is None
+    psi, psi_std = aligned._x[aligned._odometry], math.sqrt(aligned._P[aligned._odometry, aligned._odometry])
+    assert abs(psi - 2.05) < 1e-6 + 3 * psi_std and psi_std < 0.1  # the prior's own 0.05 rad error, claimed
+    late = Tracker()
+    late.start_from(prior)
+    run(route, late, {k: v for k, v in aids.items() if 40 <= k <= 100})  # 4-10 s: too short a stretch to align
+    assert late._odometry is None
+    assert any("heading was not used" in note for note in late.take_notes())
+
+
 def test_the_odometry_frame_found_outlives_a_restart_of_the_track():
     """Two fixes that agree far off the track restart it (and the sites, which disagree with
     them, restart it again): the yaw and scale already found are kept through every restart,
@@ -361,6 +398,11 @@ def test_new_fusion_settings_are_checked_by_name(field, value):
     (lambda: GnssFix(0, 10.0, 20.0, 0.0, np.diag([1.0, -1.0, 1.0])), "positive definite"),
     (lambda: OdometryVelocity(0, (math.inf, 0.0), np.eye(2)), "velocity"),
     (lambda: OdometryVelocity(0, (1.0, 0.0), np.zeros((2, 2))), "positive definite"),
+    (lambda: OdometryVelocity(0, (1.0, 0.0), np.eye(2), False, math.nan), "heading_rad"),
+    (lambda: PositionPrior((0.0, 0.0, 0.0), np.eye(3), 1.0), "give both or neither"),
+    (lambda: PositionPrior((0.0, 0.0, 0.0), np.eye(3), math.inf, 0.1), "heading_rad"),
+    (lambda: PositionPrior((0.0, 0.0, 0.0), np.eye(3), 1.0, 0.0), "heading_std_rad"),
+    (lambda: PositionPrior((0.0, 0.0, 0.0), np.eye(3), 1.0, 4.0), "heading_std_rad"),
 ])
 def test_aiding_that_is_not_a_measurement_is_refused_naming_the_field(build, says):
     with pytest.raises(ValueError, match=says):

@@ -66,6 +66,7 @@ def test_odometry_is_turned_from_the_body_into_its_frame_with_its_covariance_flo
     assert np.allclose(velocity.velocity, (0.0, 2.0), atol=1e-12)  # forward, the body turned 90 deg: north
     assert np.allclose(velocity.covariance, np.diag([0.05**2, 0.04]), atol=1e-12)  # turned with it, floored
     assert not velocity.in_map_frame
+    assert velocity.heading_rad == pytest.approx(math.pi / 2)  # the pose's yaw: the body's heading
     assert odometry_from_msg(odometry(frame="/map"), "map", 0.05).in_map_frame
     with pytest.raises(ValueError, match="not a unit quaternion"):
         odometry_from_msg(odometry(w=3.0), "map", 0.05)

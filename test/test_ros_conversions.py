@@ -199,6 +199,18 @@ def test_an_initial_pose_without_a_z_variance_leaves_up_unmeasured() -> None:
     np.testing.assert_array_equal(prior.covariance, np.diag([0.25, 0.25, UNMEASURED_VARIANCE]))
 
 
+def test_an_initial_pose_faces_its_yaw_where_the_yaw_has_a_variance() -> None:
+    message = initial_pose(np.diag([0.25, 0.25, 0.0]))
+    message.pose.pose.orientation.z, message.pose.pose.orientation.w = math.sin(0.6), math.cos(0.6)
+    prior = conversions.prior_from_pose_msg(message)
+    assert prior.heading_rad == pytest.approx(1.2) and prior.heading_std_rad == pytest.approx(math.sqrt(0.068))
+    assert prior.widened(10.0).heading_rad == prior.heading_rad  # widening the position keeps it
+    full = np.asarray(message.pose.covariance, dtype=np.float64).reshape(6, 6).copy()
+    full[5, 5] = 0.0  # no yaw variance: the yaw is not a heading anyone claims
+    message.pose.covariance = full.ravel()
+    assert conversions.prior_from_pose_msg(message).heading_rad is None
+
+
 @pytest.mark.parametrize("covariance, match", [
     (np.diag([0.0, 0.25, 0.0]), "x and y need a variance"), (np.diag([0.25, math.nan, 0.0]), "not finite"),
     (np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), "positive definite")])

@@ -1,7 +1,8 @@
 """The city route set: positions along walks, a drive and a static asset, with the channel changing
 along each route, at daytime and evening loads, over three seeds; each with no anchor, a start
 pose only, GNSS fixes every 30 / 60 / 120 s, odometry, and GNSS with odometry; odometry in its own
-frame (yaw unknown) and turned into map (heading known).
+frame (yaw unknown) and turned into map (heading known); an initial pose with a heading and
+odometry in its own frame.
 
 Routes (scenario files, ``channel: spatial_consistency: true`` forced on; each route runs with
 its motion model's defaults, the tower database holding the sites' true clocks, as a
@@ -47,6 +48,7 @@ from deepsync.eval.aiding import AidingPlan
 from deepsync.eval.calibrate import oracle_database
 from deepsync.eval.route import (
     SINCE_ANCHOR_BINS_S,
+    InitialPose,
     Replay,
     RouteRun,
     add_rssi_fixes,
@@ -96,7 +98,12 @@ CONFIGURATIONS = {
     "GNSS 60 s + odometry": AidingPlan(60.0, GNSS_STD_M, ODOMETRY_STD),
     "odometry in map": AidingPlan(odometry_std=ODOMETRY_STD, odometry_in_map=True),
     "GNSS 60 s + odometry in map": AidingPlan(60.0, GNSS_STD_M, ODOMETRY_STD, odometry_in_map=True),
+    "start pose, heading + odometry": AidingPlan(odometry_std=ODOMETRY_STD),
 }
+# configurations that start from an operator's initial pose: 5 m, and facing the way the
+# receiver moves to 0.1 rad (a drag along the street), which aligns the odometry's frame at once
+HEADING_STD_RAD = 0.1
+STARTS = {"start pose, heading + odometry": InitialPose(GNSS_STD_M, heading_std_rad=HEADING_STD_RAD)}
 INTERVALS_S = (10.0, 30.0, 60.0, 120.0, 300.0)
 
 
@@ -184,7 +191,7 @@ def measure(route: str, bag: Path) -> dict:
     row["site_bias_samples"] = {site: values["median_error_samples"] for site, values in summary["sites"].items()}
     row["configurations"] = {}
     for name, plan in CONFIGURATIONS.items():
-        run = plain if name == "no anchor" else fuse_route(recorded, towers, config.fusion, aiding=plan)
+        run = plain if name == "no anchor" else fuse_route(recorded, towers, config.fusion, STARTS.get(name), plan)
         row["configurations"][name] = published_summary(run, config.fusion.tracker.max_std_m)
         if name == "GNSS 60 s":
             row["since_anchor"] = since_anchor_errors(run)

@@ -135,6 +135,14 @@ def _job_arguments(command: argparse.ArgumentParser, workers: int) -> None:
                          "this machine belongs to), local, or ray://HOST:10001 (needs deepsync[ray])")
 
 
+def _heading_std(text: str) -> float:
+    """A heading's sigma: above 0, at most pi rad."""
+    value = _positive_float(text)
+    if not value <= math.pi:
+        raise argparse.ArgumentTypeError(f"{reprlib.repr(text)} rad: give more than 0, at most pi")
+    return value
+
+
 def _initial_std(text: str) -> float:
     """An initial pose's sigma: from a centimetre (a variance that does not vanish) to 10 km."""
     value = _positive_float(text)
@@ -493,9 +501,14 @@ def _cmd_evaluate_route(args: argparse.Namespace) -> int:
     clocks = " with the recording's true site clocks" if args.true_clocks else ""
     print(f"route evaluation of {source.description}\n  tower database {args.towers}{clocks}, "
           f"{_stacks_text(config, args.motion)}; {aiding.describes}{_bias_map_text(bias_map)}")
-    initial_pose = None if args.initial_pose_std is None else InitialPose(args.initial_pose_std)
+    if args.initial_heading_std is not None and args.initial_pose_std is None:
+        raise ValueError("--initial-heading-std goes with the initial pose: give --initial-pose-std M too")
+    initial_pose = None if args.initial_pose_std is None else InitialPose(
+        args.initial_pose_std, heading_std_rad=args.initial_heading_std)
     if initial_pose is not None:
-        print(f"  the tracker starts from the true start position off by N(0, {args.initial_pose_std:g} m) per axis")
+        print(f"  the tracker starts from the true start position off by N(0, {args.initial_pose_std:g} m) per axis"
+              + ("" if args.initial_heading_std is None else
+                 f", facing the way it moves off by N(0, {args.initial_heading_std:g} rad)"))
     summary, paths = evaluate_route(source, towers, Path(args.out), config, progress=not args.quiet,
                                     initial_pose=initial_pose, aiding=aiding, bias_map=bias_map)
     _print_route(summary)
@@ -828,6 +841,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="start the tracker from an initial position: the true start, off by a draw of "
                        "N(0, M^2) per axis and claiming M (what an operator's /initialpose gives where too few "
                        "sites are heard to start)")
+    route.add_argument("--initial-heading-std", type=_heading_std, metavar="R",
+                       help="with --initial-pose-std: the initial pose also faces the way the receiver moves, off by "
+                       "a draw of N(0, R^2) rad and claiming R (RViz's drag), which aligns --odometry-std's frame "
+                       "at once")
     route.add_argument("--true-clocks", action="store_true",
                        help="a simulated bag: each site's timing offset and drift from the recording's truth, as a "
                        "synchronised network or a calibrated database gives them (a database without timing "

@@ -408,10 +408,16 @@ class PositionPrior:
     sites do not measure, and grows it as the receiver moves. Raises ValueError naming the
     field that is not a finite position or a symmetric positive-definite covariance. It holds
     from when it is given: the tracker starts from it at the next stack.
+
+    ``heading_rad`` (with its 1-sigma ``heading_std_rad``), where known: the way the receiver's
+    body faces in ``map`` (rad from east, counter-clockwise; RViz's drag), which with the
+    odometry's own heading at that moment gives the odometry frame's yaw at once.
     """
 
     position_enu: tuple[float, float, float]
     covariance: np.ndarray  # (3, 3) m^2, ENU
+    heading_rad: float | None = None
+    heading_std_rad: float | None = None
 
     def __post_init__(self) -> None:
         position = tuple(float(v) for v in self.position_enu)
@@ -419,6 +425,16 @@ class PositionPrior:
             raise ValueError(f"position_enu: {self.position_enu!r} is not 3 finite ENU metres")
         object.__setattr__(self, "position_enu", position)
         object.__setattr__(self, "covariance", _covariance(self.covariance, 3, "covariance (m^2)"))
+        if (self.heading_rad is None) != (self.heading_std_rad is None):
+            raise ValueError(f"heading_rad {self.heading_rad!r} and heading_std_rad {self.heading_std_rad!r}: give "
+                             "both or neither")
+        if self.heading_rad is not None:
+            if not _real(self.heading_rad):
+                raise ValueError(f"heading_rad: {self.heading_rad!r} is not a finite angle (rad)")
+            if not (_real(self.heading_std_rad) and 0 < self.heading_std_rad <= math.pi):
+                raise ValueError(f"heading_std_rad: {self.heading_std_rad!r} must be in (0, pi] rad")
+            object.__setattr__(self, "heading_rad", wrap_angle(float(self.heading_rad)))
+            object.__setattr__(self, "heading_std_rad", float(self.heading_std_rad))
 
     @property
     def tightest_std_m(self) -> float:
@@ -437,7 +453,7 @@ class PositionPrior:
         if variances[0] >= min_std_m**2:
             return self
         widened = (axes * np.maximum(variances, min_std_m**2)) @ axes.T
-        return PositionPrior(self.position_enu, 0.5 * (widened + widened.T))
+        return PositionPrior(self.position_enu, 0.5 * (widened + widened.T), self.heading_rad, self.heading_std_rad)
 
 
 @dataclass(frozen=True)
@@ -473,20 +489,29 @@ class OdometryVelocity:
     stamped on the receiver clock: ``velocity`` (m/s) along the axes of the frame it is
     expressed in, with its covariance (m^2/s^2). ``in_map_frame``: those axes are the ``map``
     frame's (east, north); else they are an odometry frame's, turned by an unknown yaw that the
-    tracker estimates. Raises ValueError naming the field that is not a number it can use."""
+    tracker estimates. ``heading_rad``, where known: the way the body faces in that frame (the
+    odometry pose's yaw). Raises ValueError naming the field that is not a number it can use."""
 
     stamp_ns: int
     velocity: tuple[float, float]
     covariance: np.ndarray = field(compare=False)
     in_map_frame: bool = False
+    heading_rad: float | None = None
 
     def __post_init__(self) -> None:
         _check_stamp(self.stamp_ns, "OdometryVelocity")
         velocity = tuple(self.velocity)
         if len(velocity) != 2 or not all(_real(v) for v in velocity):
             raise ValueError(f"OdometryVelocity.velocity {self.velocity!r} is not two finite m/s")
+        if self.heading_rad is not None and not _real(self.heading_rad):
+            raise ValueError(f"OdometryVelocity.heading_rad {self.heading_rad!r} is not a finite angle (rad)")
         object.__setattr__(self, "velocity", tuple(float(v) for v in velocity))
         object.__setattr__(self, "covariance", _covariance(self.covariance, 2, "OdometryVelocity.covariance"))
+
+
+def wrap_angle(angle: float) -> float:
+    """``angle`` (rad) in [-pi, pi)."""
+    return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
 def _real(value: object) -> bool:

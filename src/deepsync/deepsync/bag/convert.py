@@ -286,13 +286,22 @@ def position_from_pose_msg(msg: Any) -> tuple[float, float, float]:
     return float(p.x), float(p.y), float(p.z)
 
 
+def _yaw(quaternion: np.ndarray) -> float:
+    """The yaw (rad) of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = quaternion
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
 def prior_from_pose_msg(msg: Any) -> PositionPrior:
     """``geometry_msgs/msg/PoseWithCovarianceStamped`` (an operator's initial pose: RViz's "2D
     Pose Estimate" on ``/initialpose``) -> the tracker's :class:`PositionPrior` in the message's
     frame. The position block of the 6x6 covariance is kept; an axis given no variance (RViz
-    sends none for z) is unmeasured. ValueError for a covariance no tracker can start from
-    (not finite, not symmetric, x or y without a variance)."""
-    covariance = np.array(np.asarray(msg.pose.covariance, dtype=np.float64)[:36].reshape(6, 6)[:3, :3])
+    sends none for z) is unmeasured. The heading is the orientation's yaw where the yaw has a
+    variance (RViz: (pi/12)^2) and the orientation is a unit quaternion, else none. ValueError
+    for a covariance no tracker can start from (not finite, not symmetric, x or y without a
+    variance)."""
+    full = np.asarray(msg.pose.covariance, dtype=np.float64)[:36].reshape(6, 6)
+    covariance = np.array(full[:3, :3])
     if not np.all(np.isfinite(covariance)):
         raise ValueError("initial pose: its covariance is not finite")
     if not (covariance[0, 0] > 0 and covariance[1, 1] > 0):
@@ -301,8 +310,15 @@ def prior_from_pose_msg(msg: Any) -> PositionPrior:
     if not covariance[2, 2] > 0:
         covariance[2, :] = covariance[:, 2] = 0.0
         covariance[2, 2] = UNMEASURED_VARIANCE
+    q = msg.pose.pose.orientation
+    quaternion = np.array([float(q.x), float(q.y), float(q.z), float(q.w)])
+    heading = None
+    if math.isfinite(full[5, 5]) and 0 < full[5, 5] <= math.pi**2 and np.all(np.isfinite(quaternion)) \
+            and abs(float(quaternion @ quaternion) - 1.0) < 1e-3:
+        heading = _yaw(quaternion)
     try:
-        return PositionPrior(position_from_pose_msg(msg), covariance)
+        return PositionPrior(position_from_pose_msg(msg), covariance, heading,
+                             None if heading is None else math.sqrt(full[5, 5]))
     except ValueError as error:
         raise ValueError(f"initial pose: {error}") from None
 
@@ -389,7 +405,8 @@ def odometry_from_msg(msg: Any, map_frame: str, min_std_mps: float) -> OdometryV
     (``header.frame_id``; the twist is in ``child_frame_id``, the body, turned into the frame by
     the pose's yaw), its covariance turned alike and no axis taken as better than
     ``min_std_mps`` (an odometry that states none, zeros, gets that). ``in_map_frame`` when the
-    frame is ``map_frame``. ValueError naming what is not a velocity it can use."""
+    frame is ``map_frame``; ``heading_rad`` the pose's yaw. ValueError naming what is not a
+    velocity it can use."""
     q = msg.pose.pose.orientation
     quaternion = np.array([float(q.x), float(q.y), float(q.z), float(q.w)])
     twist = msg.twist.twist.linear
@@ -400,13 +417,12 @@ def odometry_from_msg(msg: Any, map_frame: str, min_std_mps: float) -> OdometryV
         raise ValueError(f"{where}: its orientation {quaternion.tolist()} is not a unit quaternion")
     if not (np.all(np.isfinite(body)) and np.all(np.isfinite(covariance))):
         raise ValueError(f"{where}: its twist or twist covariance is not finite")
-    x, y, z, w = quaternion
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    yaw = _yaw(quaternion)
     turn = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
     variances, axes = np.linalg.eigh(0.5 * (covariance + covariance.T))
     floored = (axes * np.maximum(variances, min_std_mps**2)) @ axes.T
     try:
         return OdometryVelocity(stamp_to_ns(msg.header.stamp), tuple(turn @ body), turn @ floored @ turn.T,
-                                str(msg.header.frame_id).lstrip("/") == map_frame)
+                                str(msg.header.frame_id).lstrip("/") == map_frame, yaw)
     except ValueError as error:
         raise ValueError(f"{where}: {error}") from None

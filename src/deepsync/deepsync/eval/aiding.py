@@ -12,7 +12,8 @@ What ``evaluate-route --gnss-interval S --gnss-std M --odometry-std F`` gives th
   noise alone: the scale and the yaw are the slow bias a wheel's odometry carries, for the
   tracker to estimate. With ``odometry_in_map``, the same velocities turned back into ``map`` by
   the frame's first yaw (a robot that turns its wheel odometry into map by a compass): the
-  yaw's wander and the scale error stay in them.
+  yaw's wander and the scale error stay in them. Each velocity carries the body's heading in
+  its frame (the odometry pose's yaw), the body facing the way it moves.
 
 Everything is drawn from ``seed``: the same plan gives the same fixes for the same route.
 """
@@ -26,11 +27,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from deepsync.geo import LocalFrame
-from deepsync.types import GnssFix, OdometryVelocity
+from deepsync.types import GnssFix, OdometryVelocity, wrap_angle
 
 ODOMETRY_NOISE_FLOOR_MPS = 0.02
 ODOMETRY_YAW_WANDER_RAD_PER_SQRT_S = 0.002  # a MEMS gyro's yaw drift, ~0.7 deg per minute
 ODOMETRY_SCALE_WANDER_PER_SQRT_S = 1e-4
+STANDING_MPS = 0.1  # slower than this the body's heading is not read from its motion
 
 
 @dataclass(frozen=True)
@@ -104,13 +106,25 @@ class AidingPlan:
         velocities = _velocities(stamps_ns, positions, times)
         into_map = yaw[0] if self.odometry_in_map else 0.0
         out = []
+        facing = None  # the body faces the way it moves, and keeps facing it when it stops
         for stamp, v, turn, s in zip(times, velocities, yaw, scale):
             sigma = math.hypot(self.odometry_std * float(np.hypot(*v)), ODOMETRY_NOISE_FLOOR_MPS)
             c, si = math.cos(turn - into_map), math.sin(turn - into_map)
             seen = (1 + s) * np.array([c * v[0] + si * v[1], -si * v[0] + c * v[1]]) + rng.normal(0.0, sigma, 2)
+            if (moving := true_heading(v)) is not None:
+                facing = moving
             out.append(OdometryVelocity(int(stamp), (float(seen[0]), float(seen[1])), np.eye(2) * sigma**2,
-                                        self.odometry_in_map))
+                                        self.odometry_in_map,
+                                        None if facing is None else wrap_angle(facing - turn + into_map)))
         return out
+
+
+def true_heading(velocity: np.ndarray) -> float | None:
+    """The way a body moving at ``velocity`` (m/s, horizontal) faces, rad from east; None for one
+    that stands (slower than ``STANDING_MPS``)."""
+    if float(np.hypot(velocity[0], velocity[1])) < STANDING_MPS:
+        return None
+    return math.atan2(velocity[1], velocity[0])
 
 
 def _number(value: object) -> bool:

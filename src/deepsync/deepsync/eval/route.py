@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from deepsync.bag import TRUTH_POSE_TOPIC, BagReader, position_from_pose_msg
 from deepsync.bag.convert import stamp_to_ns
-from deepsync.eval.aiding import AidingPlan
+from deepsync.eval.aiding import AidingPlan, true_heading
 from deepsync.eval.cell_search import timing_error
 from deepsync.eval.pulls import describe_pulls, site_pulls
 from deepsync.eval.route_scores import CHI2_2DOF_95, METHODS, horizontal_error, nees
@@ -49,6 +49,9 @@ from deepsync.types import (
     PositionPrior,
     StackArrivals,
 )
+
+HEADING_SPAN_NS = 500_000_000  # the truth's motion this far either side says which way it faces
+
 
 @dataclass(frozen=True)
 class TruthTrack:
@@ -172,20 +175,32 @@ def replay(source: BagSource, towers: TowerDatabase, config: PipelineConfig | No
 class InitialPose:
     """An operator's initial position, simulated: given before the first stack stamped at or
     after ``after_ns`` (None: the first stack), the truth there off by a draw of N(0, std_m^2)
-    per horizontal axis (``seed``), and claiming ``std_m``."""
+    per horizontal axis (``seed``), and claiming ``std_m``; with ``heading_std_rad``, the way the
+    receiver moves there too (RViz's drag), off by a draw of that sigma and claiming it."""
 
     std_m: float
     after_ns: int | None = None
     seed: int = 0
+    heading_std_rad: float | None = None
 
     def __post_init__(self) -> None:
         if not (isinstance(self.std_m, (int, float)) and math.isfinite(self.std_m) and 0 < self.std_m <= 1e4):
             raise ValueError(f"std_m: {self.std_m!r} must be a positive number of metres (<= 1e4)")
+        if self.heading_std_rad is not None and not (isinstance(self.heading_std_rad, (int, float))
+                                                     and 0 < self.heading_std_rad <= math.pi):
+            raise ValueError(f"heading_std_rad: {self.heading_std_rad!r} must be in (0, pi] rad")
 
-    def prior(self, truth_enu: np.ndarray) -> PositionPrior:
-        offset = np.random.default_rng(self.seed).normal(0.0, self.std_m, 2)
-        return PositionPrior((truth_enu[0] + offset[0], truth_enu[1] + offset[1], truth_enu[2]),
-                             np.diag([self.std_m**2, self.std_m**2, UNMEASURED_VARIANCE]))
+    def prior(self, truth_enu: np.ndarray, heading_rad: float | None = None) -> PositionPrior:
+        """The prior at a true position, and heading where one is asked for and known (None: the
+        receiver stands)."""
+        rng = np.random.default_rng(self.seed)
+        offset = rng.normal(0.0, self.std_m, 2)
+        covariance = np.diag([self.std_m**2, self.std_m**2, UNMEASURED_VARIANCE])
+        position = (truth_enu[0] + offset[0], truth_enu[1] + offset[1], truth_enu[2])
+        if self.heading_std_rad is None or heading_rad is None:
+            return PositionPrior(position, covariance)
+        return PositionPrior(position, covariance, heading_rad + rng.normal(0.0, self.heading_std_rad),
+                             self.heading_std_rad)
 
 
 def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | None = None,
@@ -209,7 +224,7 @@ def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | N
     given = 0
     for k, arrivals in enumerate(recorded.arrivals):
         if pending is not None and (pending.after_ns is None or arrivals.stamp_ns >= pending.after_ns):
-            stage.start_from(pending.prior(truth.at(arrivals.stamp_ns)))
+            stage.start_from(pending.prior(truth.at(arrivals.stamp_ns), _true_heading_at(truth, arrivals.stamp_ns)))
             pending = None
         # what a live receiver has queued by the time this stack is fused: everything up to the next stack
         due = stamps[k + 1] if k + 1 < len(stamps) else math.inf
@@ -230,6 +245,16 @@ def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | N
     if stage.tracker is not None:
         run.site_biases = {name: (b.bias_m, b.std_m) for name, b in stage.tracker.site_biases().items()}
     return run
+
+
+def _true_heading_at(truth: TruthTrack, stamp_ns: int) -> float | None:
+    """The way the receiver moves at ``stamp_ns`` (its truth over +-``HEADING_SPAN_NS``); None
+    where it stands."""
+    low = max(int(truth.stamps_ns[0]), stamp_ns - HEADING_SPAN_NS)
+    high = min(int(truth.stamps_ns[-1]), stamp_ns + HEADING_SPAN_NS)
+    if high <= low:
+        return None
+    return true_heading((truth.at(high) - truth.at(low))[:2] / ((high - low) * 1e-9))
 
 
 def score_stacks(bag: str, fused: Sequence[tuple[StackArrivals, FusionResult, int]], truth: TruthTrack,

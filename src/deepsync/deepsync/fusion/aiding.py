@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from deepsync.types import wrap_angle
+
 
 @dataclass(frozen=True)
 class PositionAid:
@@ -46,6 +48,7 @@ class VelocityAid:
     velocity: np.ndarray  # (2,)
     covariance: np.ndarray  # (2, 2)
     in_map_frame: bool = False
+    heading_rad: float | None = None  # the body's heading in the velocity's frame, where known
 
 
 def rotation(angle: float) -> np.ndarray:
@@ -72,8 +75,7 @@ def heading_offset(in_map: np.ndarray, in_odometry: np.ndarray, odometry_covaria
     displacement over a stretch, ``in_map``, and the odometry's over the same stretch): ``psi``
     (rad, wrapped to +-pi), its gradient by ``in_map`` (to carry the track's uncertainty into
     ``psi`` with its correlations) and the variance the odometry's own noise adds."""
-    psi = math.atan2(in_map[1], in_map[0]) - math.atan2(in_odometry[1], in_odometry[0])
-    psi = (psi + math.pi) % (2 * math.pi) - math.pi
+    psi = wrap_angle(math.atan2(in_map[1], in_map[0]) - math.atan2(in_odometry[1], in_odometry[0]))
     by_track = np.array([-in_map[1], in_map[0]]) / float(in_map @ in_map)
     by_odometry = -np.array([-in_odometry[1], in_odometry[0]]) / float(in_odometry @ in_odometry)
     return psi, by_track, float(by_odometry @ odometry_covariance @ by_odometry)

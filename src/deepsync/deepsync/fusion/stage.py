@@ -220,7 +220,7 @@ class FusionStage:
             time_s = (aid.stamp_ns - self.reference_ns) * 1e-9
             if isinstance(aid, OdometryVelocity):
                 self.tracker.add_velocity(VelocityAid(time_s, np.array(aid.velocity), aid.covariance,
-                                                      aid.in_map_frame))
+                                                      aid.in_map_frame, aid.heading_rad))
             else:
                 self.tracker.add_position(self._position_aid(aid, time_s))
         self._waiting.clear()

@@ -86,7 +86,9 @@ s)]``, ``D`` = 2 or 3:
   biases that change over tens of metres make a site's range rate a poor measure of speed. The
   yaw and scale outlive a restart of the track (they describe the odometry, not the track).
   Odometry in ``map`` joins them from its first velocity, the yaw at 0 exactly: its scale error
-  is still unknown, and taken as white noise it piles up between anchors as position error.
+  is still unknown, and taken as white noise it piles up between anchors as position error. An
+  initial position with a heading (``PositionPrior.heading_rad``) and the odometry's own heading
+  at that moment give the yaw at once, its variance the two headings' (no stretch needed).
 
 **Aiding** (:meth:`Tracker.add_position`, :meth:`Tracker.add_velocity`): measurements of where
 the receiver is (a GNSS fix, with its covariance) and how it moves (odometry), queued and used
@@ -164,7 +166,7 @@ from deepsync.fusion.snapshot import SnapshotConfig, chi_square_limit
 from deepsync.fusion.track_start import Start, batch_start
 from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS
 from deepsync.schema import check_settings, setting
-from deepsync.types import UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason, PositionPrior
+from deepsync.types import UNMEASURED_VARIANCE, Fix, FixKind, NoFix, NoFixReason, PositionPrior, wrap_angle
 
 MAX_CLOCK_RATE = 1e-3  # a clock 1000 ppm off is not a receiver clock but a wrong number
 # a site whose bias has faded this many correlations since it was last heard is forgotten: its
@@ -180,6 +182,9 @@ ALIGN_DIRECTION_STD_RAD = 0.2
 ALIGN_MIN_M = 20.0
 ODOMETRY_GAP_S = 2.0
 STANDSTILL_SIGMAS = 3.0  # an odometry speed within this many of its sigmas of 0 is a standstill
+# how fast a body may turn (rad/s) between an initial pose's heading and the odometry heading
+# paired with it (a car's brisk corner, a walker's turn): the pair's time apart widens the yaw
+HEADING_TURN_RATE_RAD_S = 0.5
 # odometry velocities refused in a row that say the track's velocity, not the odometry, is wrong
 MAX_VELOCITY_REFUSALS = 3
 _WALKER = MOTION_MODELS[DEFAULT_MOTION]
@@ -328,6 +333,9 @@ class Tracker:
         self._newest = -math.inf
         self._prior: PositionPrior | None = None
         self._prior_since: float | None = None  # when the prior was given (None: at the next update)
+        self._heading: tuple[float, float] | None = None  # an initial pose's heading and sigma, not yet paired
+        self._heading_at: float | None = None  # when it was given (None: at the next update)
+        self._heading_seen: tuple[float, float] | None = None  # the odometry heading nearest it: (dt, rad)
         self._aids.clear()
         self._forget()
         self._odometry_known: tuple[np.ndarray, np.ndarray] | None = None  # (psi, s), covariance kept over restarts
@@ -342,6 +350,8 @@ class Tracker:
             self.last_restart = "an initial position was given"
         self._forget()
         self._prior, self._prior_since = prior, None
+        self._heading = None if prior.heading_rad is None else (prior.heading_rad, prior.heading_std_rad)
+        self._heading_at = self._heading_seen = None
 
     def add_position(self, aid: PositionAid) -> None:
         """Queue an absolute position (a GNSS fix) for the update that reaches its time."""
@@ -449,6 +459,8 @@ class Tracker:
         """
         arrivals = _checked(arrivals, time_s, clock_rate)
         self._remember(arrivals, time_s)
+        if self._heading is not None and self._heading_at is None:
+            self._heading_at = time_s  # as the prior's (_pending_prior)
         aids = self._due_aids(time_s)
         if not self.initialised:
             return self._start_aided(stamp_ns, time_s, clock_rate, arrivals, aids)
@@ -659,6 +671,7 @@ class Tracker:
         dims = self.config.dims
         velocity = np.arange(dims, dims + 2)
         v = self._x[velocity]
+        self._pair_heading(aid)
         z, R = aid.velocity, aid.covariance
         speed = float(np.hypot(*z))
         standstill = speed <= STANDSTILL_SIGMAS * math.sqrt(float(np.linalg.eigvalsh(R)[-1]))
@@ -700,6 +713,37 @@ class Tracker:
                                f"({math.sqrt(missed):.1f} m/s off), taken from the odometry")
             score = self._correct_block(z - seen, H, R, math.inf, odometry)
         self._velocity_outcome(aid, score, speed)
+
+    def _pair_heading(self, aid: VelocityAid) -> None:
+        """An initial pose's heading (in map) and the odometry's own heading nearest its time
+        give the odometry frame's yaw, ``psi = heading_map - heading_odometry``, at once: the
+        frame joins the state (or its yaw is replaced, the operator's word being fresher) and
+        no stretch is needed. Paired once the odometry has passed the heading's time and a track
+        runs; an odometry heading more than ``ODOMETRY_GAP_S`` from it drops it, said."""
+        if self._heading is None or aid.heading_rad is None or aid.in_map_frame or self._heading_at is None:
+            return
+        apart = aid.time_s - self._heading_at
+        if self._heading_seen is None or abs(apart) < abs(self._heading_seen[0]):
+            self._heading_seen = (apart, aid.heading_rad)
+        if apart < 0 or not self.initialised:
+            return
+        (apart, odometry_heading), (heading, std) = self._heading_seen, self._heading
+        self._heading = self._heading_seen = None
+        if abs(apart) > ODOMETRY_GAP_S:
+            self._notes.append(f"the initial pose's heading was not used: the odometry's nearest heading came "
+                               f"{abs(apart):.1f} s from it (more than {ODOMETRY_GAP_S:g} s)")
+            return
+        psi = wrap_angle(heading - odometry_heading)
+        variance = std**2 + (HEADING_TURN_RATE_RAD_S * apart) ** 2
+        if self._clone is not None:
+            self._remove(range(self._clone, self._clone + 2))
+        if self._odometry is None:
+            self._add_odometry_frame(np.array([psi, 0.0]), np.diag([variance, self.config.odometry_scale_std**2]))
+            return
+        i = self._odometry
+        self._x[i] = psi
+        self._P[i, :] = self._P[:, i] = 0.0
+        self._P[i, i] = variance
 
     def _velocity_outcome(self, aid: VelocityAid, score: float | None, speed: float) -> None:
         if score is None:
@@ -893,6 +937,9 @@ class Tracker:
                      aids: list[PositionAid | VelocityAid]) -> Fix | NoFix:
         """A start, the latest position among ``aids`` standing in for an initial position
         (velocities need a track to align with: they wait for none)."""
+        for aid in aids:
+            if isinstance(aid, VelocityAid):
+                self._pair_heading(aid)
         positions = [aid for aid in aids if isinstance(aid, PositionAid)]
         if positions:
             self._prior, self._prior_since = _prior_of(positions[-1]), positions[-1].time_s
