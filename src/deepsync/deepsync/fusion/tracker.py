@@ -697,12 +697,16 @@ class Tracker:
         H[:, velocity] = by_v
         H[:, self._odometry] = by_psi
         H[:, self._odometry + 1] = by_scale
-        # the yaw and scale are considered, not updated, here: the odometry alone cannot tell a
-        # turned or scaled velocity from a scaled odometry (z = (1 + s) R(-psi) v), and an EKF
-        # linearised on its own estimate walks along that direction, ever more sure of it
-        # (simulated: the scale from -0.02 to -0.27 in two minutes); positions teach them
-        odometry = (self._odometry, self._odometry + 1)
-        score = self._correct_block(z - seen, H, R, self._gate2, odometry)
+        # only the velocity learns from it; the rest is considered, not updated. The yaw and
+        # scale: the odometry alone cannot tell a turned or scaled velocity from a scaled
+        # odometry (z = (1 + s) R(-psi) v), and an EKF linearised on its own estimate walks along
+        # that direction, ever more sure of it (simulated: the scale from -0.02 to -0.27 in two
+        # minutes); positions teach them. The position: through the motion model's
+        # position-velocity covariance each velocity would also move it, as if the odometry's
+        # slow errors were fresh accelerations; a walk without sites ran 25 m from its odometry's
+        # own path in a minute (within 2 m without)
+        others = [i for i in range(len(self._x)) if i not in velocity]
+        score = self._correct_block(z - seen, H, R, self._gate2, others)
         if score is not None and self._velocity_refusals + 1 >= MAX_VELOCITY_REFUSALS:
             # the odometry said it again: the track's velocity is what is wrong (a turn the motion
             # model did not expect); it is given the odometry's word, its own uncertainty widened
@@ -711,7 +715,7 @@ class Tracker:
             self._notes.append(f"odometry at {aid.time_s:.1f} s disagreed with the track's velocity "
                                f"{self._velocity_refusals + 1} times in a row: the track's velocity was wrong "
                                f"({math.sqrt(missed):.1f} m/s off), taken from the odometry")
-            score = self._correct_block(z - seen, H, R, math.inf, odometry)
+            score = self._correct_block(z - seen, H, R, math.inf, others)
         self._velocity_outcome(aid, score, speed)
 
     def _pair_heading(self, aid: VelocityAid) -> None:
