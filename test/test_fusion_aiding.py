@@ -216,8 +216,8 @@ def test_odometry_in_a_turned_frame_is_aligned_and_carries_the_track():
 def test_odometry_in_map_has_its_scale_learned_and_the_track_stays_within_its_claim():
     """A velocity already in map (a robot whose odometry is turned into map) knows its yaw but
     not its wheels' scale: 6 % long, with a GNSS fix every 15 s on a drive, the scale is learned
-    (3-10 % on other draws, 1-sigma 1.2-1.3 %) and the track between fixes stays within its claim
-    (NEES 1.6-3.1 on four draws). Taken as the truth with white noise only, the scale error piled
+    (5-8 % on four draws, 1-sigma 1.1-1.2 %) and the track between fixes stays within its claim
+    (NEES 1.0-3.8 on four draws). Taken as the truth with white noise only, the scale error piled
     up between fixes as position error the track did not claim (NEES 36-58 here; the route set's
     drives with GNSS every 60 s, 12-15)."""
     rng = np.random.default_rng(4)
