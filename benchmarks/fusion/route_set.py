@@ -88,6 +88,10 @@ STATISTICAL_TWINS = {"munich_statistical": (
 LOADS = {"day": (0.35, 0.6), "evening": (0.1, 0.2)}
 GNSS_STD_M = 5.0
 ODOMETRY_STD = 0.05
+# an operator's initial pose 5 m off, facing the way the receiver moves to 0.1 rad (a drag
+# along the street), which aligns the odometry's frame at once
+HEADED_START = "start pose, heading + odometry"
+HEADING_STD_RAD = 0.1
 CONFIGURATIONS = {
     "no anchor": AidingPlan(),
     "start pose": AidingPlan(0.0, GNSS_STD_M),
@@ -98,12 +102,10 @@ CONFIGURATIONS = {
     "GNSS 60 s + odometry": AidingPlan(60.0, GNSS_STD_M, ODOMETRY_STD),
     "odometry in map": AidingPlan(odometry_std=ODOMETRY_STD, odometry_in_map=True),
     "GNSS 60 s + odometry in map": AidingPlan(60.0, GNSS_STD_M, ODOMETRY_STD, odometry_in_map=True),
-    "start pose, heading + odometry": AidingPlan(odometry_std=ODOMETRY_STD),
+    HEADED_START: AidingPlan(odometry_std=ODOMETRY_STD),
 }
-# configurations that start from an operator's initial pose: 5 m, and facing the way the
-# receiver moves to 0.1 rad (a drag along the street), which aligns the odometry's frame at once
-HEADING_STD_RAD = 0.1
-STARTS = {"start pose, heading + odometry": InitialPose(GNSS_STD_M, heading_std_rad=HEADING_STD_RAD)}
+# configurations that start from an operator's initial pose
+STARTS = {HEADED_START: InitialPose(GNSS_STD_M, heading_std_rad=HEADING_STD_RAD)}
 INTERVALS_S = (10.0, 30.0, 60.0, 120.0, 300.0)
 
 

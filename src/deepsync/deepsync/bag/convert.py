@@ -286,9 +286,13 @@ def position_from_pose_msg(msg: Any) -> tuple[float, float, float]:
     return float(p.x), float(p.y), float(p.z)
 
 
-def _yaw(quaternion: np.ndarray) -> float:
-    """The yaw (rad) of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = quaternion
+def _yaw(orientation: Any) -> float | None:
+    """The yaw (rad) of a ``geometry_msgs/Quaternion``; None where it is not a finite unit
+    quaternion."""
+    x, y, z, w = (float(orientation.x), float(orientation.y), float(orientation.z), float(orientation.w))
+    norm2 = x * x + y * y + z * z + w * w
+    if not (math.isfinite(norm2) and abs(norm2 - 1.0) < 1e-3):
+        return None
     return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
@@ -310,12 +314,7 @@ def prior_from_pose_msg(msg: Any) -> PositionPrior:
     if not covariance[2, 2] > 0:
         covariance[2, :] = covariance[:, 2] = 0.0
         covariance[2, 2] = UNMEASURED_VARIANCE
-    q = msg.pose.pose.orientation
-    quaternion = np.array([float(q.x), float(q.y), float(q.z), float(q.w)])
-    heading = None
-    if math.isfinite(full[5, 5]) and 0 < full[5, 5] <= math.pi**2 and np.all(np.isfinite(quaternion)) \
-            and abs(float(quaternion @ quaternion) - 1.0) < 1e-3:
-        heading = _yaw(quaternion)
+    heading = _yaw(msg.pose.pose.orientation) if math.isfinite(full[5, 5]) and 0 < full[5, 5] <= math.pi**2 else None
     try:
         return PositionPrior(position_from_pose_msg(msg), covariance, heading,
                              None if heading is None else math.sqrt(full[5, 5]))
@@ -408,16 +407,16 @@ def odometry_from_msg(msg: Any, map_frame: str, min_std_mps: float) -> OdometryV
     frame is ``map_frame``; ``heading_rad`` the pose's yaw. ValueError naming what is not a
     velocity it can use."""
     q = msg.pose.pose.orientation
-    quaternion = np.array([float(q.x), float(q.y), float(q.z), float(q.w)])
     twist = msg.twist.twist.linear
     body = np.array([float(twist.x), float(twist.y)])
     covariance = np.asarray(msg.twist.covariance, dtype=np.float64)[:36].reshape(6, 6)[:2, :2]
     where = f"Odometry in frame {msg.header.frame_id!r}"
-    if not (np.all(np.isfinite(quaternion)) and abs(float(quaternion @ quaternion) - 1.0) < 1e-3):
-        raise ValueError(f"{where}: its orientation {quaternion.tolist()} is not a unit quaternion")
+    yaw = _yaw(q)
+    if yaw is None:
+        raise ValueError(f"{where}: its orientation {[float(q.x), float(q.y), float(q.z), float(q.w)]} is not a unit "
+                         "quaternion")
     if not (np.all(np.isfinite(body)) and np.all(np.isfinite(covariance))):
         raise ValueError(f"{where}: its twist or twist covariance is not finite")
-    yaw = _yaw(quaternion)
     turn = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
     variances, axes = np.linalg.eigh(0.5 * (covariance + covariance.T))
     floored = (axes * np.maximum(variances, min_std_mps**2)) @ axes.T
