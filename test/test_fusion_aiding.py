@@ -527,6 +527,12 @@ def test_a_plan_draws_the_same_fixes_for_the_same_seed_and_one_at_the_start_for_
     assert every == AidingPlan(20.0, 5.0, seed=3).gnss_fixes(0, 60_000_000_000, position_at, frame)
     assert every != AidingPlan(20.0, 5.0, seed=4).gnss_fixes(0, 60_000_000_000, position_at, frame)
     assert len(AidingPlan(0.0).gnss_fixes(0, 60_000_000_000, position_at, frame)) == 1
+    # a set of routes: each recording draws its own, the same for the same recording
+    walk = AidingPlan(20.0, 5.0, seed=3).for_recording("city_walk_day_s1")
+    assert walk.gnss_fixes(0, 60_000_000_000, position_at, frame) != every
+    assert walk == AidingPlan(20.0, 5.0, seed=3).for_recording("city_walk_day_s1")
+    assert walk != AidingPlan(20.0, 5.0, seed=3).for_recording("city_walk_day_s2")
+    assert walk.gnss_interval_s == 20.0 and walk.gnss_std_m == 5.0
     velocities = AidingPlan(odometry_std=0.05).odometry(0, 60_000_000_000, stamps, positions)
     speeds = [math.hypot(*v.velocity) for v in velocities]
     assert len(velocities) == 600 and abs(np.median(speeds) - 1.4) < 0.15  # 1.4 m/s, a 5 % scale at most ~2 sigma

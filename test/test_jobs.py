@@ -85,6 +85,26 @@ def test_route_reports_on_ray_are_the_ones_made_locally(tmp_path, ray_cluster):
     assert not [p for p in (tmp_path / "ray").iterdir() if p.name.startswith(".")]  # no partial report left
 
 
+def test_each_bag_of_a_route_set_draws_its_own_aiding(tmp_path):
+    """One plan for a set is not one set of draws: with a seed shared by every bag, each route's
+    GNSS fixes (and odometry, and start offset) erred alike, and the set measured one draw."""
+    import shutil
+
+    from deepsync.eval.aiding import AidingPlan
+
+    recorded = next(iter(record_route_set([WALK], [1], 1.0, tmp_path / "bags", JobRunner(1)))).out
+    bags = [shutil.copytree(recorded, tmp_path / name) for name in ("walk_a", "walk_b")]
+    plan = AidingPlan(0.0, 5.0)  # one fix, at the start
+
+    def start_fixes(out: Path) -> list[list[float]]:
+        assert len(dict(evaluate_route_set(bags, TOWERS, out, JobRunner(1), aiding=plan))) == 2
+        return [json.loads((report_dir(out, bag) / REPORT).read_text())["anchors"][0]["enu"] for bag in bags]
+
+    first = start_fixes(tmp_path / "one")
+    assert first[0] != first[1]  # the same truth, two bags: two draws
+    assert start_fixes(tmp_path / "two") == first  # and the same draws for the same bags
+
+
 def test_a_ray_address_that_is_none_is_refused_in_one_line(capsys):
     with pytest.raises(ValueError, match="auto"):
         check_ray_address("cluster")

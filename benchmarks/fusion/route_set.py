@@ -193,14 +193,19 @@ def measure(route: str, bag: Path) -> dict:
     row["site_bias_samples"] = {site: values["median_error_samples"] for site, values in summary["sites"].items()}
     row["configurations"] = {}
     for name, plan in CONFIGURATIONS.items():
-        run = plain if name == "no anchor" else fuse_route(recorded, towers, config.fusion, STARTS.get(name), plan)
+        if name == "no anchor":
+            run = plain
+        else:  # each bag its own draws: GNSS errors, odometry errors, the start's offset
+            start = None if name not in STARTS else STARTS[name].for_recording(bag.name)
+            run = fuse_route(recorded, towers, config.fusion, start, plan.for_recording(bag.name))
         row["configurations"][name] = published_summary(run, config.fusion.tracker.max_std_m)
         if name == "GNSS 60 s":
             row["since_anchor"] = since_anchor_errors(run)
     if ROUTES[route][3] == "pedestrian":
         row["interval_median_m"] = {}
         for interval in INTERVALS_S:
-            run = fuse_route(recorded, towers, config.fusion, aiding=AidingPlan(interval, GNSS_STD_M))
+            plan = AidingPlan(interval, GNSS_STD_M).for_recording(bag.name)
+            run = fuse_route(recorded, towers, config.fusion, aiding=plan)
             row["interval_median_m"][f"{interval:g}"] = published_summary(run, config.fusion.tracker.max_std_m)["median_m"]
     return row
 

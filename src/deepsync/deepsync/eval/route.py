@@ -13,6 +13,7 @@ clock time, which runs a few ppm off true time: at walking pace that is micromet
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Sequence
@@ -24,7 +25,7 @@ from tqdm import tqdm
 
 from deepsync.bag import TRUTH_POSE_TOPIC, BagReader, position_from_pose_msg
 from deepsync.bag.convert import stamp_to_ns
-from deepsync.eval.aiding import AidingPlan, true_heading
+from deepsync.eval.aiding import AidingPlan, recording_seed, true_heading
 from deepsync.eval.cell_search import timing_error
 from deepsync.eval.pulls import describe_pulls, site_pulls
 from deepsync.eval.route_scores import CHI2_2DOF_95, METHODS, horizontal_error, nees
@@ -189,6 +190,10 @@ class InitialPose:
         if self.heading_std_rad is not None and not (isinstance(self.heading_std_rad, (int, float))
                                                      and 0 < self.heading_std_rad <= math.pi):
             raise ValueError(f"heading_std_rad: {self.heading_std_rad!r} must be in (0, pi] rad")
+
+    def for_recording(self, recording: str) -> InitialPose:
+        """The pose with the draws of the recording named ``recording`` (``aiding.recording_seed``)."""
+        return dataclasses.replace(self, seed=recording_seed(self.seed, recording))
 
     def prior(self, truth_enu: np.ndarray, heading_rad: float | None = None) -> PositionPrior:
         """The prior at a true position, and heading where one is asked for and known (None: the
@@ -479,8 +484,11 @@ def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, conf
                    progress: bool = True, initial_pose: InitialPose | None = None,
                    aiding: AidingPlan | None = None, bias_map: BiasMap | None = None) -> tuple[dict, list[Path]]:
     """Replay, score and report a route (its fusion corrected by ``bias_map``): the summary and
-    the files written."""
-    run = replay_route(source, towers, config, progress, initial_pose, aiding, bias_map)
+    the files written. What ``initial_pose`` and ``aiding`` draw is the bag's own (by its name:
+    ``AidingPlan.for_recording``), so two bags evaluated alike do not err alike."""
+    name = Path(source.path).resolve().name
+    run = replay_route(source, towers, config, progress, None if initial_pose is None else initial_pose.for_recording(name),
+                       None if aiding is None else aiding.for_recording(name), bias_map)
     if not run.epochs:
         raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
     fusion = (config or PipelineConfig()).fusion
