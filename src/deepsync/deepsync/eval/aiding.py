@@ -128,10 +128,9 @@ class AidingPlan:
 
 
 def recording_seed(seed: int, recording: str) -> int:
-    """``seed`` made the own of the recording named ``recording``: the same for the same name,
-    independent from one recording to the next. With one seed for a whole set of routes, every
-    route drew the same GNSS errors, odometry scale error and start offset (the route set's
-    start poses were all 0.9 m off for a claimed 5 m)."""
+    """``seed`` made particular to the recording named ``recording``: the same for the same
+    name, independent from one recording to the next, so that a set of routes evaluated with one
+    plan does not give every route the same GNSS errors, odometry errors and start offset."""
     return int(np.random.SeedSequence([seed, zlib.crc32(recording.encode())]).generate_state(1)[0])
 
 

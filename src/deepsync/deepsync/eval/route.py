@@ -487,8 +487,9 @@ def evaluate_route(source: BagSource, towers: TowerDatabase, out_dir: Path, conf
     the files written. What ``initial_pose`` and ``aiding`` draw is the bag's own (by its name:
     ``AidingPlan.for_recording``), so two bags evaluated alike do not err alike."""
     name = Path(source.path).resolve().name
-    run = replay_route(source, towers, config, progress, None if initial_pose is None else initial_pose.for_recording(name),
-                       None if aiding is None else aiding.for_recording(name), bias_map)
+    initial_pose = None if initial_pose is None else initial_pose.for_recording(name)
+    aiding = None if aiding is None else aiding.for_recording(name)
+    run = replay_route(source, towers, config, progress, initial_pose, aiding, bias_map)
     if not run.epochs:
         raise ValueError(f"no stack of {source.description} was completed: nothing to evaluate")
     fusion = (config or PipelineConfig()).fusion
