@@ -10,11 +10,13 @@ seen from a frame turned by a yaw the tracker is not told.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from deepsync.fusion.aiding import PositionAid, VelocityAid, heading_offset, odometry_velocity, rotation
+from deepsync.fusion.aiding import (PositionAid, VelocityAid, frame_offset, heading_offset, odometry_velocity,
+                                    rotation)
 from deepsync.fusion.stage import FusionConfig, FusionStage
 from deepsync.fusion.tracker import Tracker, TrackerConfig
 from deepsync.motion import DEFAULT_MOTION, MOTION_MODELS, motion_model
@@ -28,6 +30,7 @@ from deepsync.types import (
     NoFixReason,
     OdometryVelocity,
     PositionPrior,
+    wrap_angle,
 )
 from test_fusion_tracker import SITES, Route, horizontal_error, nees, random_sites
 
@@ -272,6 +275,98 @@ def test_an_initial_pose_with_a_heading_aligns_the_odometry_at_once():
     run(route, late, {k: v for k, v in aids.items() if 40 <= k <= 100})  # 4-10 s: too short a stretch to align
     assert late._odometry is None
     assert any("heading was not used" in note for note in late.take_notes())
+
+
+def frame_after_fixes(route: Route, aids: dict[int, list], fixes: tuple[int, ...], rng: np.random.Generator,
+                      tracker: Tracker) -> list[tuple[int, np.ndarray, np.ndarray] | None]:
+    """The route through ``tracker`` with GNSS fixes (3 m) at ``fixes`` besides ``aids``; the
+    odometry frame (stack, values, covariance) after each stack, None before it is known."""
+    aids = {k: list(v) for k, v in aids.items()}
+    for k in fixes:
+        aids.setdefault(k, []).append(fix_at(route, k, 3.0, rng))
+    frames = []
+    for k, (arrivals, end) in enumerate(zip(route.stacks, route.ends)):
+        for aid in aids.get(k, []):
+            (tracker.add_position if isinstance(aid, PositionAid) else tracker.add_velocity)(aid)
+        tracker.update(arrivals, round(end * 1e9), float(end))
+        block = None if tracker._odometry is None else slice(tracker._odometry, tracker._odometry + 2)
+        frames.append(None if block is None else (k, tracker._x[block].copy(), tracker._P[block, block].copy()))
+    return frames
+
+
+def test_two_fixes_align_the_odometry_frame_where_the_track_cannot():
+    """A drive whose track is too vague for its own displacement to say where the odometry
+    frame points (a lost track keeps no stretch): the fixes at 0.5 and 30.5 s and the
+    odometry read between them give the yaw (2 rad) and the scale (-3 %) at the second fix,
+    within their sigmas, the yaw to 0.03 rad and the scale better than its 5 % prior. With
+    3 s of odometry missing between the fixes they say nothing, and the frame stays unknown."""
+    rng = np.random.default_rng(21)
+    route = biased_route(21, 40.0, velocity=(10.0, 3.0))
+    config = replace(PipelineConfig.for_motion("vehicle").fusion.tracker, max_std_m=1.0)
+    aids = odometry(route, 2.0, -0.03, rng)
+    frames = frame_after_fixes(route, aids, (5, 305), rng, Tracker(config))
+    assert all(frame is None for frame in frames[:305]), "aligned before the second fix"
+    _, (psi, scale), covariance = frames[305]
+    psi_std, scale_std = np.sqrt(np.diag(covariance))
+    assert abs(wrap_angle(psi - 2.0)) < 3 * psi_std and psi_std < 0.03
+    assert abs(scale + 0.03) < 3 * scale_std and scale_std < 0.02
+    gap = {k: v for k, v in aids.items() if not 100 <= k < 130}
+    assert frame_after_fixes(route, gap, (5, 305), rng, Tracker(config))[-1] is None
+
+
+def test_two_fixes_align_the_odometry_frame_while_no_track_runs():
+    """No site heard: the fixes wait as initial positions and no track starts, but the two and
+    the odometry read between them still say the frame, kept for the next track."""
+    rng = np.random.default_rng(23)
+    route = biased_route(23, 32.0, velocity=(10.0, 3.0))
+    tracker = Tracker(PipelineConfig.for_motion("vehicle").fusion.tracker)
+    aids = odometry(route, 2.0, -0.03, rng)
+    for k in (5, 305):
+        aids.setdefault(k, []).append(fix_at(route, k, 3.0, rng))
+    known = []
+    for k, end in enumerate(route.ends):
+        for aid in aids.get(k, []):
+            (tracker.add_position if isinstance(aid, PositionAid) else tracker.add_velocity)(aid)
+        assert isinstance(tracker.update([], round(end * 1e9), float(end)), NoFix)
+        known.append(tracker._odometry_known)
+    assert all(frame is None for frame in known[:305])
+    (psi, scale), covariance = known[305]
+    psi_std, scale_std = np.sqrt(np.diag(covariance))
+    assert abs(wrap_angle(psi - 2.0)) < 3 * psi_std and psi_std < 0.03
+    assert abs(scale + 0.03) < 3 * scale_std and scale_std < 0.02
+
+
+def test_two_fixes_turn_an_odometry_frame_aligned_wrong():
+    """An operator's heading 0.4 rad off, claimed to 0.3, aligns the frame 0.4 rad off; the
+    next pair of fixes, 30 s apart on a drive, turns it to within 0.05 rad of the truth."""
+    rng = np.random.default_rng(22)
+    route = biased_route(22, 40.0, velocity=(10.0, 3.0))
+    aids = with_headings(route, odometry(route, 2.0, 0.0, rng), 2.0)
+    facing = math.atan2(3.0, 10.0)
+    tracker = Tracker(PipelineConfig.for_motion("vehicle").fusion.tracker)
+    tracker.start_from(PositionPrior(tuple(route.truth[0]), np.diag([9.0, 9.0, UNMEASURED_VARIANCE]), facing + 0.4, 0.3))
+    frames = frame_after_fixes(route, aids, (5, 305), rng, tracker)
+    assert abs(wrap_angle(frames[4][1][0] - 2.4)) < 0.05  # the operator's word, before any fix
+    assert abs(wrap_angle(frames[305][1][0] - 2.0)) < 0.05
+
+
+def test_frame_offset_reads_yaw_and_scale_with_their_gradients():
+    """A vector and the odometry's reading of it, turned 0.7 rad and 3 % long: the yaw and
+    scale back, and their Jacobian by the map's vector and the covariance the odometry's noise
+    adds as finite differences give them."""
+    in_map, psi, scale = np.array([30.0, -40.0]), 0.7, 0.03
+    in_odometry = (1 + scale) * rotation(-psi) @ in_map
+    noise = np.array([[4.0, 1.0], [1.0, 2.0]])
+    values, by_map, covariance = frame_offset(in_map, in_odometry, noise)
+    assert values == pytest.approx([psi, scale])
+    step = 1e-6
+    by_odometry = np.zeros((2, 2))
+    for k in range(2):
+        d = np.zeros(2)
+        d[k] = step
+        assert np.allclose((frame_offset(in_map + d, in_odometry, noise)[0] - values) / step, by_map[:, k], atol=1e-6)
+        by_odometry[:, k] = (frame_offset(in_map, in_odometry + d, noise)[0] - values) / step
+    assert np.allclose(covariance, by_odometry @ noise @ by_odometry.T, rtol=1e-4)
 
 
 def test_an_odometry_velocity_moves_the_velocity_and_not_the_position():

@@ -24,8 +24,9 @@ machine with --workers 2), replayed once each (cell search and timing), and fuse
 configuration; a bag's rows are kept in docs/results/route_set/<bag>.json, so an interrupted
 run resumes where it stopped. Per route and configuration: fix rate (and after the first fix),
 median, p90, NEES of the published pose, the RSSI baseline (oracle path loss) and the position
-bound; the GNSS interval swept (10, 30, 60, 120, 300 s) on the walks, and the error against the
-time since the last fix. Writes docs/results/route_set.json and route_set.png.
+bound; the GNSS interval swept (10, 30, 60, 120, 300 s) on the walks and drives, with 5 m fixes
+and with exact ones (what the interval allows when a fix adds no error of its own), and the
+error against the time since the last fix. Writes docs/results/route_set.json and route_set.png.
 
     python benchmarks/fusion/route_set.py [--routes city_walk city_drive] [--loads day evening]
                                    [--seeds 1 2 3] [--workers 2] [--bags-only | --kept-only]
@@ -37,6 +38,7 @@ import argparse
 import json
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -107,6 +109,10 @@ CONFIGURATIONS = {
 # configurations that start from an operator's initial pose
 STARTS = {HEADED_START: InitialPose(GNSS_STD_M, heading_std_rad=HEADING_STD_RAD)}
 INTERVALS_S = (10.0, 30.0, 60.0, 120.0, 300.0)
+# an oracle's fix, nearly exact, and taken at its word (the stage's floor lowered to it): how
+# far the interval alone lets the track stray, whatever the receiver's GNSS
+EXACT_GNSS_STD_M = 0.3
+INTERVAL_FIXES = {"interval_median_m": GNSS_STD_M, "interval_median_exact_m": EXACT_GNSS_STD_M}
 
 
 def scenario_for(route: str, load: str, seed: int) -> dict:
@@ -201,12 +207,13 @@ def measure(route: str, bag: Path) -> dict:
         row["configurations"][name] = published_summary(run, config.fusion.tracker.max_std_m)
         if name == "GNSS 60 s":
             row["since_anchor"] = since_anchor_errors(run)
-    if ROUTES[route][3] == "pedestrian":
-        row["interval_median_m"] = {}
-        for interval in INTERVALS_S:
-            plan = AidingPlan(interval, GNSS_STD_M).for_recording(bag.name)
-            run = fuse_route(recorded, towers, config.fusion, aiding=plan)
-            row["interval_median_m"][f"{interval:g}"] = published_summary(run, config.fusion.tracker.max_std_m)["median_m"]
+    if ROUTES[route][3] != "static":
+        for key, std_m in INTERVAL_FIXES.items():
+            fusion = replace(config.fusion, gnss_min_std_m=min(std_m, config.fusion.gnss_min_std_m))
+            row[key] = {}
+            for interval in INTERVALS_S:
+                run = fuse_route(recorded, towers, fusion, aiding=AidingPlan(interval, std_m).for_recording(bag.name))
+                row[key][f"{interval:g}"] = published_summary(run, fusion.tracker.max_std_m)["median_m"]
     return row
 
 
@@ -246,6 +253,19 @@ def route_table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def nees_by_configuration(rows: dict[str, dict]) -> str:
+    """Per configuration, over every bag it tracked: the mean of the bags' NEES, and how many
+    bags' NEES lie within [1, 3] (honest), below (cautious) and above (overconfident)."""
+    lines = [f"{'configuration':32s} {'bags':>4s} {'mean NEES':>9s}  within [1, 3] / below / above"]
+    for configuration in next(iter(rows.values()))["configurations"]:
+        values = np.array([row["configurations"][configuration]["nees_mean"] for row in rows.values()
+                           if row["configurations"][configuration]["nees_mean"] is not None], dtype=float)
+        if values.size:
+            lines.append(f"{configuration:32s} {values.size:4d} {values.mean():9.2f}  {np.sum((values >= 1) & (values <= 3))}"
+                         f" / {np.sum(values < 1)} / {np.sum(values > 3)}")
+    return "\n".join(lines)
+
+
 def _span(values: list[float | None], style: str = "{:.0f}") -> str:
     """``low-high`` of the values there are (``-`` where none is)."""
     present = [value for value in values if value is not None and math.isfinite(value)]
@@ -259,6 +279,12 @@ def _m(value: float | None) -> str:
     return "      -" if value is None else f"{value:7.1f}"
 
 
+def _interval_medians(row: dict, key: str) -> list[float]:
+    """A route's medians at each of ``INTERVALS_S`` under ``key`` (NaN where it has none)."""
+    medians = row.get(key, {})
+    return [math.nan if medians.get(f"{interval:g}") is None else medians[f"{interval:g}"] for interval in INTERVALS_S]
+
+
 def plot(rows: dict[str, dict], path: Path) -> None:
     import matplotlib
 
@@ -266,17 +292,26 @@ def plot(rows: dict[str, dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
-    walks = {name: row for name, row in rows.items() if "interval_median_m" in row}
-    for name, row in walks.items():
-        pairs = [(float(k), v) for k, v in row["interval_median_m"].items() if v is not None]
-        left.plot([p[0] for p in pairs], [p[1] for p in pairs], "o-", ms=4, lw=1, label=name)
+    for motion, colour in (("pedestrian", "tab:blue"), ("vehicle", "tab:orange")):
+        chosen = [row for name, row in rows.items() if ROUTES[name.rsplit("_", 2)[0]][3] == motion]
+        for key, style in (("interval_median_m", "o-"), ("interval_median_exact_m", "s--")):
+            per_route = np.array([_interval_medians(row, key) for row in chosen]).reshape(-1, len(INTERVALS_S))
+            kept = np.isfinite(per_route).any(axis=0)
+            if not kept.any():
+                continue
+            x, values = np.array(INTERVALS_S)[kept], per_route[:, kept]
+            fixes = "exact fixes" if key.endswith("exact_m") else f"{GNSS_STD_M:g} m fixes"
+            left.plot(x, np.nanmedian(values, axis=0), style, color=colour, ms=4,
+                      label=f"{'walks' if motion == 'pedestrian' else 'drives'} ({len(chosen)}), {fixes}")
+            left.fill_between(x, np.nanmin(values, axis=0), np.nanmax(values, axis=0), color=colour, alpha=0.12)
     left.set_xscale("log")
-    left.set_xlabel("GNSS interval (s; 5 m fixes)")
+    left.set_yscale("log")
+    left.set_xlabel("GNSS interval (s)")
     left.set_ylabel("median horizontal error (m)")
-    left.set_title("Walks: median error against the GNSS interval")
+    left.set_title("Median error against the GNSS interval\n(the routes' median; band: their range)")
     left.grid(True, which="both", alpha=0.3)
-    if walks:
-        left.legend(fontsize=6)
+    if left.lines:
+        left.legend(fontsize=7)
     pairs = [pair for row in rows.values() for pair in row.get("since_anchor", [])]
     edges = [edge for edge in SINCE_ANCHOR_BINS_S if edge <= 60.0] + [60.0 + 1e-9]
     centres, medians, p90s = [], [], []
@@ -341,6 +376,7 @@ def main() -> None:
         parser.exit(2, "route_set: no rows measured for this selection\n")
     print(table(rows))
     print("\n" + route_table(rows))
+    print("\n" + nees_by_configuration(rows))
     (RESULTS / "route_set.json").write_text(json.dumps(rows, indent=1))
     plot(rows, RESULTS / "route_set.png")
     print(f"written: {RESULTS / 'route_set.json'}, {RESULTS / 'route_set.png'}")

@@ -15,8 +15,9 @@ A ``map``-aligned velocity (an INS, a filter in ``map``) is a direct measurement
 frame (``odom``) is turned from ``map`` by a yaw ``psi`` nobody states, and wheel odometry has
 a scale error ``s`` (tyre wear, slip): the measured velocity is ``(1 + s) R(-psi) v``, ``v`` the
 map-frame velocity, with ``psi`` and ``s`` tracker states once the track's displacement over a
-stretch of odometry says where the odometry frame points (:func:`heading_offset`). Before that,
-a standstill (zero velocity in every frame) is still a measurement.
+stretch of odometry says where the odometry frame points (:func:`heading_offset`), or two
+fixes and the odometry between them do (:func:`frame_offset`). Before that, a standstill (zero
+velocity in every frame) is still a measurement.
 """
 
 from __future__ import annotations
@@ -75,7 +76,21 @@ def heading_offset(in_map: np.ndarray, in_odometry: np.ndarray, odometry_covaria
     displacement over a stretch, ``in_map``, and the odometry's over the same stretch): ``psi``
     (rad, wrapped to +-pi), its gradient by ``in_map`` (to carry the track's uncertainty into
     ``psi`` with its correlations) and the variance the odometry's own noise adds."""
+    values, by_map, covariance = frame_offset(in_map, in_odometry, odometry_covariance)
+    return float(values[0]), by_map[0], float(covariance[0, 0])
+
+
+def frame_offset(in_map: np.ndarray, in_odometry: np.ndarray, odometry_covariance: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The odometry frame's yaw ``psi`` and scale error ``s`` from one vector seen in both:
+    the angle between them (wrapped to +-pi), and ``s = |in_odometry| / |in_map| - 1`` (the
+    odometry reads ``(1 + s) R(-psi)`` of the map's vector, and a rotation keeps its length);
+    their Jacobian by ``in_map`` (2x2, rows psi and s) and the covariance (2x2) the odometry's
+    own noise adds."""
+    map_length2, odometry_length2 = float(in_map @ in_map), float(in_odometry @ in_odometry)
     psi = wrap_angle(math.atan2(in_map[1], in_map[0]) - math.atan2(in_odometry[1], in_odometry[0]))
-    by_track = np.array([-in_map[1], in_map[0]]) / float(in_map @ in_map)
-    by_odometry = -np.array([-in_odometry[1], in_odometry[0]]) / float(in_odometry @ in_odometry)
-    return psi, by_track, float(by_odometry @ odometry_covariance @ by_odometry)
+    ratio = math.sqrt(odometry_length2 / map_length2)
+    by_map = np.array([[-in_map[1], in_map[0]], [-ratio * in_map[0], -ratio * in_map[1]]]) / map_length2
+    by_odometry = np.array([np.array([in_odometry[1], -in_odometry[0]]) / odometry_length2,
+                            in_odometry / math.sqrt(odometry_length2 * map_length2)])
+    return np.array([psi, ratio - 1.0]), by_map, by_odometry @ odometry_covariance @ by_odometry.T

@@ -89,6 +89,14 @@ s)]``, ``D`` = 2 or 3:
   is still unknown, and taken as white noise it piles up between anchors as position error. An
   initial position with a heading (``PositionPrior.heading_rad``) and the odometry's own heading
   at that moment give the yaw at once, its variance the two headings' (no stretch needed).
+  Two positions taken in a row (GNSS fixes) and the odometry read between them say the yaw
+  and the scale as well, whatever the track did meanwhile: the angle between the fixes'
+  displacement and the odometry's, and their lengths' ratio (``aiding.frame_offset``), with
+  the covariance of the fixes' errors, the later fix's shared with the position update they
+  join. A frame already aligned is updated by them, the pair being the better witness: the
+  sites' pulls bend the track's own stretch. On the route set's drives, fixes a minute apart
+  (900 m) give the yaw to 0.03 rad where the stretch came 87-144 s into the drive, or 0.34 rad
+  off.
 
 **Aiding** (:meth:`Tracker.add_position`, :meth:`Tracker.add_velocity`): measurements of where
 the receiver is (a GNSS fix, with its covariance) and how it moves (odometry), queued and used
@@ -160,7 +168,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deepsync.fusion.aiding import PositionAid, VelocityAid, heading_offset, odometry_velocity, rotation
+from deepsync.fusion.aiding import (PositionAid, VelocityAid, frame_offset, heading_offset, odometry_velocity,
+                                    rotation)
 from deepsync.fusion.anchors import FRAME_RANGE_M, SiteArrival, unwrap_range
 from deepsync.fusion.snapshot import SnapshotConfig, chi_square_limit
 from deepsync.fusion.track_start import Start, batch_start
@@ -187,6 +196,9 @@ STANDSTILL_SIGMAS = 3.0  # an odometry speed within this many of its sigmas of 0
 HEADING_TURN_RATE_RAD_S = 0.5
 # odometry velocities refused in a row that say the track's velocity, not the odometry, is wrong
 MAX_VELOCITY_REFUSALS = 3
+# the yaw prior of an odometry frame that two fixes align (rad^2): wide enough that the fixes
+# alone say it, whatever the value it starts from
+UNKNOWN_YAW_VARIANCE = 100.0
 _WALKER = MOTION_MODELS[DEFAULT_MOTION]
 
 
@@ -304,6 +316,18 @@ class _Stretch:
     displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
 
+    def extend(self, aid: VelocityAid) -> None:
+        """Integrate on to ``aid`` (trapezoid), its velocity the latest."""
+        dt = aid.time_s - self.last_s
+        self.displacement = self.displacement + 0.5 * (self.velocity + aid.velocity) * dt
+        self.covariance = self.covariance + 0.25 * (self.velocity_covariance + aid.covariance) * dt**2
+        self.last_s, self.velocity, self.velocity_covariance = aid.time_s, aid.velocity, aid.covariance
+
+    def held_to(self, time_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The displacement and its covariance at ``time_s``, the latest velocity held since."""
+        dt = time_s - self.last_s
+        return self.displacement + self.velocity * dt, self.covariance + self.velocity_covariance * dt**2
+
 
 class Tracker:
     """Follows the receiver through stacks of 0..N site arrivals, and positions and velocities
@@ -339,6 +363,9 @@ class Tracker:
         self._aids.clear()
         self._forget()
         self._odometry_known: tuple[np.ndarray, np.ndarray] | None = None  # (psi, s), covariance kept over restarts
+        # the latest position taken, and what the odometry (its frame not yet aligned) has read
+        # since (None until its first velocity): the next fix aligns the frame by the two
+        self._since_fix: tuple[PositionAid, _Stretch | None] | None = None
 
     def start_from(self, prior: PositionPrior) -> None:
         """Give up the state and start again from ``prior`` at the next update (an operator's
@@ -641,13 +668,31 @@ class Tracker:
 
     def _use_position(self, aid: PositionAid) -> str | None:
         """An absolute position: used, or refused and said; a reason to start again from it
-        when it is the latest of ``max_position_rejections`` refused positions that agree."""
+        when it is the latest of ``max_position_rejections`` refused positions that agree. Used
+        while the odometry's frame is not aligned, it and the fix before it align the frame
+        where they can (:meth:`_frame_between_fixes`)."""
         dims = self.config.dims
-        H = np.zeros((dims, len(self._x)))
-        H[:, :dims] = np.eye(dims)
         innovation = aid.position_enu[:dims] - self._x[:dims]
-        score = self._correct_block(innovation, H, aid.covariance[:dims, :dims], self._gate_position)
-        if score is None:
+        R = aid.covariance[:dims, :dims]
+        score = float(innovation @ np.linalg.solve(self._P[:dims, :dims] + R, innovation))
+        if score <= self._gate_position:
+            frame = self._frame_between_fixes(aid)
+            if frame is not None:
+                values, R = frame
+                if self._odometry is None:
+                    # the yaw as the fixes read it, a prior too wide to count; the scale's own prior
+                    self._add_odometry_frame(np.array([values[0], 0.0]),
+                                             np.diag([UNKNOWN_YAW_VARIANCE, self.config.odometry_scale_std**2]))
+                if self._clone is not None:
+                    self._remove(range(self._clone, self._clone + 2))
+                psi, scale = self._x[self._odometry: self._odometry + 2]
+                innovation = np.r_[innovation, wrap_angle(values[0] - psi), values[1] - scale]
+            H = np.zeros((len(innovation), len(self._x)))
+            H[:dims, :dims] = np.eye(dims)
+            if frame is not None:
+                H[dims:, self._odometry: self._odometry + 2] = np.eye(2)
+            self._correct_block(innovation, H, R, math.inf)
+            self._since_fix = (aid, None)
             self._last_accepted = aid.time_s
             self._lost = False  # pinned
             self._refused_positions.clear()
@@ -675,6 +720,8 @@ class Tracker:
         z, R = aid.velocity, aid.covariance
         speed = float(np.hypot(*z))
         standstill = speed <= STANDSTILL_SIGMAS * math.sqrt(float(np.linalg.eigvalsh(R)[-1]))
+        if not aid.in_map_frame:
+            self._read_since_fix(aid)
         if self._odometry is None:  # may grow the state: size H after
             if not aid.in_map_frame:
                 self._stretch_to(aid)
@@ -717,6 +764,60 @@ class Tracker:
                                f"({math.sqrt(missed):.1f} m/s off), taken from the odometry")
             score = self._correct_block(z - seen, H, R, math.inf, others)
         self._velocity_outcome(aid, score, speed)
+
+    def _read_since_fix(self, aid: VelocityAid) -> None:
+        """Integrate the odometry's displacement since the latest fix; a gap drops it."""
+        if self._since_fix is None:
+            return
+        fix, stretch = self._since_fix
+        if aid.time_s - (fix.time_s if stretch is None else stretch.last_s) > ODOMETRY_GAP_S:
+            self._since_fix = None
+        elif stretch is None:
+            self._since_fix = (fix, _Stretch(fix.time_s, fix.time_s, aid.velocity, aid.covariance))
+            self._since_fix[1].extend(aid)
+        else:
+            stretch.extend(aid)
+
+    def _frame_between_fixes(self, aid: PositionAid) -> tuple[np.ndarray, np.ndarray] | None:
+        """The odometry frame's yaw and scale from two fixes and the odometry read between
+        them (``aiding.frame_offset`` of the fixes' displacement and the odometry's), and the
+        covariance of this fix and those two read together (the fix's error is in all three):
+        or None where the odometry did not run all the way from the fix before (a gap longer
+        than ``ODOMETRY_GAP_S``), read less than ``ALIGN_MIN_M``, or the fixes do not say the
+        direction to ``ALIGN_DIRECTION_STD_RAD``. Neither the track nor the sites enter: a track
+        lost between the fixes aligns the frame as well."""
+        if self._since_fix is None or self._since_fix[1] is None:
+            return None
+        (before, stretch), dims = self._since_fix, self.config.dims
+        if aid.time_s - stretch.last_s > ODOMETRY_GAP_S:
+            return None
+        in_odometry, odometry_covariance = stretch.held_to(aid.time_s)
+        in_map = aid.position_enu[:2] - before.position_enu[:2]
+        apart = before.covariance[:2, :2] + aid.covariance[:2, :2]
+        length = float(np.hypot(*in_map))
+        if float(np.hypot(*in_odometry)) < ALIGN_MIN_M or \
+                float(np.linalg.eigvalsh(apart)[-1]) > (ALIGN_DIRECTION_STD_RAD * length) ** 2:
+            return None
+        values, by_map, odometry_noise = frame_offset(in_map, in_odometry, odometry_covariance)
+        c, seconds = self.config, aid.time_s - before.time_s
+        wander = np.diag([c.heading_drift_rad_per_sqrt_s**2, c.odometry_scale_wander_per_sqrt_s**2]) * seconds
+        R = np.zeros((dims + 2, dims + 2))
+        R[:dims, :dims] = aid.covariance[:dims, :dims]
+        R[dims:, :dims] = by_map @ aid.covariance[:2, :dims]
+        R[:dims, dims:] = R[dims:, :dims].T
+        R[dims:, dims:] = by_map @ apart @ by_map.T + odometry_noise + wander
+        return values, R
+
+    def _know_frame(self, values: np.ndarray, covariance: np.ndarray) -> None:
+        """The odometry frame's yaw and scale read by two fixes while no track runs: kept for
+        the next track, combined with what the last one knew (two independent estimates)."""
+        if self._odometry_known is None:
+            self._odometry_known = (values, covariance)
+            return
+        known, spread = self._odometry_known
+        gain = spread @ np.linalg.inv(spread + covariance)
+        apart = np.array([wrap_angle(values[0] - known[0]), values[1] - known[1]])
+        self._odometry_known = (known + gain @ apart, (np.eye(2) - gain) @ spread)
 
     def _pair_heading(self, aid: VelocityAid) -> None:
         """An initial pose's heading (in map) and the odometry's own heading nearest its time
@@ -779,10 +880,7 @@ class Tracker:
             self._stretch = _Stretch(aid.time_s, aid.time_s, aid.velocity, aid.covariance)
             self._model()
             return
-        dt = aid.time_s - stretch.last_s
-        stretch.displacement = stretch.displacement + 0.5 * (stretch.velocity + aid.velocity) * dt
-        stretch.covariance = stretch.covariance + 0.25 * (stretch.velocity_covariance + aid.covariance) * dt**2
-        stretch.last_s, stretch.velocity, stretch.velocity_covariance = aid.time_s, aid.velocity, aid.covariance
+        stretch.extend(aid)
 
     def _align_odometry(self, aid: VelocityAid) -> None:
         """Once the odometry's stretch is long enough and the track's displacement over it points
@@ -932,6 +1030,7 @@ class Tracker:
         self._forget()
         if anchor is not None:
             self._prior, self._prior_since = _prior_of(anchor), anchor.time_s
+            self._since_fix = (anchor, None)
         outcome = self._start(stamp_ns, time_s, clock_rate, [])
         if isinstance(outcome, NoFix):
             return NoFix(stamp_ns, outcome.reason, f"restarted: {why}; {outcome.message}", rejected)
@@ -939,11 +1038,18 @@ class Tracker:
 
     def _start_aided(self, stamp_ns: int, time_s: float, clock_rate: float | None, arrivals: list[SiteArrival],
                      aids: list[PositionAid | VelocityAid]) -> Fix | NoFix:
-        """A start, the latest position among ``aids`` standing in for an initial position
-        (velocities need a track to align with: they wait for none)."""
+        """A start, the latest position among ``aids`` standing in for an initial position. The
+        velocities find no track to move: they pair an operator's heading, and count towards
+        the odometry frame two fixes read (:meth:`_know_frame`, for the track that starts next)."""
         for aid in aids:
             if isinstance(aid, VelocityAid):
                 self._pair_heading(aid)
+                if not aid.in_map_frame:
+                    self._read_since_fix(aid)
+                continue
+            if (frame := self._frame_between_fixes(aid)) is not None:
+                self._know_frame(frame[0], frame[1][-2:, -2:])
+            self._since_fix = (aid, None)
         positions = [aid for aid in aids if isinstance(aid, PositionAid)]
         if positions:
             self._prior, self._prior_since = _prior_of(positions[-1]), positions[-1].time_s
