@@ -304,14 +304,32 @@ def test_two_fixes_align_the_odometry_frame_where_the_track_cannot():
     route = biased_route(21, 40.0, velocity=(10.0, 3.0))
     config = replace(PipelineConfig.for_motion("vehicle").fusion.tracker, max_std_m=1.0)
     aids = odometry(route, 2.0, -0.03, rng)
-    frames = frame_after_fixes(route, aids, (5, 305), rng, Tracker(config))
+    tracker = Tracker(config)
+    frames = frame_after_fixes(route, aids, (5, 305), rng, tracker)
     assert all(frame is None for frame in frames[:305]), "aligned before the second fix"
     _, (psi, scale), covariance = frames[305]
     psi_std, scale_std = np.sqrt(np.diag(covariance))
     assert abs(wrap_angle(psi - 2.0)) < 3 * psi_std and psi_std < 0.03
     assert abs(scale + 0.03) < 3 * scale_std and scale_std < 0.02
+    said = tracker.odometry_frame()  # what the diagnostics show: the state's frame at the end
+    _, (psi, scale), covariance = frames[-1]
+    assert (said.yaw_rad, said.scale) == pytest.approx((wrap_angle(psi), scale))
+    assert (said.yaw_std_rad, said.scale_std) == pytest.approx(tuple(np.sqrt(np.diag(covariance))))
     gap = {k: v for k, v in aids.items() if not 100 <= k < 130}
     assert frame_after_fixes(route, gap, (5, 305), rng, Tracker(config))[-1] is None
+
+
+def test_fixes_every_second_align_the_odometry_frame_once_far_enough_apart():
+    """A fix a second on a drive (10 m apart, too near to say a direction): the first stays the
+    pair's first until one is far enough from it, and the frame is aligned within seconds."""
+    rng = np.random.default_rng(24)
+    route = biased_route(24, 12.0, velocity=(10.0, 3.0))
+    config = replace(PipelineConfig.for_motion("vehicle").fusion.tracker, max_std_m=1.0)
+    frames = frame_after_fixes(route, odometry(route, 2.0, -0.03, rng), tuple(range(5, 120, 10)), rng,
+                               Tracker(config))
+    aligned = next(frame for frame in frames if frame is not None)
+    k, (psi, _), covariance = aligned
+    assert k <= 45 and abs(wrap_angle(psi - 2.0)) < 3 * math.sqrt(covariance[0, 0]) < 0.6
 
 
 def test_two_fixes_align_the_odometry_frame_while_no_track_runs():
@@ -334,6 +352,8 @@ def test_two_fixes_align_the_odometry_frame_while_no_track_runs():
     psi_std, scale_std = np.sqrt(np.diag(covariance))
     assert abs(wrap_angle(psi - 2.0)) < 3 * psi_std and psi_std < 0.03
     assert abs(scale + 0.03) < 3 * scale_std and scale_std < 0.02
+    said = tracker.odometry_frame()
+    assert said is not None and said.yaw_rad == pytest.approx(wrap_angle(known[-1][0][0]))
 
 
 def test_two_fixes_turn_an_odometry_frame_aligned_wrong():

@@ -15,7 +15,8 @@ from deepsync.bag.convert import gnss_fix_from_msg, make_header, odometry_from_m
 from deepsync.fusion.stage import FusionStage
 from deepsync.towers import load_tower_database
 from deepsync.types import Severity
-from deepsync_ros.aiding import AidingInputs, LearnedTowers
+from deepsync.fusion.tracker import OdometryFrame
+from deepsync_ros.aiding import AidingInputs, LearnedTowers, describe_odometry_frame
 
 REPO = Path(__file__).resolve().parents[1]
 TOWERS = REPO / "config" / "towers" / "campus.yaml"
@@ -103,6 +104,12 @@ def test_odometry_back_in_time_is_refused_and_stale_odometry_warns():
     report = aiding.report()
     assert report.level is Severity.WARN and "odometry stale (3.0 s" in report.message
     assert "motion model alone" in report.message
+
+
+def test_the_diagnostics_say_the_odometry_frame_or_what_would_align_it():
+    aiding = inputs()
+    assert "not aligned yet" in dict(aiding.report().values)["odometry frame (yaw from map, scale error)"]
+    assert describe_odometry_frame(OdometryFrame(2.0, 0.031, -0.069, 0.018)) == "+2.000 +- 0.031 rad, -6.9 +- 1.8 %"
 
 
 def test_the_learned_database_is_written_atomically_and_a_failed_write_is_said_and_retried(tmp_path):

@@ -19,6 +19,7 @@ from typing import Any
 
 from deepsync.bag.convert import gnss_fix_from_msg, odometry_from_msg
 from deepsync.fusion.stage import FusionStage
+from deepsync.fusion.tracker import OdometryFrame
 from deepsync.towers import write_tower_database
 from deepsync.types import Health, HealthKind, Severity
 
@@ -111,6 +112,9 @@ class AidingInputs:
             values += [("odometry taken", str(self.taken["odometry"])),
                        ("odometry refused", str(self.refused["odometry"])),
                        ("last odometry (s before the latest stack)", "none" if math.isinf(age) else f"{age:.2f}")]
+            tracker = self.fusion.tracker
+            values.append(("odometry frame (yaw from map, scale error)",
+                           describe_odometry_frame(None if tracker is None else tracker.odometry_frame())))
             if self.stack_ns is not None and age > self.odometry_timeout_s:
                 problems.append("no odometry yet" if math.isinf(age) else
                                 f"odometry stale ({age:.1f} s, odometry_timeout_s {self.odometry_timeout_s:g}): "
@@ -129,6 +133,15 @@ class AidingInputs:
             return Report(Severity.WARN, "; ".join(problems), values)
         taken = ", ".join(f"{n} {kind}" for kind, n in self.taken.items()) or "nothing yet"
         return Report(Severity.OK, f"taken: {taken}", values)
+
+
+def describe_odometry_frame(frame: OdometryFrame | None) -> str:
+    """The odometry frame the tracker has aligned, or what would align it, in words."""
+    if frame is None:
+        return ("not aligned yet: the track's own displacement over 20 m, two GNSS fixes with odometry between "
+                "them, or an /initialpose with a heading aligns it")
+    return (f"{frame.yaw_rad:+.3f} +- {frame.yaw_std_rad:.3f} rad, {100 * frame.scale:+.1f} +- "
+            f"{100 * frame.scale_std:.1f} %")
 
 
 class LearnedTowers:

@@ -304,6 +304,18 @@ class SiteBias:
     drift_std_mps: float = math.nan
 
 
+@dataclass(frozen=True)
+class OdometryFrame:
+    """What the tracker has learned of an odometry's own frame: its yaw from ``map`` (rad) and
+    its scale error (a fraction: the odometry reads ``1 + scale`` of the distance), each with
+    its 1-sigma."""
+
+    yaw_rad: float
+    yaw_std_rad: float
+    scale: float
+    scale_std: float
+
+
 @dataclass
 class _Stretch:
     """An odometry stretch: from ``first_s`` to ``last_s``, the displacement it read in its own
@@ -411,6 +423,20 @@ class Tracker:
             else:
                 out[name] = SiteBias(bias, std)
         return out
+
+    def odometry_frame(self) -> OdometryFrame | None:
+        """The odometry frame as aligned (by the track's stretch, two fixes or an initial pose's
+        heading; a track that restarted keeps it), None before it is; for odometry in ``map``,
+        its yaw 0 and its scale."""
+        if self._odometry is not None:
+            block = slice(self._odometry, self._odometry + 2)
+            values, covariance = self._x[block], self._P[block, block]
+        elif self._odometry_known is not None:
+            values, covariance = self._odometry_known
+        else:
+            return None
+        spread = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+        return OdometryFrame(wrap_angle(float(values[0])), float(spread[0]), float(values[1]), float(spread[1]))
 
     def _forget(self) -> None:
         """Forget the state but keep the window of recent arrivals, for a start at once."""
@@ -692,7 +718,6 @@ class Tracker:
             if frame is not None:
                 H[dims:, self._odometry: self._odometry + 2] = np.eye(2)
             self._correct_block(innovation, H, R, math.inf)
-            self._since_fix = (aid, None)
             self._last_accepted = aid.time_s
             self._lost = False  # pinned
             self._refused_positions.clear()
@@ -785,10 +810,13 @@ class Tracker:
         or None where the odometry did not run all the way from the fix before (a gap longer
         than ``ODOMETRY_GAP_S``), read less than ``ALIGN_MIN_M``, or the fixes do not say the
         direction to ``ALIGN_DIRECTION_STD_RAD``. Neither the track nor the sites enter: a track
-        lost between the fixes aligns the frame as well."""
-        if self._since_fix is None or self._since_fix[1] is None:
+        lost between the fixes aligns the frame as well. ``aid`` is then the first fix of the
+        next pair, but where the odometry runs on from a fix too near to say the direction
+        (fixes every second): that one stays first, until a fix far enough from it."""
+        pair, self._since_fix = self._since_fix, (aid, None)
+        if pair is None or pair[1] is None:
             return None
-        (before, stretch), dims = self._since_fix, self.config.dims
+        (before, stretch), dims = pair, self.config.dims
         if aid.time_s - stretch.last_s > ODOMETRY_GAP_S:
             return None
         in_odometry, odometry_covariance = stretch.held_to(aid.time_s)
@@ -797,6 +825,7 @@ class Tracker:
         length = float(np.hypot(*in_map))
         if float(np.hypot(*in_odometry)) < ALIGN_MIN_M or \
                 float(np.linalg.eigvalsh(apart)[-1]) > (ALIGN_DIRECTION_STD_RAD * length) ** 2:
+            self._since_fix = pair
             return None
         values, by_map, odometry_noise = frame_offset(in_map, in_odometry, odometry_covariance)
         c, seconds = self.config, aid.time_s - before.time_s
@@ -1049,7 +1078,6 @@ class Tracker:
                 continue
             if (frame := self._frame_between_fixes(aid)) is not None:
                 self._know_frame(frame[0], frame[1][-2:, -2:])
-            self._since_fix = (aid, None)
         positions = [aid for aid in aids if isinstance(aid, PositionAid)]
         if positions:
             self._prior, self._prior_since = _prior_of(positions[-1]), positions[-1].time_s
