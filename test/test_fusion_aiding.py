@@ -356,6 +356,37 @@ def test_two_fixes_align_the_odometry_frame_while_no_track_runs():
     assert said is not None and said.yaw_rad == pytest.approx(wrap_angle(known[-1][0][0]))
 
 
+@pytest.mark.parametrize("off_m", [0.0, 60.0])
+def test_a_pair_of_fixes_that_disagrees_with_the_frame_known_is_not_used_and_said(off_m):
+    """No site heard, fixes at 0.5, 30.5 and 60.5 s on a drive: the first pair aligns the frame;
+    the third fix, 60 m off across the way, reads a yaw 0.2 rad from it (its sigma 0.03): that
+    pair is refused, said, and the frame kept as it was; a third fix as good as the others
+    narrows it instead."""
+    rng = np.random.default_rng(25)
+    route = biased_route(25, 62.0, velocity=(10.0, 3.0))
+    tracker = Tracker(PipelineConfig.for_motion("vehicle").fusion.tracker)
+    aids = odometry(route, 2.0, -0.03, rng)
+    for k in (5, 305, 605):
+        fix = fix_at(route, k, 3.0, rng)
+        across = np.array([-3.0, 10.0, 0.0]) / math.hypot(3.0, 10.0)
+        aids.setdefault(k, []).append(PositionAid(fix.time_s, fix.position_enu + (off_m * across if k == 605 else 0.0),
+                                                  fix.covariance))
+    known = []
+    for k, end in enumerate(route.ends):
+        for aid in aids.get(k, []):
+            (tracker.add_position if isinstance(aid, PositionAid) else tracker.add_velocity)(aid)
+        tracker.update([], round(end * 1e9), float(end))
+        known.append(tracker._odometry_known)
+    notes = " ".join(tracker.take_notes())
+    first, last = known[305], known[605]
+    if off_m:
+        assert "the pair is not used" in notes
+        assert np.array_equal(last[0], first[0]) and np.array_equal(last[1], first[1])
+    else:
+        assert "the pair is not used" not in notes
+        assert last[1][0, 0] < first[1][0, 0] and abs(wrap_angle(last[0][0] - 2.0)) < 3 * math.sqrt(last[1][0, 0])
+
+
 def test_two_fixes_turn_an_odometry_frame_aligned_wrong():
     """An operator's heading 0.4 rad off, claimed to 0.3, aligns the frame 0.4 rad off; the
     next pair of fixes, 30 s apart on a drive, turns it to within 0.05 rad of the truth."""

@@ -94,7 +94,9 @@ s)]``, ``D`` = 2 or 3:
   displacement and the odometry's, and their lengths' ratio (``aiding.frame_offset``), with
   the covariance of the fixes' errors, the later fix's shared with the position update they
   join. A frame already aligned is updated by them, the pair being the better witness: the
-  sites' pulls bend the track's own stretch. On the route set's drives, fixes a minute apart
+  sites' pulls bend the track's own stretch. A pair that disagrees with the frame known (its
+  yaw and scale beyond the 2-dof gate; unaligned, the scale against its prior) is not used,
+  and said: a fix tens of metres off reads a frame no odometry has. On the route set's drives, fixes a minute apart
   (900 m) give the yaw to 0.03 rad where the stretch came 87-144 s into the drive, or 0.34 rad
   off.
 
@@ -703,19 +705,17 @@ class Tracker:
         score = float(innovation @ np.linalg.solve(self._P[:dims, :dims] + R, innovation))
         if score <= self._gate_position:
             frame = self._frame_between_fixes(aid)
-            if frame is not None:
+            if frame is not None and self._pair_agrees(aid, *frame):
                 values, R = frame
                 if self._odometry is None:
-                    # the yaw as the fixes read it, a prior too wide to count; the scale's own prior
-                    self._add_odometry_frame(np.array([values[0], 0.0]),
-                                             np.diag([UNKNOWN_YAW_VARIANCE, self.config.odometry_scale_std**2]))
+                    self._add_odometry_frame(*self._frame_known(values[0]))
                 if self._clone is not None:
                     self._remove(range(self._clone, self._clone + 2))
                 psi, scale = self._x[self._odometry: self._odometry + 2]
                 innovation = np.r_[innovation, wrap_angle(values[0] - psi), values[1] - scale]
             H = np.zeros((len(innovation), len(self._x)))
             H[:dims, :dims] = np.eye(dims)
-            if frame is not None:
+            if len(innovation) > dims:
                 H[dims:, self._odometry: self._odometry + 2] = np.eye(2)
             self._correct_block(innovation, H, R, math.inf)
             self._last_accepted = aid.time_s
@@ -836,6 +836,32 @@ class Tracker:
         R[:dims, dims:] = R[dims:, :dims].T
         R[dims:, dims:] = by_map @ apart @ by_map.T + odometry_noise + wander
         return values, R
+
+    def _frame_known(self, yaw_rad: float) -> tuple[np.ndarray, np.ndarray]:
+        """The odometry frame's yaw and scale as the tracker knows them, and their covariance:
+        the state's, else the last track's, else ``yaw_rad`` with a prior too wide to count and
+        the scale's own prior."""
+        if self._odometry is not None:
+            block = slice(self._odometry, self._odometry + 2)
+            return self._x[block], self._P[block, block]
+        if self._odometry_known is not None:
+            return self._odometry_known
+        return np.array([yaw_rad, 0.0]), np.diag([UNKNOWN_YAW_VARIANCE, self.config.odometry_scale_std**2])
+
+    def _pair_agrees(self, aid: PositionAid, values: np.ndarray, R: np.ndarray) -> bool:
+        """Whether the frame two fixes read agrees with what is known of it (chi-square, 2
+        dof): a fix off by tens of metres reads a yaw and a scale no odometry has. Said where
+        it does not; the fix itself is used all the same."""
+        known, spread = self._frame_known(values[0])
+        apart = np.array([wrap_angle(values[0] - known[0]), values[1] - known[1]])
+        score = float(apart @ np.linalg.solve(spread + R[-2:, -2:], apart))
+        if score <= self._gate2:
+            return True
+        self._notes.append(f"{aid.source} at {aid.time_s:.1f} s and the fix before it read the odometry frame "
+                           f"{values[0]:+.2f} rad, scale {100 * values[1]:+.0f} %, against {known[0]:+.2f} rad, "
+                           f"{100 * known[1]:+.0f} % (normalised innovation {score:.1f} beyond the gate "
+                           f"{self._gate2:.1f}): the pair is not used")
+        return False
 
     def _know_frame(self, values: np.ndarray, covariance: np.ndarray) -> None:
         """The odometry frame's yaw and scale read by two fixes while no track runs: kept for
@@ -1076,7 +1102,7 @@ class Tracker:
                 if not aid.in_map_frame:
                     self._read_since_fix(aid)
                 continue
-            if (frame := self._frame_between_fixes(aid)) is not None:
+            if (frame := self._frame_between_fixes(aid)) is not None and self._pair_agrees(aid, *frame):
                 self._know_frame(frame[0], frame[1][-2:, -2:])
         positions = [aid for aid in aids if isinstance(aid, PositionAid)]
         if positions:
