@@ -16,6 +16,7 @@ import yaml
 
 from deepsync.bag import ENVELOPE_TOPIC, BagReader, BagWriter, envelope_from_msg
 from deepsync.cli import main
+from deepsync.eval.aiding import AidingPlan
 from deepsync.eval.calibrate import calibrate_route, oracle_database
 from deepsync.eval.route import InitialPose, evaluate_route, read_truth_track
 from deepsync.fusion.stage import FusionConfig, FusionStage
@@ -97,6 +98,16 @@ def test_an_initial_pose_fixes_a_route_where_two_sites_alone_cannot(tmp_path, ca
     assert summary["methods"]["snapshot"]["fix_rate"] == 0.0
     tracked = summary["methods"]["tracked"]
     assert tracked["fix_rate"] > 0.9 and tracked["median_m"] < 30.0  # about the prior's 10 m: the receiver stands
+
+
+def test_odometry_on_a_receiver_that_stands_aligns_no_frame_and_the_report_says_so(tmp_path) -> None:
+    """Standing still reads 0 in any frame: the campus receiver's odometry tells the track
+    that it stands, but no frame's yaw, and route.json says it never aligned (null)."""
+    summary, paths = evaluate_route(BagSource(BAG), load_tower_database(TOWERS), tmp_path, progress=False,
+                                    aiding=AidingPlan(0.0, 5.0, 0.05))
+    assert summary["aiding"] == "GNSS at the start (5 m), odometry (5% error)"
+    assert summary["odometry_frame"] is None
+    assert json.loads(paths[0].read_text())["summary"]["odometry_frame"] is None
 
 
 def test_an_initial_position_needs_the_tracker() -> None:

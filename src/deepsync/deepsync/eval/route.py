@@ -115,6 +115,8 @@ class RouteRun:
     aiding: str = "no aiding"  # what the tracker was given besides the sites (AidingPlan.describes)
     anchors: tuple[tuple[int, np.ndarray], ...] = ()  # the GNSS fixes given: (stamp, map ENU)
     site_biases: dict[str, tuple[float, float]] = field(default_factory=dict)  # learned at the end: site: (m, sigma m)
+    # the odometry frame as learned by the end, and how long into the route it was first aligned
+    odometry_frame: dict | None = None
 
     def since_anchor_s(self, stamp_ns: int) -> float:
         """Seconds from the latest GNSS fix at or before ``stamp_ns`` (NaN before the first)."""
@@ -225,6 +227,7 @@ def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | N
         odometry = plan.odometry(stamps[0], end, truth.stamps_ns, truth.positions)
     aids = sorted([*fixes, *odometry], key=lambda aid: aid.stamp_ns)
     fused, notes = [], []
+    aligned_ns = None
     pending = initial_pose
     given = 0
     for k, arrivals in enumerate(recorded.arrivals):
@@ -239,6 +242,8 @@ def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | N
             refused += [] if event is None else [event.message]
             given += 1
         fusion = stage.process(arrivals)
+        if aligned_ns is None and stage.tracker is not None and stage.tracker.odometry_frame() is not None:
+            aligned_ns = arrivals.stamp_ns
         notes.append(tuple(refused) + tuple(e.message for e in fusion.events if e.kind is HealthKind.AIDING_REFUSED))
         fused.append((arrivals, fusion, stage.reference_ns))
     run = score_stacks(str(recorded.source.path), fused, truth, recorded.true_arrivals, recorded.interrupted)
@@ -249,6 +254,9 @@ def fuse_route(recorded: Replay, towers: TowerDatabase, config: FusionConfig | N
                                                                               fix.height_m))) for fix in fixes)
     if stage.tracker is not None:
         run.site_biases = {name: (b.bias_m, b.std_m) for name, b in stage.tracker.site_biases().items()}
+        if aligned_ns is not None:
+            run.odometry_frame = {"aligned_after_s": (aligned_ns - stamps[0]) * 1e-9,
+                                  **dataclasses.asdict(stage.tracker.odometry_frame())}
     return run
 
 
@@ -382,6 +390,7 @@ def summarize_route(run: RouteRun) -> dict:
         "tracked_by_time_since_anchor": _by_time_since_anchor(run),
         "learned_site_biases_m": {site: {"bias_m": bias, "std_m": std} for site, (bias, std) in
                                   sorted(run.site_biases.items())},
+        "odometry_frame": run.odometry_frame,
     }
 
 
