@@ -96,9 +96,9 @@ s)]``, ``D`` = 2 or 3:
   join. A frame already aligned is updated by them, the pair being the better witness: the
   sites' pulls bend the track's own stretch. A pair that disagrees with the frame known (its
   yaw and scale beyond the 2-dof gate; unaligned, the scale against its prior) is not used,
-  and said: a fix tens of metres off reads a frame no odometry has. On the route set's drives, fixes a minute apart
-  (900 m) give the yaw to 0.03 rad where the stretch came 87-144 s into the drive, or 0.34 rad
-  off.
+  and said: a fix tens of metres off reads a frame no odometry has. On the route set's drives,
+  fixes a minute apart (900 m) give the yaw to 0.03 rad where the stretch came 87-144 s into
+  the drive, or 0.34 rad off.
 
 **Aiding** (:meth:`Tracker.add_position`, :meth:`Tracker.add_velocity`): measurements of where
 the receiver is (a GNSS fix, with its covariance) and how it moves (odometry), queued and used
@@ -377,8 +377,8 @@ class Tracker:
         self._aids.clear()
         self._forget()
         self._odometry_known: tuple[np.ndarray, np.ndarray] | None = None  # (psi, s), covariance kept over restarts
-        # the latest position taken, and what the odometry (its frame not yet aligned) has read
-        # since (None until its first velocity): the next fix aligns the frame by the two
+        # the latest position taken (the first of the next pair), and what the odometry in its
+        # own frame has read since (None until its first velocity): the next fix reads the frame
         self._since_fix: tuple[PositionAid, _Stretch | None] | None = None
 
     def start_from(self, prior: PositionPrior) -> None:
@@ -696,9 +696,9 @@ class Tracker:
 
     def _use_position(self, aid: PositionAid) -> str | None:
         """An absolute position: used, or refused and said; a reason to start again from it
-        when it is the latest of ``max_position_rejections`` refused positions that agree. Used
-        while the odometry's frame is not aligned, it and the fix before it align the frame
-        where they can (:meth:`_frame_between_fixes`)."""
+        when it is the latest of ``max_position_rejections`` refused positions that agree. Used,
+        it and the fix before it read the odometry frame (:meth:`_frame_between_fixes`), which
+        they align, or update, where they agree with what is known of it (:meth:`_pair_agrees`)."""
         dims = self.config.dims
         innovation = aid.position_enu[:dims] - self._x[:dims]
         R = aid.covariance[:dims, :dims]
@@ -865,11 +865,8 @@ class Tracker:
 
     def _know_frame(self, values: np.ndarray, covariance: np.ndarray) -> None:
         """The odometry frame's yaw and scale read by two fixes while no track runs: kept for
-        the next track, combined with what the last one knew (two independent estimates)."""
-        if self._odometry_known is None:
-            self._odometry_known = (values, covariance)
-            return
-        known, spread = self._odometry_known
+        the next track, combined with what is known of it (:meth:`_frame_known`; independent)."""
+        known, spread = self._frame_known(values[0])
         gain = spread @ np.linalg.inv(spread + covariance)
         apart = np.array([wrap_angle(values[0] - known[0]), values[1] - known[1]])
         self._odometry_known = (known + gain @ apart, (np.eye(2) - gain) @ spread)
