@@ -430,13 +430,10 @@ class Tracker:
         """The odometry frame as aligned (by the track's stretch, two fixes or an initial pose's
         heading; a track that restarted keeps it), None before it is; for odometry in ``map``,
         its yaw 0 and its scale."""
-        if self._odometry is not None:
-            block = slice(self._odometry, self._odometry + 2)
-            values, covariance = self._x[block], self._P[block, block]
-        elif self._odometry_known is not None:
-            values, covariance = self._odometry_known
-        else:
+        held = self._frame_held()
+        if held is None:
             return None
+        values, covariance = held
         spread = np.sqrt(np.maximum(np.diag(covariance), 0.0))
         return OdometryFrame(wrap_angle(float(values[0])), float(spread[0]), float(values[1]), float(spread[1]))
 
@@ -711,8 +708,7 @@ class Tracker:
                     self._add_odometry_frame(*self._frame_known(values[0]))
                 if self._clone is not None:
                     self._remove(range(self._clone, self._clone + 2))
-                psi, scale = self._x[self._odometry: self._odometry + 2]
-                innovation = np.r_[innovation, wrap_angle(values[0] - psi), values[1] - scale]
+                innovation = np.r_[innovation, self._frame_apart(values)[0]]
             H = np.zeros((len(innovation), len(self._x)))
             H[:dims, :dims] = np.eye(dims)
             if len(innovation) > dims:
@@ -837,23 +833,33 @@ class Tracker:
         R[dims:, dims:] = by_map @ apart @ by_map.T + odometry_noise + wander
         return values, R
 
-    def _frame_known(self, yaw_rad: float) -> tuple[np.ndarray, np.ndarray]:
-        """The odometry frame's yaw and scale as the tracker knows them, and their covariance:
-        the state's, else the last track's, else ``yaw_rad`` with a prior too wide to count and
-        the scale's own prior."""
+    def _frame_held(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The odometry frame's yaw and scale and their covariance: the state's, else the last
+        track's; None before any alignment."""
         if self._odometry is not None:
             block = slice(self._odometry, self._odometry + 2)
             return self._x[block], self._P[block, block]
-        if self._odometry_known is not None:
-            return self._odometry_known
+        return self._odometry_known
+
+    def _frame_known(self, yaw_rad: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_frame_held`, or before any alignment ``yaw_rad`` with a prior too wide to
+        count and the scale's own prior."""
+        held = self._frame_held()
+        if held is not None:
+            return held
         return np.array([yaw_rad, 0.0]), np.diag([UNKNOWN_YAW_VARIANCE, self.config.odometry_scale_std**2])
+
+    def _frame_apart(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """How far a frame read by two fixes (yaw, scale) is from the one known (the yaw
+        wrapped), and the known frame and its covariance (:meth:`_frame_known`)."""
+        known, spread = self._frame_known(values[0])
+        return np.array([wrap_angle(values[0] - known[0]), values[1] - known[1]]), known, spread
 
     def _pair_agrees(self, aid: PositionAid, values: np.ndarray, R: np.ndarray) -> bool:
         """Whether the frame two fixes read agrees with what is known of it (chi-square, 2
         dof): a fix off by tens of metres reads a yaw and a scale no odometry has. Said where
         it does not; the fix itself is used all the same."""
-        known, spread = self._frame_known(values[0])
-        apart = np.array([wrap_angle(values[0] - known[0]), values[1] - known[1]])
+        apart, known, spread = self._frame_apart(values)
         score = float(apart @ np.linalg.solve(spread + R[-2:, -2:], apart))
         if score <= self._gate2:
             return True
@@ -866,9 +872,8 @@ class Tracker:
     def _know_frame(self, values: np.ndarray, covariance: np.ndarray) -> None:
         """The odometry frame's yaw and scale read by two fixes while no track runs: kept for
         the next track, combined with what is known of it (:meth:`_frame_known`; independent)."""
-        known, spread = self._frame_known(values[0])
+        apart, known, spread = self._frame_apart(values)
         gain = spread @ np.linalg.inv(spread + covariance)
-        apart = np.array([wrap_angle(values[0] - known[0]), values[1] - known[1]])
         self._odometry_known = (known + gain @ apart, (np.eye(2) - gain) @ spread)
 
     def _pair_heading(self, aid: VelocityAid) -> None:
